@@ -75,6 +75,7 @@ class Capsules:
 
 
 def _vertex_sets(model: BodyModel) -> list[torch.Tensor]:
+    """Per capsule, the indices of the vertices it covers (cached on the model)."""
     cached = getattr(model, "_capsule_vertex_sets", None)
     if cached is not None:
         return cached
@@ -85,6 +86,29 @@ def _vertex_sets(model: BodyModel) -> list[torch.Tensor]:
         sets.append(torch.as_tensor(idx, dtype=torch.int64, device=model.v_template.device))
     model._capsule_vertex_sets = sets
     return sets
+
+
+def _padded_sets(model: BodyModel):
+    """``(K, N)`` padded vertex indices, ``(K, N)`` bool mask, ``(K,)`` counts (cached)."""
+    cached = getattr(model, "_capsule_padded", None)
+    if cached is not None:
+        return cached
+    sets = _vertex_sets(model)
+    n = max(1, max(int(s.numel()) for s in sets))
+    idx = torch.zeros(len(sets), n, dtype=torch.int64, device=model.v_template.device)
+    mask = torch.zeros(len(sets), n, dtype=torch.bool, device=model.v_template.device)
+    for k, s in enumerate(sets):
+        idx[k, : s.numel()] = s
+        mask[k, : s.numel()] = True
+    model._capsule_padded = (idx, mask, mask.sum(1))
+    return model._capsule_padded
+
+
+_AXIS_TARGET = torch.tensor([a if isinstance(a, int) else -1 for *_, a in _SPEC])
+_FIXED_AXIS = torch.tensor(
+    [[1.0, 0.0, 0.0] if a == "x" else [0.0, 1.0, 0.0] if a == "y" else [0.0, 0.0, 0.0] for *_, a in _SPEC]
+)
+_BONES = torch.tensor(CAPSULE_BONES)
 
 
 def body_capsules(model: BodyModel, out: BodyOutput) -> Capsules:
@@ -98,38 +122,41 @@ def body_capsules(model: BodyModel, out: BodyOutput) -> Capsules:
         :class:`Capsules` in the same frame as ``out.vertices`` (metres).
     """
     rest_v, rest_j, T = out.rest_vertices, out.rest_joints, out.transforms
-    B = rest_v.shape[0]
     dt, dev = rest_v.dtype, rest_v.device
-    starts, ends, radii = [], [], []
-    for (name, bone, _, axis), idx in zip(_SPEC, _vertex_sets(model)):
-        a = rest_j[:, bone]
-        if isinstance(axis, str):
-            u = torch.zeros(B, 3, dtype=dt, device=dev)
-            u[:, 0 if axis == "x" else 1] = 1.0
-        else:
-            u = rest_j[:, axis] - a
-            u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        if idx.numel() < _MIN_VERTS:
-            p0 = a
-            p1 = rest_j[:, axis] if not isinstance(axis, str) else a + 0.1 * u
-            r = torch.full((B,), _FALLBACK_RADIUS, dtype=dt, device=dev)
-        else:
-            P = rest_v[:, idx]
-            c = P.mean(dim=1)
-            d = torch.einsum("bnc,bc->bn", P - c[:, None], u)
-            perp = P - c[:, None] - d[..., None] * u[:, None]
-            r = perp.norm(dim=-1).mean(dim=1)
-            lo = torch.quantile(d, _QUANTILE, dim=1) + r
-            hi = torch.quantile(d, 1.0 - _QUANTILE, dim=1) - r
-            mid = 0.5 * (lo + hi)
-            lo, hi = torch.minimum(lo, mid), torch.maximum(hi, mid)
-            p0 = c + lo[:, None] * u
-            p1 = c + hi[:, None] * u
-        R, t = T[:, bone, :3, :3], T[:, bone, :3, 3]
-        starts.append(torch.einsum("bcd,bd->bc", R, p0) + t)
-        ends.append(torch.einsum("bcd,bd->bc", R, p1) + t)
-        radii.append(r)
-    return Capsules(torch.stack(starts, 1), torch.stack(ends, 1), torch.stack(radii, 1))
+    idx, mask, count = _padded_sets(model)
+    bones = _BONES.to(dev)
+    has_target = (_AXIS_TARGET >= 0).to(dev)
+    a = rest_j[:, bones]  # (B,K,3)
+    target = rest_j[:, _AXIS_TARGET.clamp_min(0).to(dev)]
+    u_bone = target - a
+    u_bone = u_bone / u_bone.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    u = torch.where(has_target[:, None], u_bone, _FIXED_AXIS.to(device=dev, dtype=dt))
+    m = mask.to(dt)
+    P = rest_v[:, idx]  # (B,K,N,3)
+    c = (P * m[..., None]).sum(2) / count.clamp_min(1).to(dt)[:, None]
+    rel = P - c[:, :, None]
+    d = (rel * u[:, :, None]).sum(-1)  # (B,K,N)
+    perp = (rel - d[..., None] * u[:, :, None]).norm(dim=-1)
+    r = (perp * m).sum(2) / count.clamp_min(1).to(dt)
+    d_nan = torch.where(mask, d, torch.full_like(d, float("nan")))
+    lo = torch.nanquantile(d_nan, _QUANTILE, dim=2) + r
+    hi = torch.nanquantile(d_nan, 1.0 - _QUANTILE, dim=2) - r
+    mid = 0.5 * (lo + hi)
+    lo, hi = torch.minimum(lo, mid), torch.maximum(hi, mid)
+    p0 = c + lo[..., None] * u
+    p1 = c + hi[..., None] * u
+    # bones whose vertex set is (almost) empty: a thin capsule along the bone
+    few = (count < _MIN_VERTS)[:, None]
+    if few.any():
+        fallback_end = torch.where(has_target[:, None], target, a + 0.1 * u)
+        p0 = torch.where(few, a, p0)
+        p1 = torch.where(few, fallback_end, p1)
+        r = torch.where(few[:, 0], torch.full_like(r, _FALLBACK_RADIUS), r)
+    Tb = T[:, bones]  # (B,K,4,4)
+    R, t = Tb[..., :3, :3], Tb[..., :3, 3]
+    start = (R * p0[:, :, None, :]).sum(-1) + t
+    end_ = (R * p1[:, :, None, :]).sum(-1) + t
+    return Capsules(start, end_, r)
 
 
 def point_capsule_distance(points: torch.Tensor, caps: Capsules) -> torch.Tensor:

@@ -23,7 +23,8 @@ def blend_shapes(betas: torch.Tensor, shapedirs: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(B, V, 3)`` vertex offsets in metres.
     """
-    return torch.einsum("bs,vcs->bvc", betas, shapedirs)
+    V, _, S = shapedirs.shape
+    return (betas @ shapedirs.reshape(V * 3, S).T).reshape(betas.shape[0], V, 3)
 
 
 def vertices_to_joints(J_regressor: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
@@ -36,7 +37,7 @@ def vertices_to_joints(J_regressor: torch.Tensor, vertices: torch.Tensor) -> tor
     Returns:
         ``(B, J, 3)`` joint positions in metres.
     """
-    return torch.einsum("jv,bvc->bjc", J_regressor, vertices)
+    return torch.matmul(J_regressor, vertices)
 
 
 def pose_feature(rotmats: torch.Tensor) -> torch.Tensor:
@@ -101,10 +102,11 @@ def skin(
     Returns:
         ``(B, V, 3)`` posed vertices.
     """
-    B = vertices.shape[0]
-    T = torch.einsum("vj,bjk->bvk", weights, rel_transforms.reshape(B, -1, 16))
-    T = T.reshape(B, -1, 4, 4)
-    return torch.einsum("bvcd,bvd->bvc", T[..., :3, :3], vertices) + T[..., :3, 3]
+    B, V = vertices.shape[:2]
+    # Blend only the top 3x4 block; (V,J) @ (B,J,12) is one matmul, and applying the
+    # per-vertex 3x4 transforms elementwise avoids a batch of V tiny matrix products.
+    T = torch.matmul(weights, rel_transforms[:, :, :3, :].reshape(B, -1, 12)).reshape(B, V, 3, 4)
+    return (T[..., :3] * vertices[:, :, None, :]).sum(-1) + T[..., 3]
 
 
 def lbs(
