@@ -1,0 +1,57 @@
+"""The renderer: a few small composable ops on already-projected vertices.
+
+``rasterize -> interpolate -> shade`` for colour images; ``rasterize -> render_flow``
+and ``flow_loss`` / ``flow_residuals`` for the differentiable flow renderer of the
+paper (Sec. 3.2-3.3); ``silhouette`` and ``capsule_distance_map`` for the silhouette
+coverage term (Sec. 3.5).
+
+Inputs are projected vertices ``verts_px (V, 2)`` in pixels (pixel centres at integer
++ 0.5; the image spans ``[0, W] x [0, H]``), camera-space ``depth (V,)`` in metres and
+``faces (F, 3)``; the ops know nothing of the body model or the camera.
+"""
+
+from flowmocap.render._checks import Faces, prepare_faces
+from flowmocap.render.capsules import capsule_distance_map, project_capsules, segment_distance
+from flowmocap.render.flow import (
+    FlowResiduals,
+    FlowTarget,
+    flow_loss,
+    flow_residuals,
+    flow_target,
+    render_flow,
+)
+from flowmocap.render.interpolate import interpolate
+from flowmocap.render.pyramid import gaussian_pyramid, pyr_down
+from flowmocap.render.raster import Raster, rasterize, silhouette
+from flowmocap.render.shade import (
+    face_normals,
+    procedural_pattern,
+    shade,
+    value_noise,
+    vertex_normals,
+)
+
+__all__ = [
+    "Faces",
+    "prepare_faces",
+    "Raster",
+    "rasterize",
+    "silhouette",
+    "interpolate",
+    "render_flow",
+    "flow_target",
+    "FlowTarget",
+    "flow_loss",
+    "flow_residuals",
+    "FlowResiduals",
+    "capsule_distance_map",
+    "project_capsules",
+    "segment_distance",
+    "pyr_down",
+    "gaussian_pyramid",
+    "shade",
+    "face_normals",
+    "vertex_normals",
+    "procedural_pattern",
+    "value_noise",
+]
