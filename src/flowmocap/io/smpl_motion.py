@@ -1,0 +1,61 @@
+"""A body motion in SMPL parameters: poses, translations, shape, gender, frame rate."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from flowmocap.errors import InputError
+
+__all__ = ["SmplMotion"]
+
+
+@dataclass
+class SmplMotion:
+    """T frames of SMPL parameters.
+
+    Attributes:
+        poses: ``(T, 72)`` float32 axis-angle in radians, SMPL joint order (joint 0 is
+            the global orientation).
+        trans: ``(T, 3)`` float32 translations in metres (y up, ground plane y = 0).
+        betas: ``(num_betas,)`` float32 shape coefficients the motion was made for (10 for
+            the default body and SMPL).
+        gender: ``"neutral"``, ``"male"`` or ``"female"``.
+        fps: frames per second (Hz).
+        source: where the motion came from (a mocap path or ``builtin:walk``).
+        info: facts about how it was made (rig, scale, ground offset, ...).
+    """
+
+    poses: np.ndarray
+    trans: np.ndarray
+    betas: np.ndarray
+    gender: str
+    fps: float
+    source: str
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.poses = np.asarray(self.poses, dtype=np.float32)
+        self.trans = np.asarray(self.trans, dtype=np.float32)
+        self.betas = np.asarray(self.betas, dtype=np.float32).reshape(-1)
+        T = self.poses.shape[0]
+        if self.poses.shape != (T, 72) or self.trans.shape != (T, 3):
+            raise InputError(
+                f"poses must be (T, 72) and trans (T, 3); got {self.poses.shape} and {self.trans.shape}"
+            )
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+    def slice(self, start: int = 0, stop: int | None = None, step: int = 1) -> "SmplMotion":
+        """Frames ``start:stop:step`` as a new motion (``fps`` divided by ``step``)."""
+        s = slice(start, stop, step)
+        n = len(range(*s.indices(self.num_frames)))
+        if n == 0:
+            raise InputError(
+                f"frames {start}:{stop}:{step} select nothing from a motion of {self.num_frames} frames"
+            )
+        return replace(self, poses=self.poses[s], trans=self.trans[s], fps=self.fps / step,
+                       info=dict(self.info))
