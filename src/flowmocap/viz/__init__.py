@@ -1,0 +1,1 @@
+"""Figures and videos: body renders, overlays, flow colour coding, joint traces."""
