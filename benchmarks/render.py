@@ -1,11 +1,15 @@
 """Renderer speed: rasterisation, rendered flow, the flow objective E_f with its gradient
 (1, 3 and 4 pyramid levels), silhouette, capsule distance map, shading.
 
-The mesh is a person-shaped stand-in (flowmocap.render.primitives.mannequin: 11
-subdivided ellipsoids, 14,080 triangles, SMPL has 13,776) standing ~58 % of the image
-height, turning by 3 degrees between the two frames; the observed flow is its rendered
-flow plus noise. Everything runs on one core (Numba kernels are single-threaded; torch
-is set to one thread).
+The mesh is the default body (``load_body_model("default")``, 6,890 vertices, 13,776
+triangles) in the ``walk`` pose of :mod:`flowmocap.viz.body_figure`, seen from a
+three-quarter view by a :class:`~flowmocap.geometry.camera.PinholeCamera` placed with
+``look_at`` so that the body stands ~60 % of the image height. Frame ``i - 1`` is the
+same body with its limbs swung by a few degrees, turned by 3 degrees and moved by 4 cm;
+the observed flow is the rendered backward flow of that motion plus noise. The capsule
+distance map uses the body's own capsules (``body_capsules`` projected with
+``project_capsules``). Everything runs on one core (Numba kernels are single-threaded;
+torch is set to one thread).
 
 Usage: python benchmarks/render.py [--repeats 50] [--out benchmarks/results/render.json]
 Prints a table and writes the JSON (medians over repeats, ms). Its top level carries
@@ -27,17 +31,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flowmocap.body import body_capsules, load_body_model
+from flowmocap.geometry.camera import PinholeCamera, look_at
 from flowmocap.render import (
     capsule_distance_map,
     flow_loss,
     flow_target,
     prepare_faces,
+    project_capsules,
     rasterize,
     render_flow,
     shade,
     silhouette,
 )
-from flowmocap.render.primitives import mannequin
+from flowmocap.viz.body_figure import pose_vector
+
+HEIGHT_FRACTION = 0.6  # the body's projected height / image height
+AZIMUTH_DEG = 30.0  # camera direction about the vertical, from the body's front (+z) towards +x
 
 
 def _time(fn, repeats: int) -> float:
@@ -50,50 +60,70 @@ def _time(fn, repeats: int) -> float:
     return 1000.0 * statistics.median(times)
 
 
-def _scene(H: int, W: int):
-    verts, faces = mannequin(3)
-    f = 1.08 * H  # the 1.75 m figure at 3.2 m fills ~58 % of the height
-
-    def view(angle: float):
-        c, s = np.cos(angle), np.sin(angle)
-        R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-        X = (verts - [0, 0.88, 0]) @ R.T * np.array([1.0, -1.0, -1.0]) + np.array([0.0, 0.0, 3.2])
-        xy = np.stack([f * X[:, 0] / X[:, 2] + W / 2, f * X[:, 1] / X[:, 2] + H / 2], axis=1)
-        return xy, X
-
-    x_cur, X_cur = view(0.0)
-    x_prev, X_prev = view(np.radians(3.0))
-    return verts, faces, x_cur, X_cur, x_prev, X_prev
+def _frames(model):
+    """Body outputs at frame ``i`` (walk pose) and ``i - 1`` (limbs, turn and place moved)."""
+    pose_cur = pose_vector("walk").double()
+    pose_prev = 0.9 * pose_cur  # limbs swung back by up to ~7 degrees
+    yaw = np.radians(3.0)
+    pose_prev[1] = pose_prev[1] + yaw  # global orientation: turned about the vertical
+    with torch.no_grad():
+        cur = model(pose=pose_cur)
+        prev = model(pose=pose_prev, trans=torch.tensor([-0.04, 0.0, -0.01], dtype=torch.float64))
+    return cur, prev
 
 
-def _capsules(x_cur: np.ndarray, verts: np.ndarray):
-    # one capsule per ellipsoid of the mannequin: its long axis in the image
-    parts = np.array_split(np.arange(len(verts)), 11)
-    a, b, r = [], [], []
-    for idx in parts:
-        p = x_cur[idx]
-        c = p.mean(0)
-        u, s, vt = np.linalg.svd(p - c, full_matrices=False)
-        ext = np.abs((p - c) @ vt[0]).max()
-        rad = np.abs((p - c) @ vt[1]).max()
-        a.append(c - vt[0] * max(ext - rad, 0))
-        b.append(c + vt[0] * max(ext - rad, 0))
-        r.append(rad)
-    return torch.tensor(np.array(a)), torch.tensor(np.array(b)), torch.tensor(np.array(r))
+def _camera(verts: np.ndarray, H: int, W: int) -> PinholeCamera:
+    """Camera (focal = image width) looking at the body's centre from AZIMUTH_DEG, at the
+    distance that makes the body HEIGHT_FRACTION of the image height."""
+    lo, hi = verts.min(0), verts.max(0)
+    centre = 0.5 * (lo + hi)
+    focal = float(W)
+    az = np.radians(AZIMUTH_DEG)
+    direction = np.array([np.sin(az), 0.0, np.cos(az)])
+    dist = focal * (hi[1] - lo[1]) / (HEIGHT_FRACTION * H)
+    for _ in range(3):  # perspective: refine on the projected height
+        R, t = look_at(centre + dist * direction, centre)
+        cam = PinholeCamera.from_focal(W, H, focal, R=R, t=t)
+        y = cam.project(verts)[:, 1]
+        dist *= (y.max() - y.min()) / (HEIGHT_FRACTION * H)
+    R, t = look_at(centre + dist * direction, centre)
+    return PinholeCamera.from_focal(W, H, focal, R=R, t=t)
 
 
-def bench(H: int, W: int, repeats: int) -> dict:
-    verts, faces, xc, Xc, xp, Xp = _scene(H, W)
+def _scene(model, H: int, W: int):
+    cur, prev = _frames(model)
+    v_cur = cur.vertices[0].numpy()
+    v_prev = prev.vertices[0].numpy()
+    cam = _camera(v_cur, H, W)
+    X_cur, X_prev = cam.to_camera(v_cur), cam.to_camera(v_prev)
+    x_cur, x_prev = cam.project(v_cur), cam.project(v_prev)
+    return cam, cur, x_cur, X_cur, x_prev, X_prev
+
+
+def _capsules(model, out, cam: PinholeCamera):
+    """The body's capsules, in the camera frame, projected to 2D stadiums (pixels)."""
+    caps = body_capsules(model, out)
+    start = cam.to_camera(caps.start[0])
+    end = cam.to_camera(caps.end[0])
+    return project_capsules(start, end, caps.radius[0], cam.fx, cam.fy, cam.cx, cam.cy)
+
+
+def bench(model, H: int, W: int, repeats: int) -> dict:
+    cam, body_out, xc, Xc, xp, Xp = _scene(model, H, W)
+    faces = model.faces_np
     pf = prepare_faces(faces)
     zc = Xc[:, 2].copy()
     raster = rasterize(xc, zc, pf, H, W)
-    flow, mask = render_flow(raster, xc, xp, pf)
+    flow, mask = render_flow(raster, xc, xp, pf, depth_cur=zc, depth_prev=Xp[:, 2].copy())
     obs = flow + np.random.default_rng(0).normal(0, 0.3, flow.shape).astype(np.float32)
+    moving = np.linalg.norm(flow[mask], axis=1)
     out = {
         "image": f"{W}x{H}",
         "faces": int(len(faces)),
         "covered_pixels": int(mask.sum()),
         "height_fraction": float((xc[:, 1].max() - xc[:, 1].min()) / H),
+        "flow_px_median": float(np.median(moving)),
+        "flow_px_max": float(moving.max()),
         "rasterize_ms": _time(lambda: rasterize(xc, zc, pf, H, W), repeats),
         "rasterize_cull_backfaces_ms": _time(lambda: rasterize(xc, zc, pf, H, W, cull_backfaces=True), repeats),
         "render_flow_ms": _time(lambda: render_flow(raster, xc, xp, pf), repeats),
@@ -125,19 +155,21 @@ def bench(H: int, W: int, repeats: int) -> dict:
         out[f"flow_loss_L{levels}_with_rasterize_ms"] = _time(with_raster, repeats)
         out[f"flow_loss_L{levels}_with_rasterize_cull_ms"] = _time(with_raster_cull, repeats)
         out[f"flow_loss_L{levels}_raw_arrays_ms"] = _time(raw_arrays, max(5, repeats // 5))
-    a, b, r = _capsules(xc, verts)
+    a, b, r = (x.detach() for x in _capsules(model, body_out, cam))
+    out["capsules"] = int(a.shape[0])
     for step in (4, 8):
         out[f"capsule_distance_map_step{step}_ms"] = _time(
             lambda: capsule_distance_map(a, b, r, H, W, grid_step=step), max(5, repeats // 5))
-        a_ = a.clone().requires_grad_()
+        a_, b_, r_ = (x.clone().requires_grad_() for x in (a, b, r))
 
         def cap_bwd():
-            capsule_distance_map(a_, b, r, H, W, grid_step=step).sum().backward()
+            capsule_distance_map(a_, b_, r_, H, W, grid_step=step).sum().backward()
 
         out[f"capsule_distance_map_step{step}_fwd_bwd_ms"] = _time(cap_bwd, max(5, repeats // 5))
     bg = np.full((H, W, 3), 128, np.uint8)
+    rest_verts = body_out.rest_vertices[0].numpy()
     out["shade_pattern_ss2_ms"] = _time(
-        lambda: shade(xc, zc, pf, Xc, surface_coords=verts, background=bg), 3)
+        lambda: shade(xc, zc, pf, Xc, surface_coords=rest_verts, background=bg), 3)
     return out
 
 
@@ -147,12 +179,13 @@ def main() -> None:
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "render.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    results = [bench(240, 320, args.repeats), bench(480, 640, args.repeats)]
+    model = load_body_model("default", dtype=torch.float64)
+    results = [bench(model, 240, 320, args.repeats), bench(model, 480, 640, args.repeats)]
     keys = [k for k in results[0] if k.endswith("_ms")]
     print(f"{'median ms (one core)':44s} " + " ".join(f"{r['image']:>10s}" for r in results))
     for k in keys:
         print(f"{k[:-3]:44s} " + " ".join(f"{r[k]:10.3f}" for r in results))
-    for k in ("faces", "covered_pixels", "height_fraction"):
+    for k in ("faces", "covered_pixels", "height_fraction", "flow_px_median", "flow_px_max", "capsules"):
         print(f"{k:44s} " + " ".join(f"{r[k]:10.3g}" for r in results))
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -163,7 +196,8 @@ def main() -> None:
         "flow_objective_ms_640x480": results[1]["flow_loss_L3_with_rasterize_ms"],
         "flow_objective_ms_320x240": results[0]["flow_loss_L3_with_rasterize_ms"],
         "definition": "median ms, one core: flow_loss (3 pyramid levels, FlowTarget prepared once) "
-                      "forward + backward including rasterisation, 14,080-triangle mannequin",
+                      "forward + backward including rasterisation; the default body (13,776 triangles) in a "
+                      "walking pose standing 60% of the image height",
         "commit": commit,
         "machine": platform.processor() or platform.machine(),
         "python": platform.python_version(),

@@ -11,9 +11,9 @@ from flowmocap import __version__
 from flowmocap.errors import FlowMocapError, InputError
 
 NOT_BUILT_YET = (
-    "Not built yet: the tracker (flowmocap track), synthetic sequences from mocap "
-    "(flowmocap synth), evaluation (flowmocap eval/bench), automatic masks and joints "
-    "for real video, and exports. This demo only shows the body model."
+    "Not built yet: the tracker (flowmocap track), evaluation (flowmocap eval/bench), "
+    "automatic masks and joints for real video, and exports. This demo only shows the "
+    "body model; synthetic sequences with ground truth are available (flowmocap synth)."
 )
 
 
@@ -54,7 +54,7 @@ def cmd_demo(args) -> int:
     path = out / "default_body.png"
     _write_png(path, sheet)
     info = {"image": str(path), "vertices": model.num_vertices, "faces": int(model.faces.shape[0]),
-            "built": ["body model", "geometry", "renderer (rasterize, shade)"],
+            "built": ["body model", "geometry", "renderer", "mocap retargeting", "synth"],
             "not_built": NOT_BUILT_YET}
     (out / "demo.json").write_text(json.dumps(info, indent=2))
     print(f"wrote {path}")
