@@ -5,6 +5,8 @@
 
 - docs/default_body.png: the default body (mean, +-2 sd on the first two shape
   components, a posed example), as `flowmocap demo` renders it.
+- docs/flow_figure.png: observed (OpenCV DIS) vs rendered backward flow of the default body
+  in the built-in walk, Middlebury colour coding with its colour key.
 - docs/cmu35_01_sheet.png: 8 of 130 frames (60 fps) of `flowmocap synth` on CMU 35_01 (needs
   ../shared/data; skipped with a message when it is absent).
 """
@@ -29,6 +31,10 @@ def main() -> int:
     DOCS.mkdir(exist_ok=True)
     iio.imwrite(DOCS / "default_body.png", body_sheet())
     print(f"wrote {DOCS / 'default_body.png'}")
+    from flowmocap.viz.flow_figure import flow_figure
+
+    iio.imwrite(DOCS / "flow_figure.png", flow_figure())
+    print(f"wrote {DOCS / 'flow_figure.png'}")
     if not CMU.exists():
         print(f"skipped the CMU contact sheet: {CMU} not found")
         return 0
