@@ -1,0 +1,85 @@
+"""Person masks: reading mask images and their chamfer distance maps (paper Sec. 3.5).
+
+A mask is an ``(H, W)`` bool array, True on the person. Mask files may be binary
+(0 / 255), grey, RGB or palette PNGs (DAVIS annotations are palette images whose
+index 0 is the background): any non-zero value is the person.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from flowmocap.errors import DataError, InputError, NoPersonError
+
+__all__ = ["chamfer_map", "load_mask"]
+
+
+def chamfer_map(mask: Any) -> np.ndarray:
+    """Distance in pixels from every pixel to the nearest mask pixel (``C_I``).
+
+    Exact Euclidean distance between pixel centres (``cv2.distanceTransform`` with
+    ``DIST_L2`` and ``DIST_MASK_PRECISE``): 0 on the mask, 1 next to it, ``sqrt(2)``
+    diagonally next to it, and so on.
+
+    Args:
+        mask: ``(H, W)`` array, True / non-zero on the person.
+
+    Returns:
+        ``(H, W)`` float32 distances in pixels.
+
+    Raises:
+        InputError: not a 2D array. NoPersonError: the mask is empty.
+    """
+    m = np.asarray(mask)
+    if m.ndim != 2 or m.size == 0:
+        raise InputError(f"mask must be a non-empty (H, W) array, got shape {m.shape}")
+    outside = (m == 0).astype(np.uint8)
+    if outside.all():
+        raise NoPersonError(
+            "the person mask is empty, so there is no silhouette to measure distances to; "
+            "check the mask (or the segmentation) for this frame"
+        )
+    return cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float32)
+
+
+def load_mask(path: str | Path) -> np.ndarray:
+    """Read a person mask image.
+
+    Palette images are read as their palette indices (index 0 = background), so a
+    DAVIS annotation gives every annotated object; grey images by value, colour images
+    by any non-zero colour channel (an alpha channel is ignored).
+
+    Args:
+        path: an image file (PNG, ...).
+
+    Returns:
+        ``(H, W)`` bool array, True on the person.
+
+    Raises:
+        DataError: the file is missing or not a readable image. NoPersonError: the mask
+            is empty.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"mask file not found: {p}")
+    try:
+        with Image.open(p) as im:
+            im.load()
+            if im.mode in ("P", "PA"):
+                arr = np.asarray(im.getchannel(0) if im.mode == "PA" else im)
+            elif im.mode in ("RGBA", "LA"):
+                arr = np.asarray(im)[..., :-1]
+            else:
+                arr = np.asarray(im)
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise DataError(f"cannot read mask image {p}: {exc}") from None
+    mask = arr != 0 if arr.ndim == 2 else (arr != 0).any(-1)
+    if not mask.any():
+        raise NoPersonError(f"mask {p} is empty (no non-zero pixel): no person to fit in this frame")
+    return mask
