@@ -1,0 +1,807 @@
+"""The tracker's energy terms (paper Sec. 3.3-3.7) as differentiable torch functions.
+
+Every term comes in two forms: ``*_residuals(...) -> (B, M)`` and
+``*_energy(...) -> (B,)`` with ``energy == (residuals ** 2).sum(-1)``, so the
+optimiser can stack residuals for Gauss-Newton / Levenberg-Marquardt or sum weighted
+energies for L-BFGS. B is the batch of body hypotheses (usually 1). The flow term E_f
+lives in :mod:`flowmocap.render` (``flow_loss``, ``flow_residuals``).
+
+==========================  =============================================  ===========
+term                         energy                                         unit
+==========================  =============================================  ===========
+E_b  joint limits            sum (max(e^(lo-th)-1,0) + max(e^(th-hi)-1,0))^2  --
+E_sp interpenetration        sum_pairs max(r_a + r_b - d_ab - tol, 0)^2      m^2 (tol 2 cm)
+E_c  silhouette coverage     sum_p (a S_M C_I + (1-a) S_I C_M)^2 / |S_I|     px^2
+keypoints (init)             sum_j c_j GM_sigma(x_j - x_obs_j)                px^2
+pose prior (init)            sum_i w_i (theta_i - theta_ref_i)^2             rad^2
+shape prior (init)           ||beta||^2                                      --
+E_theta                      sum_i w_i (theta_i - theta_prev_i)^2            rad^2 (root:
+                                                                             geodesic)
+==========================  =============================================  ===========
+
+E_sp and E_c take the capsules of :func:`flowmocap.body.body_capsules`; compute them
+once per evaluation and pass them to both.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from flowmocap.body.capsules import CAPSULE_BONES, CAPSULE_NAMES, Capsules, body_capsules
+from flowmocap.body.files import load_body_model
+from flowmocap.body.skeleton import NUM_JOINTS, PARENTS
+from flowmocap.errors import InputError, NoPersonError
+from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
+from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from flowmocap.render.capsules import project_capsules
+from flowmocap.vision.masks import chamfer_map
+
+__all__ = [
+    "joint_limit_residuals",
+    "joint_limit_energy",
+    "interpenetration_pairs",
+    "segment_segment_distance",
+    "interpenetration_residuals",
+    "interpenetration_energy",
+    "SilhouetteTarget",
+    "silhouette_target",
+    "capsule_signed_distance",
+    "silhouette_residuals",
+    "silhouette_energy",
+    "keypoint_residuals",
+    "keypoint_energy",
+    "pose_prior_residuals",
+    "pose_prior_energy",
+    "shape_prior_residuals",
+    "shape_prior_energy",
+    "temporal_residuals",
+    "temporal_energy",
+]
+
+NUM_POSE = 3 * NUM_JOINTS
+
+
+def _pose(pose: Any, name: str = "pose") -> torch.Tensor:
+    """``(B, 72)`` floating tensor from ``(B, 72)``, ``(B, 24, 3)`` or ``(72,)``."""
+    if not isinstance(pose, torch.Tensor):
+        raise InputError(f"{name} must be a torch.Tensor of shape (B, 72), got {type(pose).__name__}")
+    if not pose.is_floating_point():
+        raise InputError(f"{name} must be floating point, got {pose.dtype}")
+    if pose.dim() == 3 and pose.shape[1:] == (NUM_JOINTS, 3):
+        pose = pose.reshape(pose.shape[0], NUM_POSE)
+    if pose.dim() == 1:
+        pose = pose[None]
+    if pose.dim() != 2 or pose.shape[1] != NUM_POSE:
+        raise InputError(f"{name} must have shape (B, 72), got {tuple(pose.shape)}")
+    return pose
+
+
+def _like(x: Any, ref: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(x, dtype=ref.dtype, device=ref.device)
+
+
+def _sum_sq(r: torch.Tensor) -> torch.Tensor:
+    return (r * r).sum(-1)
+
+
+# ------------------------------------------------------------------------------- E_b
+
+
+_DEFAULT_LIMITS: JointLimits | None = None
+
+
+def _limits(limits: JointLimits | None) -> JointLimits:
+    global _DEFAULT_LIMITS
+    if limits is not None:
+        if not isinstance(limits, JointLimits):
+            raise InputError(f"limits must be a JointLimits, got {type(limits).__name__}")
+        return limits
+    if _DEFAULT_LIMITS is None:
+        _DEFAULT_LIMITS = default_joint_limits()
+    return _DEFAULT_LIMITS
+
+
+def joint_limit_residuals(pose: torch.Tensor, limits: JointLimits | None = None) -> torch.Tensor:
+    """Residuals of the soft joint limits E_b (paper Eq. 2), one per limited angle.
+
+    ``r = max(exp(lo - th) - 1, 0) + max(exp(th - hi) - 1, 0)`` for every non-root
+    joint and axis, with ``th`` the joint's angles in its chart (Euler angles in a
+    per-joint order, the raw axis-angle components for the shoulders; see
+    :mod:`flowmocap.fit.joint_limits`). Zero inside the limits, ``~ excess`` just
+    outside, growing exponentially; ``r^2`` is continuously differentiable.
+
+    Args:
+        pose: ``(B, 72)`` (or ``(B, 24, 3)``) SMPL axis-angle pose, radians.
+        limits: :class:`~flowmocap.fit.joint_limits.JointLimits` (default: the table in
+            :mod:`flowmocap.fit.joint_limits`).
+
+    Returns:
+        ``(B, 69)``: 23 joints (SMPL order without the root) x (x, y, z), unitless.
+    """
+    pose = _pose(pose)
+    lim = _limits(limits)
+    joints = torch.as_tensor(lim.limited, device=pose.device)
+    th = joint_angles(pose, lim.charts)[:, joints]  # (B, 23, 3)
+    lo = _like(lim.lower[lim.limited], th)
+    hi = _like(lim.upper[lim.limited], th)
+    # max(exp(x) - 1, 0) == expm1(max(x, 0)); exact and overflow-free inside the limits
+    r = torch.expm1(torch.relu(lo - th)) + torch.expm1(torch.relu(th - hi))
+    return r.reshape(pose.shape[0], -1)
+
+
+def joint_limit_energy(pose: torch.Tensor, limits: JointLimits | None = None) -> torch.Tensor:
+    """E_b: sum of squared :func:`joint_limit_residuals`, ``(B,)`` (unitless)."""
+    return _sum_sq(joint_limit_residuals(pose, limits))
+
+
+# ------------------------------------------------------------------------------ E_sp
+
+#: Pairs of capsules closer than this (metres, surface to surface) in the rest pose
+#: count as touching and are never penalised.
+REST_CONTACT_TOLERANCE = 0.01
+#: Capsules whose bones are this many steps apart or fewer in the kinematic tree
+#: (parent: 1; grandparent or sibling: 2) are not penalised, unless they belong to
+#: two different limbs.
+TREE_NEIGHBOURS = 2
+#: The limbs, as capsule names; every other capsule is part of the trunk.
+LIMBS: tuple[tuple[str, ...], ...] = tuple(
+    tuple(f"{side}_{part}" for part in parts)
+    for side in ("left", "right")
+    for parts in (("upper_arm", "forearm", "hand"), ("thigh", "shin", "foot"))
+)
+#: Default overlap (metres) E_sp tolerates: a capsule's radius is the mean distance
+#: of its vertices to the axis, so the capsules of surfaces that merely touch (a
+#: swinging hand brushing the thigh) overlap by up to about 2 cm.
+DEFAULT_TOLERANCE = 0.02
+
+_DEFAULT_PAIRS: tuple[tuple[int, int], ...] | None = None
+
+
+def _tree_distance(a: int, b: int) -> int:
+    """Number of bones on the tree path between joints a and b."""
+    def ancestors(j):
+        out = []
+        while j != -1:
+            out.append(j)
+            j = PARENTS[j]
+        return out
+
+    pa, pb = ancestors(a), ancestors(b)
+    common = next(j for j in pa if j in pb)
+    return pa.index(common) + pb.index(common)
+
+
+def interpenetration_pairs(model=None) -> tuple[tuple[int, int], ...]:
+    """The capsule pairs E_sp penalises (indices into ``Capsules.names``).
+
+    All pairs except
+
+    (a) those whose bones are at most :data:`TREE_NEIGHBOURS` steps apart in the
+        kinematic tree (bone and parent, grandparent or sibling: forearm -- upper arm
+        -- chest, thigh -- foot, thigh -- lower belly), unless they belong to two
+        different limbs (the two thighs stay in): bending the joints between them
+        presses such capsules together as it presses real flesh (sitting, a full
+        elbow flexion);
+    (b) those that touch or overlap in the rest pose (surface gap below
+        :data:`REST_CONTACT_TOLERANCE`) of ``model``'s mean shape. For the default
+        body these are the torso pieces, pelvis -- thighs and neck -- head, all of
+        them already in (a).
+
+    For the default body's 20 capsules that leaves 150 of the 190 pairs: arms against
+    the trunk below the chest, the head, the other arm and the legs; legs against each
+    other and the trunk above the lower belly; trunk pieces three or more bones apart.
+    The upper arm against the chest is not among them (the arm hanging at the side
+    touches it), so an arm swung through the chest is penalised through its forearm
+    and hand only.
+
+    Args:
+        model: the body model whose rest pose decides (b); default: the bundled
+            default body (computed once and cached).
+
+    Returns:
+        sorted tuple of ``(i, j)`` with ``i < j``.
+    """
+    global _DEFAULT_PAIRS
+    if model is None and _DEFAULT_PAIRS is not None:
+        return _DEFAULT_PAIRS
+    m = load_body_model("default", dtype=torch.float64) if model is None else model
+    with torch.no_grad():
+        caps = body_capsules(m, m())
+        K = len(CAPSULE_NAMES)
+        i, j = zip(*itertools.combinations(range(K), 2))
+        i, j = torch.tensor(i), torch.tensor(j)
+        d = segment_segment_distance(caps.start[:, i], caps.end[:, i], caps.start[:, j], caps.end[:, j])
+        gap = (d - caps.radius[:, i] - caps.radius[:, j])[0].double().cpu().numpy()
+    limb_of = {name: n for n, limb in enumerate(LIMBS) for name in limb}
+    pairs = []
+    for p, (a, b) in enumerate(zip(i.tolist(), j.tolist())):
+        la, lb = limb_of.get(CAPSULE_NAMES[a]), limb_of.get(CAPSULE_NAMES[b])
+        two_limbs = la is not None and lb is not None and la != lb
+        if _tree_distance(CAPSULE_BONES[a], CAPSULE_BONES[b]) <= TREE_NEIGHBOURS and not two_limbs:
+            continue
+        if gap[p] < REST_CONTACT_TOLERANCE:
+            continue
+        pairs.append((a, b))
+    out = tuple(pairs)
+    if model is None:
+        _DEFAULT_PAIRS = out
+    return out
+
+
+def segment_segment_distance(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
+    """Distance between 3D segments ``[p1, q1]`` and ``[p2, q2]``, batched.
+
+    Closest points by Ericson (*Real-Time Collision Detection*, 5.1.9), robust to
+    parallel and zero-length segments. The closest-point parameters are treated as
+    constants in the backward pass: by the envelope theorem the gradient of a minimum
+    over a fixed parameter box is the partial derivative at the minimiser, so this is
+    the exact gradient wherever the closest pair is unique. The distance is
+    ``sqrt(|c1 - c2|^2 + 1e-12)``, finite with zero gradient where the segments cross.
+
+    Args:
+        p1, q1, p2, q2: ``(..., 3)`` end points (metres), broadcastable.
+
+    Returns:
+        ``(...)`` distances (metres).
+    """
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    with torch.no_grad():
+        eps = 1e-12
+        a = (d1 * d1).sum(-1)
+        e = (d2 * d2).sum(-1)
+        b = (d1 * d2).sum(-1)
+        c = (d1 * r).sum(-1)
+        f = (d2 * r).sum(-1)
+        a_s, e_s = a.clamp_min(eps), e.clamp_min(eps)
+        denom = a * e - b * b
+        s = torch.where(denom > eps * (a * e).clamp_min(eps), ((b * f - c * e) / denom.clamp_min(eps)).clamp(0, 1),
+                        torch.zeros_like(a))
+        t = (b * s + f) / e_s
+        s = torch.where(t < 0, (-c / a_s).clamp(0, 1), torch.where(t > 1, ((b - c) / a_s).clamp(0, 1), s))
+        t = t.clamp(0, 1)
+        point2 = e <= eps  # second segment is a point: t = 0, s from the projection
+        s = torch.where(point2, (-c / a_s).clamp(0, 1), s)
+        t = torch.where(point2, torch.zeros_like(t), t)
+        point1 = a <= eps
+        s = torch.where(point1, torch.zeros_like(s), s)
+        t = torch.where(point1 & ~point2, (f / e_s).clamp(0, 1), t)
+    diff = r + s[..., None] * d1 - t[..., None] * d2
+    return torch.sqrt((diff * diff).sum(-1) + 1e-12)
+
+
+def _pair_index(pairs, K: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    pairs = interpenetration_pairs() if pairs is None else pairs
+    arr = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if arr.size and (arr.min() < 0 or arr.max() >= K or (arr[:, 0] == arr[:, 1]).any()):
+        raise InputError(f"pairs must be (i, j) capsule indices in [0, {K}) with i != j")
+    return torch.as_tensor(arr[:, 0], device=device), torch.as_tensor(arr[:, 1], device=device)
+
+
+def interpenetration_residuals(
+    capsules: Capsules, pairs: Sequence[tuple[int, int]] | None = None, tolerance: float = DEFAULT_TOLERANCE
+) -> torch.Tensor:
+    """Residuals of E_sp: the overlap depth of each penalised capsule pair.
+
+    A simpler stand-in for SMPLify's Gaussian-sphere term (Bogo et al. 2016):
+    ``r = max(r_a + r_b - d(segment_a, segment_b) - tolerance, 0)``, the depth by which
+    two capsules interpenetrate (metres), zero when they are apart; ``r^2`` is
+    continuously differentiable.
+
+    Args:
+        capsules: :class:`~flowmocap.body.capsules.Capsules` of a batch of bodies
+            (from :func:`flowmocap.body.body_capsules`).
+        pairs: ``(P, 2)`` capsule index pairs (default: :func:`interpenetration_pairs`).
+        tolerance: overlap in metres that is not penalised (default
+            :data:`DEFAULT_TOLERANCE`, 2 cm).
+
+    Returns:
+        ``(B, P)`` overlap depths in metres.
+    """
+    K = capsules.start.shape[1]
+    i, j = _pair_index(pairs, K, capsules.start.device)
+    d = segment_segment_distance(capsules.start[:, i], capsules.end[:, i], capsules.start[:, j], capsules.end[:, j])
+    return torch.relu(capsules.radius[:, i] + capsules.radius[:, j] - d - tolerance)
+
+
+def interpenetration_energy(
+    capsules: Capsules, pairs: Sequence[tuple[int, int]] | None = None, tolerance: float = DEFAULT_TOLERANCE
+) -> torch.Tensor:
+    """E_sp: sum of squared :func:`interpenetration_residuals`, ``(B,)`` in m^2."""
+    return _sum_sq(interpenetration_residuals(capsules, pairs, tolerance))
+
+
+# ------------------------------------------------------------------------------- E_c
+
+
+@dataclass
+class SilhouetteTarget:
+    """The image side of E_c, built once per frame by :func:`silhouette_target`.
+
+    Attributes:
+        mask: ``(H, W)`` float tensor, 1 on the person (``S_I``), else 0.
+        chamfer: ``(H, W)`` float tensor, distance in pixels to the nearest person
+            pixel (``C_I``; 0 on the person).
+        count: number of person pixels (the normaliser of E_c).
+        box: the mask's bounding box ``(y0, x0, y1, x1)`` in pixels, end exclusive.
+    """
+
+    mask: torch.Tensor
+    chamfer: torch.Tensor
+    count: int
+    box: tuple[int, int, int, int] = (0, 0, 0, 0)
+
+    @property
+    def height(self) -> int:
+        return int(self.mask.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.mask.shape[1])
+
+
+def silhouette_target(mask: Any, dtype: torch.dtype = torch.float32, device: Any = None) -> SilhouetteTarget:
+    """Prepare an image mask for :func:`silhouette_energy`.
+
+    Args:
+        mask: ``(H, W)`` person mask (bool, or numbers: non-zero = person), numpy or torch.
+        dtype, device: of the returned tensors.
+
+    Returns:
+        :class:`SilhouetteTarget` with the mask and its chamfer map
+        (:func:`flowmocap.vision.chamfer_map`).
+
+    Raises:
+        InputError: not a 2D array. NoPersonError: the mask is empty.
+    """
+    m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
+    if m.ndim != 2 or m.size == 0:
+        raise InputError(f"mask must be a non-empty (H, W) array, got shape {m.shape}")
+    m = m != 0
+    count = int(m.sum())
+    if count == 0:
+        raise NoPersonError(
+            "the person mask is empty: nothing to fit the silhouette to; check the mask "
+            "file or drop the silhouette term for this frame"
+        )
+    cham = chamfer_map(m)
+    rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    return SilhouetteTarget(
+        mask=torch.as_tensor(m, dtype=dtype, device=device),
+        chamfer=torch.as_tensor(cham, dtype=dtype, device=device),
+        count=count,
+        box=(int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1),
+    )
+
+
+def _as_target(target: Any, chamfer: Any, dtype: torch.dtype) -> SilhouetteTarget:
+    """A :class:`SilhouetteTarget` from itself or from a mask and (optionally) its chamfer map."""
+    if isinstance(target, SilhouetteTarget):
+        return target
+    if chamfer is None:
+        return silhouette_target(target, dtype=dtype)
+    m = target.detach().cpu().numpy() if isinstance(target, torch.Tensor) else np.asarray(target)
+    if m.ndim != 2:
+        raise InputError(f"mask must be an (H, W) array, got shape {m.shape}")
+    m = m != 0
+    if not m.any():
+        raise NoPersonError("the person mask is empty: nothing to fit the silhouette to")
+    c = chamfer if isinstance(chamfer, torch.Tensor) else torch.as_tensor(np.asarray(chamfer))
+    if tuple(c.shape) != m.shape:
+        raise InputError(f"chamfer must have the mask's shape {m.shape}, got {tuple(c.shape)}")
+    rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    return SilhouetteTarget(
+        mask=torch.as_tensor(m, dtype=dtype, device=c.device), chamfer=c.to(dtype), count=int(m.sum()),
+        box=(int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1))
+
+
+#: The soft silhouette is evaluated up to this many ``softness`` outside the capsules.
+_SOFT_REACH = 12.0
+
+
+class _GridSignedDistance(torch.autograd.Function):
+    """``min_k (dist(p, segment_k) - r_k)`` at fixed points ``p (N, 2)`` for a batch.
+
+    Inputs ``a, b (B, K, 2)``, ``r (B, K)``; output ``(B, N)``. The forward pass keeps the
+    nearest capsule of each point, so the backward pass costs O(B N) (the gradient of
+    a minimum flows to its arg-min; for the distance to a segment it is that of the
+    distance to the fixed closest point ``c = a + t (b - a)``).
+    """
+
+    @staticmethod
+    def forward(ctx, pts, a, b, r):  # noqa: D102
+        d = b - a  # (B, K, 2)
+        inv = 1.0 / (d * d).sum(-1).clamp_min(1e-12)
+        B, K = r.shape
+        px0, py0 = pts[None, :, 0], pts[None, :, 1]
+        best = torch.full((B, pts.shape[0]), float("inf"), dtype=a.dtype, device=a.device)
+        arg = torch.zeros((B, pts.shape[0]), dtype=torch.long, device=a.device)
+        for k in range(K):
+            px = px0 - a[:, k, 0:1]
+            py = py0 - a[:, k, 1:2]
+            dx, dy = d[:, k, 0:1], d[:, k, 1:2]
+            t = ((px * dx + py * dy) * inv[:, k:k + 1]).clamp(0.0, 1.0)
+            ex = px - t * dx
+            ey = py - t * dy
+            dist = torch.sqrt(ex * ex + ey * ey) - r[:, k:k + 1]
+            closer = dist < best
+            best = torch.where(closer, dist, best)
+            arg = torch.where(closer, torch.full_like(arg, k), arg)
+        ctx.save_for_backward(pts, a, b, arg)
+        return best
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        pts, a, b, arg = ctx.saved_tensors
+        ak = torch.gather(a, 1, arg[..., None].expand(-1, -1, 2))  # (B, N, 2)
+        bk = torch.gather(b, 1, arg[..., None].expand(-1, -1, 2))
+        d = bk - ak
+        t = (((pts[None] - ak) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+        e = pts[None] - ak - t[..., None] * d
+        dist = torch.sqrt((e * e).sum(-1))
+        n = torch.where(dist[..., None] > 1e-12, e / dist.clamp_min(1e-12)[..., None], torch.zeros_like(e))
+        ga = torch.zeros_like(a).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * ((1.0 - t) * grad)[..., None])
+        gb = torch.zeros_like(b).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * (t * grad)[..., None])
+        gr = torch.zeros_like(a[..., 0]).scatter_add_(1, arg, -grad)
+        return None, ga, gb, gr
+
+
+def capsule_signed_distance(
+    starts_px: torch.Tensor, ends_px: torch.Tensor, radii_px: torch.Tensor, height: int, width: int, grid_step: int = 4
+) -> torch.Tensor:
+    """Signed distance (pixels) of every pixel centre to the union of 2D capsules.
+
+    ``sd(p) = min_k (dist(p, segment_k) - radius_k)``: negative inside the union,
+    positive outside (there it equals :func:`flowmocap.render.capsule_distance_map`).
+    Evaluated exactly on the grid of pixel centres ``(u + 0.5, v + 0.5)`` with
+    ``u, v`` multiples of ``grid_step`` and bilinearly interpolated in between, as
+    ``capsule_distance_map`` does.
+
+    Args:
+        starts_px, ends_px: ``(B, K, 2)`` segment end points in pixels.
+        radii_px: ``(B, K)`` radii in pixels.
+        height, width: image size in pixels.
+        grid_step: spacing in pixels of the exact evaluations (positive integer).
+
+    Returns:
+        ``(B, H, W)`` tensor, differentiable w.r.t. the end points and radii.
+    """
+    if int(grid_step) != grid_step or grid_step < 1:
+        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
+    if starts_px.dim() != 3 or starts_px.shape[-1] != 2 or ends_px.shape != starts_px.shape:
+        raise InputError(f"starts_px and ends_px must have shape (B, K, 2), got {tuple(starts_px.shape)}"
+                         f" and {tuple(ends_px.shape)}")
+    if radii_px.shape != starts_px.shape[:2]:
+        raise InputError(f"radii_px must have shape (B, K) = {tuple(starts_px.shape[:2])}, got {tuple(radii_px.shape)}")
+    return _signed_distance_window(starts_px, ends_px, radii_px, 0, 0, int(height), int(width), int(grid_step))
+
+
+def _signed_distance_window(a, b, r, y0: int, x0: int, h: int, w: int, step: int) -> torch.Tensor:
+    """:func:`capsule_signed_distance` on the window ``[y0, y0 + h) x [x0, x0 + w)``.
+
+    ``y0`` and ``x0`` must be multiples of ``step`` so the grid is the full image's.
+    Returns ``(B, h, w)``.
+    """
+    gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
+    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + (y0 + 0.5)
+    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + (x0 + 0.5)
+    pts = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).reshape(-1, 2)
+    grid = _GridSignedDistance.apply(pts, a, b, r).reshape(-1, 1, gh, gw)
+    if step == 1:
+        return grid[:, 0, :h, :w]
+    up = F.interpolate(grid, size=((gh - 1) * step + 1, (gw - 1) * step + 1), mode="bilinear", align_corners=True)
+    return up[:, 0, :h, :w]
+
+
+def _project(capsules: Capsules, camera: PinholeCamera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    starts = camera.to_camera(capsules.start)
+    ends = camera.to_camera(capsules.end)
+    out = [project_capsules(starts[b], ends[b], capsules.radius[b], camera.fx, camera.fy, camera.cx, camera.cy)
+           for b in range(starts.shape[0])]
+    return tuple(torch.stack(x) for x in zip(*out))  # type: ignore[return-value]
+
+
+def silhouette_residuals(
+    capsules: Capsules,
+    camera: PinholeCamera,
+    target: SilhouetteTarget | Any,
+    chamfer: Any = None,
+    *,
+    a: float = 0.6,
+    grid_step: int = 4,
+    softness: float = 1.0,
+) -> torch.Tensor:
+    """Per-pixel residuals of the silhouette coverage term E_c (paper Eq. 3).
+
+    ``r(p) = (a S_M(p) C_I(p) + (1 - a) S_I(p) C_M(p)) / sqrt(|S_I|)`` where
+
+    * ``S_I``, ``C_I``: the image mask and its chamfer map (``target``);
+    * ``C_M = max(sd, 0)``: the distance to the model silhouette, from the signed
+      distance ``sd`` of each pixel to the projected capsules
+      (:func:`capsule_signed_distance`, exact on a grid every ``grid_step`` pixels
+      and bilinear in between; the paper's "grid of values");
+    * ``S_M = sigmoid(-sd / softness)``: a soft model silhouette made from the same
+      capsules, so the ``S_M C_I`` part has a gradient that moves the outline (a hard
+      rasterised silhouette would have none); it is 1/2 on the capsules' outline and
+      within 1 % of 0 or 1 at ``4.6 * softness`` pixels from it.
+
+    ``a > 0.5`` weighs the model leaving the mask more than the mask being left
+    uncovered (person masks are wider than the body); the paper suggests such a
+    weighting and gives no value, 0.6 is the default. Dividing by the number of
+    mask pixels makes E_c a mean over the person, in px^2, comparable across image
+    sizes and people. The capsules must lie in front of the camera.
+
+    Only the window holding the mask and the projected capsules, widened by
+    ``12 * softness + 2 * grid_step`` pixels, is evaluated; outside it ``S_M`` is below
+    ``6e-6`` and ``S_I`` is 0, and the residuals there are returned as 0.
+
+    Both ``S_M`` and ``C_M`` come from the capsules, so the term is smooth and its
+    gradient exact; the price is the capsule body's fit to the mesh: on the default
+    body the capsules' outline covers the mesh silhouette with an IoU of about 0.8
+    (gaps at the joints, the top of the head, the feet), so against a mask of the
+    mesh itself the minimum of E_c lies about 2 cm higher and 3 cm closer to the
+    camera than the true translation (a = 0.6).
+
+    Args:
+        capsules: :class:`~flowmocap.body.capsules.Capsules`, batch B, world frame.
+        camera: the camera (world-to-camera pose and intrinsics).
+        target: from :func:`silhouette_target` (build it once per frame), or the
+            ``(H, W)`` person mask itself; its size must be the camera's.
+        chamfer: with a bare mask, its ``(H, W)`` chamfer map in pixels if already
+            computed (:func:`flowmocap.vision.chamfer_map`); ignored for a target.
+        a: weight of the ``S_M C_I`` part in ``[0, 1]``.
+        grid_step: pixels between exact distance evaluations.
+        softness: width of the soft silhouette's edge in pixels (> 0).
+
+    Returns:
+        ``(B, H * W)`` residuals in pixels / sqrt(pixel count).
+
+    Raises:
+        InputError: size mismatch, bad ``a``, ``grid_step`` or ``softness``, a capsule
+            behind the camera.
+    """
+    B = capsules.start.shape[0]
+    target = _as_target(target, chamfer, capsules.start.dtype)
+    res, (y0, x0) = _silhouette_window(capsules, camera, target, a, grid_step, softness)
+    H, W = target.height, target.width
+    full = F.pad(res, (x0, W - x0 - res.shape[2], y0, H - y0 - res.shape[1]))
+    return full.reshape(B, H * W)
+
+
+def _silhouette_window(capsules, camera, target, a, grid_step, softness):
+    """Residuals of E_c on the window that holds the mask and the model (see
+    :func:`silhouette_residuals`): ``(B, h, w)`` and the window's corner ``(y0, x0)``."""
+    if (target.height, target.width) != (camera.height, camera.width):
+        raise InputError(
+            f"the mask is {target.width}x{target.height} but the camera is "
+            f"{camera.width}x{camera.height}; give masks of the video's size"
+        )
+    if not 0.0 <= a <= 1.0:
+        raise InputError(f"a must be in [0, 1], got {a}")
+    if not softness > 0:
+        raise InputError(f"softness must be positive (pixels), got {softness}")
+    if int(grid_step) != grid_step or grid_step < 1:
+        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
+    step, H, W = int(grid_step), target.height, target.width
+    s, e, r = _project(capsules, camera)
+    # window: the mask's box and the capsules' box, plus the soft edge and a grid cell
+    with torch.no_grad():
+        lo = torch.minimum(s, e) - r[..., None]
+        hi = torch.maximum(s, e) + r[..., None]
+        margin = _SOFT_REACH * softness + 2 * step
+        x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
+        y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
+        x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
+        y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
+    x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
+    y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
+    x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
+    y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
+    sd = _signed_distance_window(s, e, r, y0, x0, y1 - y0, x1 - x0, step)  # (B, h, w)
+    mask = target.mask[y0:y1, x0:x1].to(sd.dtype)
+    cham = target.chamfer[y0:y1, x0:x1].to(sd.dtype)
+    soft = torch.sigmoid(-sd / softness)
+    res = (a * soft * cham + (1.0 - a) * mask * torch.relu(sd)) / math.sqrt(target.count)
+    return res, (y0, x0)
+
+
+def silhouette_energy(
+    capsules: Capsules,
+    camera: PinholeCamera,
+    target: SilhouetteTarget | Any,
+    chamfer: Any = None,
+    *,
+    a: float = 0.6,
+    grid_step: int = 4,
+    softness: float = 1.0,
+) -> torch.Tensor:
+    """E_c: sum of squared :func:`silhouette_residuals`, ``(B,)`` in px^2 per mask pixel."""
+    target = _as_target(target, chamfer, capsules.start.dtype)
+    res, _ = _silhouette_window(capsules, camera, target, a, grid_step, softness)
+    return (res * res).sum((1, 2))
+
+
+# ---------------------------------------------------------------------- 2D keypoints
+
+
+def keypoint_residuals(
+    joints2d_pred: torch.Tensor,
+    joints2d_obs: Any,
+    confidence: Any = None,
+    sigma: float = 100.0,
+) -> torch.Tensor:
+    """Robust 2D joint residuals (SMPLify's Geman-McClure data term), per coordinate.
+
+    The cost of a residual ``x`` (pixels, per coordinate) is
+    ``c * sigma^2 x^2 / (sigma^2 + x^2)`` (quadratic for ``|x| << sigma``, saturating at
+    ``c sigma^2`` for outliers); the returned residual is its signed square root
+    ``sqrt(c) * sigma * x / sqrt(sigma^2 + x^2)``, smooth through 0.
+
+    Args:
+        joints2d_pred: ``(B, J, 2)`` projected model joints, pixels.
+        joints2d_obs: ``(J, 2)`` or ``(B, J, 2)`` observed joints, pixels; NaN marks a
+            missing joint (its confidence becomes 0).
+        confidence: ``(J,)`` or ``(B, J)`` non-negative weights (default 1).
+        sigma: Geman-McClure scale in pixels (SMPLify uses 100).
+
+    Returns:
+        ``(B, 2 J)`` residuals in pixels, ``[x0, y0, x1, y1, ...]``.
+    """
+    if not isinstance(joints2d_pred, torch.Tensor) or joints2d_pred.dim() != 3 or joints2d_pred.shape[-1] != 2:
+        raise InputError(f"joints2d_pred must be a (B, J, 2) tensor, got {getattr(joints2d_pred, 'shape', None)}")
+    B, J, _ = joints2d_pred.shape
+    obs = _like(joints2d_obs, joints2d_pred)
+    if obs.shape not in ((J, 2), (B, J, 2)):
+        raise InputError(f"joints2d_obs must have shape ({J}, 2) or ({B}, {J}, 2), got {tuple(obs.shape)}")
+    obs = obs.expand(B, J, 2)
+    conf = torch.ones(B, J, dtype=obs.dtype, device=obs.device) if confidence is None else _like(confidence, obs)
+    if conf.shape not in ((J,), (B, J)):
+        raise InputError(f"confidence must have shape ({J},) or ({B}, {J}), got {tuple(conf.shape)}")
+    conf = conf.expand(B, J)
+    if (conf < 0).any() or not torch.isfinite(conf).all():
+        raise InputError("confidence must be finite and non-negative")
+    if not sigma > 0:
+        raise InputError(f"sigma must be positive (pixels), got {sigma}")
+    missing = ~torch.isfinite(obs).all(-1)
+    conf = torch.where(missing, torch.zeros_like(conf), conf)
+    x = joints2d_pred - torch.where(missing[..., None], joints2d_pred.detach(), obs)
+    res = torch.sqrt(conf)[..., None] * sigma * x / torch.sqrt(sigma * sigma + x * x)
+    return res.reshape(B, 2 * J)
+
+
+def keypoint_energy(
+    joints2d_pred: torch.Tensor, joints2d_obs: Any, confidence: Any = None, sigma: float = 100.0
+) -> torch.Tensor:
+    """Robust 2D joint energy, ``(B,)`` in px^2: sum of squared :func:`keypoint_residuals`."""
+    return _sum_sq(keypoint_residuals(joints2d_pred, joints2d_obs, confidence, sigma))
+
+
+# ---------------------------------------------------------------------------- priors
+
+
+def _pose_weights(weights: Any, ref: torch.Tensor, default_root: float, width: int = NUM_POSE) -> torch.Tensor:
+    """``(width,)`` weights from None, a scalar, per joint or per component.
+
+    ``width`` is 72 (all joints; None gives 1 and ``default_root`` for the root) or 69
+    (joints 1..23; None gives 1).
+    """
+    joints = width // 3
+    if weights is None:
+        w = torch.ones(width, dtype=ref.dtype, device=ref.device)
+        if width == NUM_POSE:
+            w[:3] = default_root
+        return w
+    w = _like(weights, ref)
+    if w.dim() == 0:
+        w = w.expand(width)
+    elif w.shape == (joints,):
+        w = w.repeat_interleave(3)
+    elif w.shape != (width,):
+        raise InputError(f"weights must be a scalar, ({joints},) per joint or ({width},) per component, "
+                         f"got {tuple(w.shape)}")
+    if (w < 0).any() or not torch.isfinite(w).all():
+        raise InputError("weights must be finite and non-negative")
+    return w
+
+
+def _pose_or_body_pose(x: Any, name: str) -> torch.Tensor:
+    """``(B, 72)`` or ``(B, 69)`` (no root) floating tensor; ``(72,)``/``(69,)`` get a batch."""
+    if isinstance(x, torch.Tensor) and x.dim() in (1, 2) and x.shape[-1] == NUM_POSE - 3:
+        if not x.is_floating_point():
+            raise InputError(f"{name} must be floating point, got {x.dtype}")
+        return x if x.dim() == 2 else x[None]
+    return _pose(x, name)
+
+
+def pose_prior_residuals(pose: torch.Tensor, ref_pose: Any, weights: Any = None) -> torch.Tensor:
+    """Residuals pulling the pose towards a rough reference pose (initialisation).
+
+    ``r_i = sqrt(w_i) (theta_i - theta_ref_i)`` on the raw axis-angle components, a
+    quadratic prior as SMPLify's, suited to the small differences a rough manual or
+    detected pose leaves.
+
+    Args:
+        pose: ``(B, 72)`` axis-angle, radians, or ``(B, 69)``: joints 1..23 only.
+        ref_pose: ``(D,)`` or ``(B, D)`` reference pose of the same width D, radians.
+        weights: scalar, per joint (``(24,)`` / ``(23,)``) or per component
+            (``(72,)`` / ``(69,)``); default: 1 for every joint, 0 for the root
+            (whose orientation the 2D joints decide).
+
+    Returns:
+        ``(B, D)`` residuals in radians.
+    """
+    pose = _pose_or_body_pose(pose, "pose")
+    ref = _pose_or_body_pose(_like(ref_pose, pose), "ref_pose")
+    if ref.shape[1] != pose.shape[1] or ref.shape[0] not in (1, pose.shape[0]):
+        raise InputError(f"ref_pose has shape {tuple(ref.shape)}, pose has {tuple(pose.shape)}")
+    return torch.sqrt(_pose_weights(weights, pose, 0.0, pose.shape[1])) * (pose - ref)
+
+
+def pose_prior_energy(pose: torch.Tensor, ref_pose: Any, weights: Any = None) -> torch.Tensor:
+    """Sum of squared :func:`pose_prior_residuals`, ``(B,)`` in rad^2."""
+    return _sum_sq(pose_prior_residuals(pose, ref_pose, weights))
+
+
+def shape_prior_residuals(betas: torch.Tensor) -> torch.Tensor:
+    """Residuals towards the mean shape: the shape coefficients themselves.
+
+    Args:
+        betas: ``(B, S)`` shape coefficients (unit: standard deviations of the model's
+            shape space for SMPL-format models).
+
+    Returns:
+        ``(B, S)``.
+    """
+    if not isinstance(betas, torch.Tensor) or betas.dim() not in (1, 2):
+        raise InputError(f"betas must be a (B, S) tensor, got {getattr(betas, 'shape', None)}")
+    return betas if betas.dim() == 2 else betas[None]
+
+
+def shape_prior_energy(betas: torch.Tensor) -> torch.Tensor:
+    """``||betas||^2`` per body, ``(B,)``."""
+    return _sum_sq(shape_prior_residuals(betas))
+
+
+def temporal_residuals(
+    pose: torch.Tensor, prev_pose: Any, weights: Any = None, include_root: bool = True
+) -> torch.Tensor:
+    """Residuals of E_theta, the closeness of the pose to the previous frame's.
+
+    Joints 1..23: ``r = sqrt(w) (theta_i - theta_{i-1})``, the raw axis-angle
+    difference of the paper (their rotations stay well below pi, where the difference
+    is well defined). The root (global orientation) is included by default but as the
+    geodesic difference ``log(R_{i-1}^T R_i)``: a person facing an OpenCV camera has a
+    global rotation close to pi, where the raw axis-angle vector wraps and its
+    difference would jump. Both agree to first order for small rotations.
+
+    Args:
+        pose: ``(B, 72)`` current pose, radians.
+        prev_pose: ``(72,)`` or ``(B, 72)`` previous pose, radians (a constant).
+        weights: scalar, ``(24,)`` or ``(72,)`` weights (default 1 everywhere).
+        include_root: if False the root's three residuals are 0.
+
+    Returns:
+        ``(B, 72)`` residuals in radians.
+    """
+    pose = _pose(pose)
+    prev = _pose(_like(prev_pose, pose), "prev_pose").expand_as(pose)
+    w = torch.sqrt(_pose_weights(weights, pose, 1.0))
+    joints = pose[:, 3:] - prev[:, 3:]
+    if include_root:
+        rel = axis_angle_to_matrix(prev[:, :3]).transpose(-1, -2) @ axis_angle_to_matrix(pose[:, :3])
+        root = matrix_to_axis_angle(rel)
+    else:
+        root = torch.zeros_like(pose[:, :3])
+    return w * torch.cat([root, joints], dim=1)
+
+
+def temporal_energy(pose: torch.Tensor, prev_pose: Any, weights: Any = None, include_root: bool = True) -> torch.Tensor:
+    """E_theta: sum of squared :func:`temporal_residuals`, ``(B,)`` in rad^2."""
+    return _sum_sq(temporal_residuals(pose, prev_pose, weights, include_root))

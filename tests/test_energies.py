@@ -1,0 +1,476 @@
+"""Energy terms of the tracker (flowmocap.fit.energies) and the joint limit table."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import JOINT_INDEX, JOINT_NAMES, body_capsules, load_body_model
+from flowmocap.body.capsules import CAPSULE_NAMES, Capsules
+from flowmocap.errors import InputError, NoPersonError
+from flowmocap.fit import (
+    default_joint_limits,
+    interpenetration_energy,
+    interpenetration_pairs,
+    interpenetration_residuals,
+    joint_angles,
+    joint_limit_energy,
+    joint_limit_residuals,
+    keypoint_energy,
+    keypoint_residuals,
+    pose_prior_energy,
+    pose_prior_residuals,
+    segment_segment_distance,
+    shape_prior_energy,
+    silhouette_energy,
+    silhouette_residuals,
+    silhouette_target,
+    temporal_energy,
+    temporal_residuals,
+)
+from flowmocap.fit.energies import _project, capsule_signed_distance
+from flowmocap.fit.joint_limits import LIMITS_DEG
+from flowmocap.geometry import PinholeCamera, look_at
+from flowmocap.io import walk_poses
+from flowmocap.render import capsule_distance_map
+
+J = JOINT_INDEX
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body_model("default", dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return torch.tensor(walk_poses(np.linspace(0.0, 1.0, 24, endpoint=False)))
+
+
+def _pose(*items, dtype=torch.float64):
+    """A (1, 72) pose with the given (joint name, axis 0..2, degrees) rotations."""
+    p = torch.zeros(1, 72, dtype=dtype)
+    for name, axis, deg in items:
+        p[0, 3 * J[name] + axis] = math.radians(deg)
+    return p
+
+
+# ------------------------------------------------------------------------ joint limits
+
+
+def _moved(body, items, joint):
+    """Where ``joint`` moves (metres, body axes) when the pose is set to ``items``."""
+    rest = body().joints[0, J[joint]]
+    return (body(pose=_pose(*items)).joints[0, J[joint]] - rest).numpy()
+
+
+def test_sign_conventions_of_the_limit_table_on_the_default_body(body):
+    # knee +x: the ankle goes back (-z) and up -- natural flexion
+    d = _moved(body, [("left_knee", 0, 45)], "left_ankle")
+    assert d[2] < -0.2 and d[1] > 0.1
+    # hip -x: the knee goes forward -- flexion is -x
+    assert _moved(body, [("left_hip", 0, -45)], "left_knee")[2] > 0.2
+    # left elbow -y: the wrist goes forward -- flexion; right elbow mirrored (+y)
+    assert _moved(body, [("left_elbow", 1, -45)], "left_wrist")[2] > 0.1
+    assert _moved(body, [("right_elbow", 1, 45)], "right_wrist")[2] > 0.1
+    # ankle +x: the toes go down -- plantar flexion
+    assert _moved(body, [("left_ankle", 0, 45)], "left_foot")[1] < -0.05
+    # left hip +z: the knee goes out (+x) -- abduction
+    assert _moved(body, [("left_hip", 2, 45)], "left_knee")[0] > 0.2
+    # left shoulder +z raises the arm; right shoulder mirrored
+    assert _moved(body, [("left_shoulder", 2, 45)], "left_elbow")[1] > 0.15
+    assert _moved(body, [("right_shoulder", 2, -45)], "right_elbow")[1] > 0.15
+    # left wrist +z: the hand goes up (palm down): extension
+    assert _moved(body, [("left_wrist", 2, 45)], "left_hand")[1] > 0.05
+    # spine +x: the neck goes forward -- flexion
+    assert _moved(body, [("spine1", 0, 30)], "neck")[2] > 0.1
+    # the table follows: flexion ranges lie on these sides
+    assert LIMITS_DEG["left_knee"][0] == (-5.0, 145.0)
+    assert LIMITS_DEG["left_hip"][0][0] <= -120.0
+    assert LIMITS_DEG["left_elbow"][1][0] <= -150.0 and LIMITS_DEG["right_elbow"][1][1] >= 150.0
+
+
+def test_limit_table_is_complete_ordered_and_mirrored():
+    lim = default_joint_limits()
+    assert lim.limited.tolist() == list(range(1, 24))
+    assert np.isinf(lim.lower[0]).all() and np.isinf(lim.upper[0]).all()
+    assert (lim.lower[1:] < 0).all() and (lim.upper[1:] > 0).all()  # the rest pose is inside
+    assert (np.abs(lim.lower[1:]) < math.pi).all() and (np.abs(lim.upper[1:]) < math.pi).all()
+    for name in JOINT_NAMES:
+        if name.startswith("left_"):
+            (lx, ly, lz), (rx, ry, rz) = LIMITS_DEG[name], LIMITS_DEG["right_" + name[5:]]
+            assert rx == lx and ry == (-ly[1], -ly[0]) and rz == (-lz[1], -lz[0])
+
+
+def test_joint_angles_of_single_axis_rotations():
+    # a pure hinge rotation is exactly one angle, in its SMPL axis column
+    for name, axis, deg in [("left_knee", 0, 120), ("left_elbow", 1, -130), ("left_wrist", 2, -60),
+                            ("spine2", 1, 20), ("left_shoulder", 2, -80), ("left_collar", 0, 15)]:
+        th = joint_angles(_pose((name, axis, deg)))[0, J[name]]
+        expected = torch.zeros(3, dtype=torch.float64)
+        expected[axis] = math.radians(deg)
+        torch.testing.assert_close(th, expected, atol=1e-9, rtol=0)
+    # a flexed knee with a twist: the Euler chart (XZY) separates them, axis-angle mixes
+    from flowmocap.geometry import euler_to_matrix, matrix_to_axis_angle
+
+    R = euler_to_matrix(torch.tensor([math.radians(100), math.radians(8), math.radians(20)],
+                                     dtype=torch.float64), "XZY")
+    p = torch.zeros(1, 24, 3, dtype=torch.float64)
+    p[0, J["left_knee"]] = matrix_to_axis_angle(R)
+    th = joint_angles(p)[0, J["left_knee"]]
+    torch.testing.assert_close(th, torch.tensor([100.0, 20.0, 8.0], dtype=torch.float64).deg2rad())
+
+
+def test_joint_limit_energy_zero_inside_positive_outside(body, walk):
+    assert joint_limit_energy(torch.zeros(1, 72)).item() == 0.0
+    assert joint_limit_energy(walk).max().item() == 0.0
+    natural = _pose(("left_knee", 0, 120), ("left_hip", 0, -90), ("left_elbow", 1, -120), ("right_elbow", 1, 90),
+                    ("left_shoulder", 2, -80), ("left_ankle", 0, 30), ("spine2", 0, 20), ("neck", 1, 30))
+    assert joint_limit_energy(natural).item() == 0.0
+    for bad in [("left_knee", 0, -30), ("right_knee", 0, -30), ("left_elbow", 1, 40), ("right_elbow", 1, -40),
+                ("left_hip", 2, -60), ("left_wrist", 2, 110), ("head", 0, 80)]:
+        assert joint_limit_energy(_pose(bad)).item() > 0.05, bad
+    # a knee bent backwards costs more the further it goes
+    e = [joint_limit_energy(_pose(("left_knee", 0, -d))).item() for d in (6, 10, 20, 40)]
+    assert e[0] > 0 and all(b > a for a, b in zip(e, e[1:]))
+
+
+def test_joint_limit_residual_closed_form():
+    lim = default_joint_limits()
+    k = J["left_knee"]
+    for angle, excess in [(lim.upper[k, 0] + 0.3, 0.3), (lim.lower[k, 0] - 0.2, 0.2)]:
+        p = torch.zeros(1, 24, 3, dtype=torch.float64)
+        p[0, k, 0] = angle
+        r = joint_limit_residuals(p)
+        assert r.shape == (1, 69)
+        i = 3 * (k - 1)  # residuals skip the root
+        torch.testing.assert_close(r[0, i], torch.tensor(math.expm1(excess), dtype=torch.float64))
+        assert (r[0, torch.arange(69) != i] == 0).all()
+        torch.testing.assert_close(joint_limit_energy(p)[0], r[0, i] ** 2)
+
+
+def test_joint_limit_gradient_matches_finite_differences():
+    g = torch.Generator().manual_seed(1)
+    pose = (0.9 * torch.randn(2, 72, generator=g, dtype=torch.float64)).requires_grad_()
+    assert joint_limit_energy(pose.detach()).min() > 0  # several angles outside the limits
+    assert torch.autograd.gradcheck(joint_limit_residuals, (pose,), eps=1e-6, atol=1e-6)
+
+
+def test_joint_limit_energy_is_left_right_symmetric(walk):
+    g = torch.Generator().manual_seed(2)
+    pose = 0.7 * torch.randn(4, 24, 3, generator=g, dtype=torch.float64)
+    swap = [JOINT_NAMES.index(n.replace("left_", "#").replace("right_", "left_").replace("#", "right_"))
+            for n in JOINT_NAMES]
+    mirrored = pose[:, swap] * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)
+    torch.testing.assert_close(joint_limit_energy(mirrored), joint_limit_energy(pose))
+
+
+def test_joint_limit_input_errors():
+    with pytest.raises(InputError):
+        joint_limit_energy(torch.zeros(1, 70))
+    with pytest.raises(InputError):
+        joint_limit_energy(np.zeros((1, 72)))
+
+
+# -------------------------------------------------------------------- interpenetration
+
+
+def _brute_segment_distance(p1, q1, p2, q2, n=20001):
+    t = np.linspace(0, 1, n)[:, None]
+    a, b = p1 + t * (q1 - p1), p2 + t * (q2 - p2)
+    # distance of every sample of a to segment b (exact), then the minimum
+    d = q2 - p2
+    s = np.clip(((a - p2) @ d) / max(d @ d, 1e-300), 0, 1)
+    da = np.linalg.norm(a - (p2 + s[:, None] * d), axis=1).min()
+    d1 = q1 - p1
+    s = np.clip(((b - p1) @ d1) / max(d1 @ d1, 1e-300), 0, 1)
+    db = np.linalg.norm(b - (p1 + s[:, None] * d1), axis=1).min()
+    return min(da, db)
+
+
+def test_segment_distance_matches_brute_force_including_degenerate_cases():
+    rng = np.random.default_rng(0)
+    cases = [rng.normal(size=(4, 3)) for _ in range(30)]
+    p, q = rng.normal(size=3), rng.normal(size=3)
+    off = np.array([0.3, -0.2, 0.5])
+    cases += [
+        np.stack([p, q, p + off, q + off]),  # parallel, overlapping extent
+        np.stack([p, q, q + 2 * (q - p), q + 3 * (q - p)]),  # collinear, apart
+        np.stack([p, p, q, q + off]),  # first segment a point
+        np.stack([p, q, off, off]),  # second segment a point
+        np.stack([p, p, q, q]),  # two points
+        np.stack([[0, 0, 0], [1, 0, 0], [0.5, -1, 0], [0.5, 1, 0]]),  # crossing: distance 0
+    ]
+    x = torch.tensor(np.stack(cases))
+    d = segment_segment_distance(x[:, 0], x[:, 1], x[:, 2], x[:, 3]).numpy()
+    ref = np.array([_brute_segment_distance(*c) for c in cases])
+    np.testing.assert_allclose(d, ref, atol=2e-6)  # sqrt(d^2 + 1e-12) adds 1e-6 at 0
+
+
+def _caps(start, end, radius):
+    t = lambda v: torch.tensor(v, dtype=torch.float64)[None]  # noqa: E731
+    return Capsules(t(start), t(end), t(radius))
+
+
+def test_interpenetration_closed_form_for_crossing_capsules():
+    # two perpendicular capsules whose axes pass 0.05 apart: overlap 0.1 + 0.08 - 0.05
+    caps = _caps([[-1, 0, 0], [0, -1, 0.05]], [[1, 0, 0], [0, 1, 0.05]], [0.1, 0.08])
+    r = interpenetration_residuals(caps, pairs=[(0, 1)], tolerance=0.0)
+    torch.testing.assert_close(r, torch.tensor([[0.13]], dtype=torch.float64))
+    e = interpenetration_energy(caps, pairs=[(0, 1)], tolerance=0.01)
+    torch.testing.assert_close(e, torch.tensor([0.12 ** 2], dtype=torch.float64))
+    apart = _caps([[-1, 0, 0], [0, -1, 0.5]], [[1, 0, 0], [0, 1, 0.5]], [0.1, 0.08])
+    assert interpenetration_energy(apart, pairs=[(0, 1)]).item() == 0.0
+    with pytest.raises(InputError):
+        interpenetration_energy(caps, pairs=[(0, 2)])
+
+
+def test_interpenetration_gradient_matches_finite_differences():
+    rng = np.random.default_rng(3)
+    K = 5
+    start = torch.tensor(rng.normal(0, 0.15, (2, K, 3)), requires_grad=True)
+    end = torch.tensor(rng.normal(0, 0.15, (2, K, 3)), requires_grad=True)
+    radius = torch.tensor(rng.uniform(0.05, 0.12, (2, K)), requires_grad=True)
+    pairs = [(i, j) for i in range(K) for j in range(i + 1, K)]
+
+    def f(s, e, r):
+        return interpenetration_residuals(Capsules(s, e, r), pairs=pairs, tolerance=0.01)
+
+    assert (f(start, end, radius) > 0).sum() >= 5  # several pairs overlap
+    assert torch.autograd.gradcheck(f, (start, end, radius), eps=1e-7, atol=1e-6)
+
+
+def test_interpenetration_pairs_exclude_neighbours_keep_limbs(body):
+    pairs = set(interpenetration_pairs())
+    assert pairs == set(interpenetration_pairs(body))  # same rule, same body
+    idx = {n: i for i, n in enumerate(CAPSULE_NAMES)}
+
+    def has(a, b):
+        i, j = sorted((idx[a], idx[b]))
+        return (i, j) in pairs
+
+    for a, b in [("left_upper_arm", "left_forearm"), ("left_forearm", "left_hand"), ("pelvis", "left_thigh"),
+                 ("spine1", "left_thigh"), ("spine3", "left_upper_arm"), ("left_thigh", "left_shin"),
+                 ("neck", "head"), ("spine2", "spine3")]:
+        assert not has(a, b), (a, b)
+    for a, b in [("left_thigh", "right_thigh"), ("left_hand", "spine2"), ("left_forearm", "pelvis"),
+                 ("left_hand", "head"), ("left_hand", "right_hand"), ("left_shin", "right_shin"),
+                 ("left_hand", "left_thigh"), ("left_upper_arm", "right_upper_arm")]:
+        assert has(a, b), (a, b)
+    assert len(pairs) == 150
+
+
+def test_interpenetration_zero_at_rest_and_walking_positive_through_torso(body, walk):
+    assert interpenetration_energy(body_capsules(body, body())).item() == 0.0
+    assert interpenetration_energy(body_capsules(body, body(pose=walk))).max().item() == 0.0
+    sitting = _pose(("left_hip", 0, -90), ("right_hip", 0, -90), ("left_knee", 0, 90), ("right_knee", 0, 90))
+    assert interpenetration_energy(body_capsules(body, body(pose=sitting))).item() == 0.0
+    # the arm hanging down, then pushed 40 degrees further, into the belly
+    through = _pose(("left_shoulder", 2, -130))
+    r = interpenetration_residuals(body_capsules(body, body(pose=through)))
+    worst = interpenetration_pairs()[int(r[0].argmax())]
+    assert r.max().item() > 0.04
+    assert {CAPSULE_NAMES[worst[0]], CAPSULE_NAMES[worst[1]]} == {"spine2", "left_forearm"}
+    # legs crossed through each other
+    crossed = _pose(("left_hip", 2, -40))
+    assert interpenetration_energy(body_capsules(body, body(pose=crossed))).item() > 1e-3
+
+
+# -------------------------------------------------------------------------- silhouette
+
+
+@pytest.fixture(scope="module")
+def scene(body):
+    H, W = 240, 320
+    R, t = look_at((0.3, 0.2, 3.0), (0.0, -0.1, 0.0))
+    cam = PinholeCamera.from_focal(W, H, 300.0, R, t)  # 1 cm = 1 px at the body
+    pose = torch.tensor(walk_poses(np.array([0.3])))
+    caps = body_capsules(body, body(pose=pose))
+    s, e, r = _project(caps, cam)
+    mask = (capsule_signed_distance(s, e, r, H, W, grid_step=1)[0] <= 0).numpy()
+    return {"cam": cam, "pose": pose, "mask": mask, "target": silhouette_target(mask, dtype=torch.float64)}
+
+
+def _sil_energy(body, scene, trans, **kw):
+    caps = body_capsules(body, body(pose=scene["pose"], trans=trans))
+    return silhouette_energy(caps, scene["cam"], scene["target"], **kw)
+
+
+def test_signed_distance_agrees_with_the_render_distance_map():
+    rng = np.random.default_rng(4)
+    H, W, K = 37, 53, 5
+    a = torch.tensor(rng.uniform([0, 0], [W, H], (1, K, 2)))
+    b = a + torch.tensor(rng.normal(0, 8, (1, K, 2)))
+    r = torch.tensor(rng.uniform(1, 4, (1, K)))
+    for step in (1, 4):
+        sd = capsule_signed_distance(a, b, r, H, W, step)[0]
+        cm = capsule_distance_map(a[0], b[0], r[0], H, W, step)
+        torch.testing.assert_close(sd.clamp_min(0)[::step, ::step], cm[::step, ::step])
+    # exact (step 1) against brute force, inside values included
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    p = np.stack([u, v], -1)[:, :, None]
+    A, B, Rr = a[0].numpy(), b[0].numpy(), r[0].numpy()
+    t = np.clip(((p - A) * (B - A)).sum(-1) / ((B - A) ** 2).sum(-1), 0, 1)
+    ref = (np.linalg.norm(p - (A + t[..., None] * (B - A)), axis=-1) - Rr).min(-1)
+    np.testing.assert_allclose(capsule_signed_distance(a, b, r, H, W, 1)[0].numpy(), ref, atol=1e-9)
+
+
+def test_signed_distance_gradient_matches_finite_differences():
+    rng = np.random.default_rng(5)
+    H, W, K = 19, 23, 3
+    a = torch.tensor(rng.uniform([0, 0], [W, H], (2, K, 2)), requires_grad=True)
+    b = (a.detach() + torch.tensor(rng.normal(0, 6, (2, K, 2)))).requires_grad_()
+    r = torch.tensor(rng.uniform(1, 3, (2, K)), requires_grad=True)
+    w = torch.tensor(rng.random((H, W)))
+    f = lambda a_, b_, r_: (capsule_signed_distance(a_, b_, r_, H, W, 3) * w).sum((1, 2))  # noqa: E731
+    assert torch.autograd.gradcheck(f, (a, b, r), eps=1e-6, atol=1e-6)
+
+
+def test_silhouette_energy_near_zero_at_the_mask_and_grows_away(body, scene):
+    zero = torch.zeros(1, 3, dtype=torch.float64)
+    e0 = _sil_energy(body, scene, zero).item()
+    es = [_sil_energy(body, scene, torch.tensor([[dx, 0.0, 0.0]], dtype=torch.float64)).item()
+          for dx in (0.02, 0.05, 0.1, 0.2)]
+    assert all(b > a for a, b in zip([e0] + es, es))
+    assert e0 < 0.05 * es[1]  # the soft edge's floor is small against a 5 px shift
+    # the minimum along x and y lies at the true translation (within a grid cell ~ 1 cm)
+    for axis in (0, 1):
+        steps = np.linspace(-0.03, 0.03, 13)
+        vals = []
+        for s in steps:
+            tr = torch.zeros(1, 3, dtype=torch.float64)
+            tr[0, axis] = s
+            vals.append(_sil_energy(body, scene, tr).item())
+        assert abs(steps[int(np.argmin(vals))]) <= 0.0051
+    # a > 0.5 weighs the model leaving the mask: moving closer (bigger) costs more than away
+    closer = _sil_energy(body, scene, torch.tensor([[0.0, 0.0, 0.3]], dtype=torch.float64)).item()
+    farther = _sil_energy(body, scene, torch.tensor([[0.0, 0.0, -0.3]], dtype=torch.float64)).item()
+    assert closer > farther
+
+
+def test_silhouette_gradient_matches_finite_differences(body, scene):
+    trans = torch.tensor([[0.03, -0.02, 0.05]], dtype=torch.float64, requires_grad=True)
+    e = _sil_energy(body, scene, trans)
+    (g,) = torch.autograd.grad(e.sum(), trans)
+    h = 1e-5
+    fd = []
+    for k in range(3):
+        dp = torch.zeros(1, 3, dtype=torch.float64)
+        dp[0, k] = h
+        fd.append((_sil_energy(body, scene, trans.detach() + dp) - _sil_energy(body, scene, trans.detach() - dp)).item()
+                  / (2 * h))
+    np.testing.assert_allclose(g[0].numpy(), fd, rtol=1e-4, atol=1e-6 * float(np.abs(fd).max()))
+
+
+def test_silhouette_residuals_match_a_full_image_evaluation(body, scene):
+    trans = torch.tensor([[0.05, 0.02, 0.1]], dtype=torch.float64)
+    caps = body_capsules(body, body(pose=scene["pose"], trans=trans))
+    cam, tgt = scene["cam"], scene["target"]
+    r = silhouette_residuals(caps, cam, tgt, a=0.7, grid_step=2, softness=1.5)
+    assert r.shape == (1, cam.height * cam.width)
+    s, e, rad = _project(caps, cam)
+    sd = capsule_signed_distance(s, e, rad, cam.height, cam.width, 2)[0]
+    ref = (0.7 * torch.sigmoid(-sd / 1.5) * tgt.chamfer + 0.3 * tgt.mask * sd.clamp_min(0)) / math.sqrt(tgt.count)
+    torch.testing.assert_close(r[0].reshape(cam.height, cam.width), ref, atol=1e-6, rtol=0)
+    torch.testing.assert_close(silhouette_energy(caps, cam, tgt, a=0.7, grid_step=2, softness=1.5), (r ** 2).sum(1))
+
+
+def test_silhouette_bad_input(body, scene):
+    caps = body_capsules(body, body(pose=scene["pose"]))
+    with pytest.raises(NoPersonError):
+        silhouette_target(np.zeros((240, 320), bool))
+    with pytest.raises(InputError):
+        silhouette_energy(caps, scene["cam"], silhouette_target(np.ones((60, 80), bool)))
+    with pytest.raises(InputError):
+        silhouette_energy(caps, scene["cam"], scene["target"], a=1.5)
+
+
+# ------------------------------------------------------------------ keypoints, priors
+
+
+def test_keypoint_residuals_geman_mcclure_closed_form_and_missing_joints():
+    pred = torch.tensor([[[10.0, 20.0], [30.0, 40.0], [0.0, 0.0]]], dtype=torch.float64)
+    obs = torch.tensor([[13.0, 16.0], [1030.0, 40.0], [float("nan"), float("nan")]], dtype=torch.float64)
+    conf = torch.tensor([1.0, 0.5, 1.0], dtype=torch.float64)
+    sigma = 100.0
+    r = keypoint_residuals(pred, obs, conf, sigma)
+    x = (pred[0] - torch.nan_to_num(obs)).reshape(-1)
+    c = conf.repeat_interleave(2)
+    c[4:] = 0
+    torch.testing.assert_close(r[0] ** 2, c * sigma ** 2 * x ** 2 / (sigma ** 2 + x ** 2))
+    assert torch.sign(r[0, 0]) == -1  # signed: pred - obs
+    # small residuals are quadratic, outliers saturate at c sigma^2
+    assert abs(r[0, 1].item() ** 2 - 16.0) < 0.03
+    assert 0.45 * sigma ** 2 < r[0, 2].item() ** 2 < 0.5 * sigma ** 2
+    torch.testing.assert_close(keypoint_energy(pred, obs, conf, sigma), (r ** 2).sum(1))
+
+
+def test_keypoint_gradient_matches_finite_differences():
+    g = torch.Generator().manual_seed(6)
+    pred = (100 * torch.randn(2, 12, 2, generator=g, dtype=torch.float64)).requires_grad_()
+    obs = 100 * torch.randn(12, 2, generator=g, dtype=torch.float64)
+    obs[3] = float("nan")
+    conf = torch.rand(12, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda p: keypoint_residuals(p, obs, conf, 50.0), (pred,))
+    with pytest.raises(InputError):
+        keypoint_residuals(pred, obs[:5], conf)
+
+
+def test_pose_and_shape_priors_closed_form():
+    g = torch.Generator().manual_seed(7)
+    pose = torch.randn(2, 72, generator=g, dtype=torch.float64)
+    ref = torch.randn(72, generator=g, dtype=torch.float64)
+    d = pose - ref
+    torch.testing.assert_close(pose_prior_energy(pose, ref), (d[:, 3:] ** 2).sum(1))  # root weight 0
+    w = torch.rand(24, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(pose_prior_energy(pose, ref, w), (w.repeat_interleave(3) * d ** 2).sum(1))
+    torch.testing.assert_close(pose_prior_residuals(pose, ref, 4.0), 2.0 * d)
+    betas = torch.randn(2, 10, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(shape_prior_energy(betas), (betas ** 2).sum(1))
+    with pytest.raises(InputError):
+        pose_prior_energy(pose, ref, torch.ones(5))
+
+
+def test_temporal_energy_raw_joints_geodesic_root_across_the_wrap():
+    g = torch.Generator().manual_seed(8)
+    prev = 0.3 * torch.randn(1, 72, generator=g, dtype=torch.float64)
+    cur = prev + 0.01 * torch.randn(1, 72, generator=g, dtype=torch.float64)
+    r = temporal_residuals(cur, prev)
+    torch.testing.assert_close(r[:, 3:], cur[:, 3:] - prev[:, 3:])
+    torch.testing.assert_close(r[:, :3], cur[:, :3] - prev[:, :3], atol=2e-3, rtol=0)  # first order
+    assert (temporal_residuals(cur, prev, include_root=False)[:, :3] == 0).all()
+    # a person facing the camera: root near pi about y; 0.02 rad apart across the wrap
+    a, b = prev.clone(), prev.clone()
+    a[0, :3] = torch.tensor([0.0, math.pi - 0.01, 0.0])
+    b[0, :3] = torch.tensor([0.0, -(math.pi - 0.01), 0.0])
+    torch.testing.assert_close(temporal_energy(b, a), torch.tensor([0.02 ** 2], dtype=torch.float64))
+    # gradients, also where the pose equals the previous one
+    for p in (cur, prev):
+        x = p.clone().requires_grad_()
+        assert torch.autograd.gradcheck(lambda y: temporal_residuals(y, prev), (x,))
+
+
+def test_silhouette_accepts_a_bare_mask_and_chamfer_map(body, scene):
+    from flowmocap.vision import chamfer_map
+
+    caps = body_capsules(body, body(pose=scene["pose"], trans=torch.tensor([[0.02, 0.0, 0.0]], dtype=torch.float64)))
+    ref = silhouette_energy(caps, scene["cam"], scene["target"], a=0.65)
+    mask = scene["mask"]
+    torch.testing.assert_close(silhouette_energy(caps, scene["cam"], mask, a=0.65), ref)
+    cham = torch.as_tensor(chamfer_map(mask))
+    torch.testing.assert_close(silhouette_energy(caps, scene["cam"], mask, cham, a=0.65), ref)
+    with pytest.raises(InputError):
+        silhouette_energy(caps, scene["cam"], mask, cham[:10], a=0.65)
+
+
+def test_pose_prior_on_joints_without_the_root():
+    g = torch.Generator().manual_seed(9)
+    pose = torch.randn(2, 72, generator=g, dtype=torch.float64)
+    ref = torch.randn(72, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(pose_prior_energy(pose[:, 3:], ref[None, 3:]), pose_prior_energy(pose, ref))
+    w = torch.rand(23, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(pose_prior_energy(pose[:, 3:], ref[3:], w),
+                               pose_prior_energy(pose, ref, torch.cat([torch.zeros(1, dtype=torch.float64), w])))
