@@ -16,20 +16,21 @@ def test_help_lists_commands():
         assert cmd in out.stdout
 
 
-def test_demo_renders_default_body_and_says_what_is_missing(tmp_path, capsys):
+def test_demo_tracks_and_scores_and_says_what_is_missing(tmp_path, capsys):
     import imageio.v3 as iio
 
     from flowmocap.cli import main
 
-    assert main(["demo", "--out", str(tmp_path)]) == 0
+    assert main(["demo", "--out", str(tmp_path), "--frames", "4", "--size", "240x180", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "Not built yet" in printed
+    assert "3D joint error" in printed and "Not built yet" in printed
     img = iio.imread(tmp_path / "default_body.png")
-    assert img.ndim == 3 and img.shape[2] == 3
-    # the body is there: a good share of pixels differ from the plain background
-    assert (np.abs(img.astype(int) - 245).sum(2) > 30).mean() > 0.05
-    info = json.loads((tmp_path / "demo.json").read_text())
-    assert info["vertices"] > 5000
+    assert img.ndim == 3 and (np.abs(img.astype(int) - 245).sum(2) > 30).mean() > 0.05
+    scores = json.loads((tmp_path / "eval.json").read_text())
+    for key in ("local_cm", "global_cm", "s_per_frame"):
+        assert np.isfinite(scores[key])
+    assert scores["frames"] == 4
+    assert (tmp_path / "result" / "motion.npz").exists()
 
 
 def test_body_command_errors_cleanly(tmp_path, capsys):

@@ -11,9 +11,8 @@ from flowmocap import __version__
 from flowmocap.errors import FlowMocapError, InputError
 
 NOT_BUILT_YET = (
-    "Not built yet: the tracker (flowmocap track), evaluation (flowmocap eval/bench), "
-    "automatic masks and joints for real video, and exports. This demo only shows the "
-    "body model; synthetic sequences with ground truth are available (flowmocap synth)."
+    "Not built yet: evaluation against a baseline (flowmocap eval/bench), automatic masks "
+    "and joints for real video (video input), and exports."
 )
 
 
@@ -42,23 +41,61 @@ def cmd_body(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from flowmocap.body import load_body_model
+    from flowmocap.eval.demo import run_demo
     from flowmocap.viz.body_figure import body_sheet
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model = load_body_model("default", gender="neutral")
-    print(f"default body model: {model.num_vertices} vertices, {model.faces.shape[0]} faces, "
-          f"{model.num_betas} shape components ({model.source})")
-    sheet = body_sheet()
-    path = out / "default_body.png"
-    _write_png(path, sheet)
-    info = {"image": str(path), "vertices": model.num_vertices, "faces": int(model.faces.shape[0]),
-            "built": ["body model", "geometry", "renderer", "mocap retargeting", "synth"],
-            "not_built": NOT_BUILT_YET}
-    (out / "demo.json").write_text(json.dumps(info, indent=2))
-    print(f"wrote {path}")
+    _write_png(out / "default_body.png", body_sheet())
+    print(f"wrote {out / 'default_body.png'} (the default body)")
+    print(f"synthesising the built-in walk ({args.frames} frames, {args.size}) and tracking it "
+          "from a perturbed initialisation ...")
+    scores = run_demo(out, frames=args.frames, size=args.size, seed=args.seed, progress=not args.quiet)
+    print(f"3D joint error on the paper's 13 joints: local (per-frame Procrustes) "
+          f"{scores['local_cm']:.2f} cm, global (per-sequence Procrustes) {scores['global_cm']:.2f} cm, "
+          f"MPJPE {scores['mpjpe_cm']:.2f} cm; {scores['s_per_frame']:.2f} s per frame (median)")
+    print("paper's targets (HumanEva walking): local <= 5.5 cm, global <= 7.6 cm; ours: <= 1 s per frame")
+    print(f"wrote {out / 'eval.json'}, the sequence in {out / 'sequence'} and the result in {out / 'result'}")
     print(NOT_BUILT_YET)
+    return 0
+
+
+def cmd_track(args) -> int:
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.init import parse_init
+    from flowmocap.fit.tracker import track_sequence
+    from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.io.sequence import load_sequence
+
+    src = Path(args.input)
+    if src.is_file():
+        raise InputError(
+            f"{src} is a file: video input is not supported yet. Extract its frames into a folder "
+            "(e.g. ffmpeg -i video.mp4 frames/%06d.png) and pass that folder with --focal and --init."
+        )
+    seq = load_sequence(src, masks=args.masks)
+    if args.camera:
+        from flowmocap.synth import read_camera_json
+
+        camera = read_camera_json(args.camera)
+    elif args.focal:
+        camera = PinholeCamera.from_focal(seq.size[0], seq.size[1], args.focal)
+    elif seq.camera is not None:
+        camera = seq.camera
+    else:
+        raise InputError("no camera: give --focal (pixels) or --camera camera.json.")
+    if not args.init:
+        raise InputError("give --init init.json with the 2D joints of the first frame "
+                         "(automatic initialisation is not built yet); see flowmocap.fit.init for the schema.")
+    cfg = TrackerConfig.load(args.config, flow_method=args.flow)
+    spec = parse_init(args.init, *seq.size)
+    model = load_body_model(args.model, gender=args.gender)
+    run = track_sequence(seq, args.out, model, camera, spec, cfg=cfg, frames=args.frames, resume=args.resume)
+    t = run["timings"]
+    print(f"tracked frames {run['frames'][0]}:{run['frames'][1]} into {args.out} "
+          f"({t.get('s_per_frame_median', float('nan')):.2f} s per frame median; "
+          f"{len(run['events'])} recorded events)")
     return 0
 
 
@@ -94,9 +131,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"flowmocap {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="run the built-in demo (for now: renders the default body)")
+    d = sub.add_parser("demo", help="synthesise the built-in walk, track it, print the 3D error")
     d.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    d.add_argument("--frames", type=int, default=30)
+    d.add_argument("--size", default="640x480", help="WxH (default 640x480)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=cmd_demo)
+
+    t = sub.add_parser("track", help="fit the body to a frame sequence by optical flow")
+    t.add_argument("input", help="a sequence folder (frames/, masks/, camera.json) or a folder of frames")
+    t.add_argument("--out", required=True, help="result folder (motion.npz, run.json)")
+    t.add_argument("--init", help="init.json: 2D joints of the first frame, optional rough pose")
+    t.add_argument("--masks", help="folder of person masks, one per frame (default: INPUT/masks)")
+    t.add_argument("--focal", type=float, help="focal length in pixels (or --camera)")
+    t.add_argument("--camera", help="camera.json (default: INPUT/camera.json)")
+    t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
+    t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"])
+    t.add_argument("--flow", default=None, help="observed flow: dis (default), deepflow, tvl1, rlof, farneback")
+    t.add_argument("--config", help="JSON file overriding tracker settings (flowmocap.fit.config)")
+    t.add_argument("--frames", help="A:B, the frames to track (default all)")
+    t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    t.set_defaults(func=cmd_track)
 
     b = sub.add_parser("body", help="render a body model to a PNG")
     b.add_argument("--model", default="default", help="'default' or a path to an SMPL .pkl/.npz or folder")

@@ -1,0 +1,78 @@
+"""All tracker weights and settings in one place, with defaults; ``--config`` overrides.
+
+A config file is JSON with any subset of the fields of :class:`TrackerConfig`, e.g.
+
+    {"flow_weight": 1.0, "levels": 3, "iterations": 25}
+
+Energies are normalised so that the defaults need no retuning across image sizes:
+``E_f`` and ``E_c`` are divided by the number of person pixels (mask or model).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from flowmocap.errors import InputError
+
+
+@dataclass
+class TrackerConfig:
+    # --- per-frame objective (paper Eq. 4) --------------------------------------------
+    flow_weight: float = 1.0          # lambda_f: E_f, px^2 per person pixel
+    silhouette_weight: float = 5.0     # lambda_c: E_c, px^2 per person pixel
+    silhouette_a: float = 0.6         # a in E_c: weight of S_M * C_I (model inside the mask)
+    limit_weight: float = 10.0        # lambda_b: E_b joint limits
+    penetration_weight: float = 10.0  # lambda_sp: E_sp capsule interpenetration (m^2)
+    temporal_weight: float = 0.5      # lambda_theta: E_theta, rad^2, to the previous pose
+    levels: int = 3                   # Gaussian pyramid levels of E_f
+    stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
+    iterations: int = 20              # optimiser iterations per stage
+    optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe)
+    capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
+    # --- observed flow -----------------------------------------------------------------
+    flow_method: str = "dis"
+    flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
+    # --- Kalman filters ----------------------------------------------------------------
+    kalman: bool = True
+    # --- initialisation ----------------------------------------------------------------
+    init_keypoint_weight: float = 1.0     # robust 2D joints (px^2 scale)
+    init_keypoint_sigma: float = 50.0     # Geman-McClure scale, px
+    init_pose_prior_weight: float = 200.0  # towards the rough pose, rad^2
+    init_shape_prior_weight: float = 5.0  # towards the mean shape
+    init_iterations: int = 60
+    init_flow_iterations: int = 30
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, **overrides) -> "TrackerConfig":
+        """Defaults, updated from a JSON file, then from keyword overrides."""
+        values = {}
+        if path is not None:
+            try:
+                values = json.loads(Path(path).read_text())
+            except FileNotFoundError:
+                raise InputError(f"config file {path} does not exist.") from None
+            except json.JSONDecodeError as e:
+                raise InputError(f"config file {path} is not valid JSON: {e}") from None
+            if not isinstance(values, dict):
+                raise InputError(f"config file {path} must hold a JSON object of settings.")
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise InputError(f"unknown config settings {unknown}; known: {sorted(names)}.")
+        if "stages" in values:
+            values["stages"] = tuple(tuple(int(l) for l in s) for s in values["stages"])
+        cfg = cls(**values)
+        if cfg.optimizer not in ("lbfgs",):
+            raise InputError(f"optimizer must be 'lbfgs'; got {cfg.optimizer!r}.")
+        for s in cfg.stages:
+            if not s or any(l < 0 or l >= cfg.levels for l in s):
+                raise InputError(f"stages {cfg.stages} must name pyramid levels 0..{cfg.levels - 1}.")
+        return cfg
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["stages"] = [list(s) for s in self.stages]
+        return d

@@ -1,0 +1,180 @@
+"""Initialisation on frame 0 (paper Sec. 3.6) from an ``init.json``.
+
+Schema of ``init.json`` (every key optional except ``joints2d``)::
+
+    {
+      "frame": 0,                       # the frame the joints belong to (default 0)
+      "joints2d": {                     # pixels (x right, y down; pixel centres at +0.5)
+        "left_hip": [x, y], "right_hip": [x, y], "left_knee": [x, y], ...
+      },                                # any of hips, knees, ankles, shoulders, elbows,
+                                        # wrists (SMPL joint names); missing or null = unknown
+      "confidence": {"left_hip": 0.9},  # optional per joint, default 1
+      "pose": {"left_knee": [ax, ay, az], ...},  # optional rough pose: axis-angle (rad)
+                                        # per SMPL joint; "pelvis" is the global orientation
+      "pose72": [...],                  # alternative: the whole (72,) rough pose
+      "trans": [x, y, z],               # optional rough translation (metres, camera frame)
+      "betas": [...]                    # optional starting shape
+    }
+
+Three steps, as in the paper: (1) fit translation, pose and shape to the 2D joints, with
+priors towards the rough pose and the mean shape, joint limits and interpenetration;
+(2) the same plus the silhouette term; (3) the flow step on frame 1 while frame 0's pose
+and translation may still move (done by the tracker, :func:`flow_refine`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flowmocap.body import JOINT_INDEX, BodyModel, body_capsules
+from flowmocap.errors import InputError, NoPersonError
+from flowmocap.fit import energies as en
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.geometry.camera import PinholeCamera
+
+INIT_JOINTS = (
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+)
+
+
+@dataclass
+class InitSpec:
+    """Parsed init.json: ``joints2d (24, 2)`` pixels, ``confidence (24,)`` (0 = unknown),
+    ``pose (72,)`` rough pose, ``trans (3,)`` or None, ``betas (10,)``."""
+
+    frame: int
+    joints2d: np.ndarray
+    confidence: np.ndarray
+    pose: np.ndarray
+    trans: np.ndarray | None
+    betas: np.ndarray
+
+
+def parse_init(data: dict | str | Path, width: int | None = None, height: int | None = None) -> InitSpec:
+    """Read and check an init.json (path or dict); see the module docstring for the schema.
+
+    Raises:
+        InputError: malformed file, unknown joint names, fewer than 4 joints, a joint
+            outside the image.
+    """
+    if not isinstance(data, dict):
+        path = Path(data)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(f"init file {path} does not exist.") from None
+        except json.JSONDecodeError as e:
+            raise InputError(f"init file {path} is not valid JSON: {e}") from None
+    if "joints2d" not in data or not isinstance(data["joints2d"], dict):
+        raise InputError("init.json needs a 'joints2d' object mapping joint names to [x, y] pixels.")
+    j2d = np.zeros((24, 2))
+    conf = np.zeros(24)
+    confidences = data.get("confidence", {}) or {}
+    for name, xy in data["joints2d"].items():
+        if name not in JOINT_INDEX:
+            raise InputError(f"init.json: unknown joint {name!r}; use SMPL joint names such as {', '.join(INIT_JOINTS)}.")
+        if xy is None:
+            continue
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.shape != (2,) or not np.isfinite(xy).all():
+            raise InputError(f"init.json: joint {name!r} must be [x, y] pixels; got {data['joints2d'][name]!r}.")
+        if width is not None and not (0 <= xy[0] <= width and 0 <= xy[1] <= height):
+            raise InputError(f"init.json: joint {name!r} at {xy.tolist()} lies outside the {width}x{height} image.")
+        j = JOINT_INDEX[name]
+        j2d[j] = xy
+        conf[j] = float(confidences.get(name, 1.0))
+    if (conf > 0).sum() < 4:
+        raise NoPersonError("init.json gives fewer than 4 joints; mark at least hips and shoulders.")
+    pose = np.zeros(72)
+    if "pose72" in data:
+        pose = np.asarray(data["pose72"], dtype=np.float64)
+        if pose.shape != (72,):
+            raise InputError("init.json: 'pose72' must have 72 numbers.")
+    for name, aa in (data.get("pose") or {}).items():
+        if name not in JOINT_INDEX:
+            raise InputError(f"init.json: unknown joint {name!r} in 'pose'.")
+        pose[3 * JOINT_INDEX[name] : 3 * JOINT_INDEX[name] + 3] = np.asarray(aa, dtype=np.float64)
+    trans = np.asarray(data["trans"], dtype=np.float64) if data.get("trans") is not None else None
+    betas = np.zeros(10)
+    if data.get("betas") is not None:
+        b = np.asarray(data["betas"], dtype=np.float64)
+        betas[: min(10, b.size)] = b[:10]
+    return InitSpec(int(data.get("frame", 0)), j2d, conf, pose, trans, betas)
+
+
+def guess_translation(model: BodyModel, camera: PinholeCamera, spec: InitSpec) -> torch.Tensor:
+    """Translation that puts the rough-posed body's joints over the 2D joints (least squares).
+
+    The depth comes from the ratio of 3D to 2D spread of the given joints; x and y from
+    back-projecting their centroid. Returns ``(3,)`` metres in the camera frame.
+    """
+    with torch.no_grad():
+        out = model(betas=torch.as_tensor(spec.betas, dtype=torch.float32)[None],
+                    pose=torch.as_tensor(spec.pose, dtype=torch.float32)[None])
+    j3 = out.joints[0].numpy().astype(np.float64)
+    ok = spec.confidence > 0
+    p2, p3 = spec.joints2d[ok], j3[ok]
+    # spread in the camera's view: rotate the body into the camera frame first
+    R = np.asarray(camera.R)
+    p3c = p3 @ R.T
+    s2 = np.sqrt(((p2 - p2.mean(0)) ** 2).sum(1).mean())
+    s3 = np.sqrt(((p3c[:, :2] - p3c[:, :2].mean(0)) ** 2).sum(1).mean())
+    f = math.sqrt(camera.fx * camera.fy)
+    z = f * s3 / max(s2, 1e-6)
+    c2 = p2.mean(0)
+    ray = np.array([(c2[0] - camera.cx) / camera.fx, (c2[1] - camera.cy) / camera.fy, 1.0])
+    centre_cam = ray * z  # where the joints' centroid should be, camera frame
+    centre_world = R.T @ (centre_cam - np.asarray(camera.t))
+    return torch.as_tensor(centre_world - p3.mean(0), dtype=torch.float32)
+
+
+def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouette, cfg: TrackerConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+    """Steps 1 and 2 of the initialisation.
+
+    Returns:
+        ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of final energies.
+    """
+    from flowmocap.fit.tracker import minimise
+
+    ref_pose = torch.as_tensor(spec.pose, dtype=torch.float32)
+    pose = ref_pose.clone().requires_grad_()
+    trans = (torch.as_tensor(spec.trans, dtype=torch.float32) if spec.trans is not None
+             else guess_translation(model, camera, spec)).clone().requires_grad_()
+    betas = torch.as_tensor(spec.betas, dtype=torch.float32)[None].clone().requires_grad_()
+    j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
+    conf = torch.as_tensor(spec.confidence, dtype=torch.float32)
+
+    def energy(with_silhouette: bool, terms: dict | None = None):
+        out = model(betas=betas, pose=pose[None], trans=trans[None])
+        pj = camera.project(out.joints[0])
+        t = {
+            "keypoints": cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0],
+            "pose_prior": cfg.init_pose_prior_weight * en.pose_prior_energy(pose[None], ref_pose[None])[0],
+            "shape_prior": cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0],
+            "limits": cfg.limit_weight * en.joint_limit_energy(pose[None])[0],
+        }
+        caps = body_capsules(model, out)
+        t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
+        if with_silhouette and silhouette is not None:
+            ec = en.silhouette_energy(caps, camera, silhouette, a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step)
+            t["silhouette"] = cfg.silhouette_weight * ec[0]
+        if terms is not None:
+            terms.update({k: float(v) for k, v in t.items()})
+        return sum(t.values())
+
+    # 1a: translation and global orientation only, then 1b: everything
+    minimise([trans], lambda: energy(False), cfg.init_iterations // 3)
+    minimise([trans, pose, betas], lambda: energy(False), cfg.init_iterations)
+    if silhouette is not None and cfg.silhouette_weight > 0:
+        minimise([trans, pose, betas], lambda: energy(True), cfg.init_iterations)
+    terms: dict = {}
+    with torch.no_grad():
+        energy(silhouette is not None, terms)
+    return pose.detach(), trans.detach(), betas.detach(), terms

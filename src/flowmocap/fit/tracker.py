@@ -1,0 +1,408 @@
+"""Per-frame tracking (paper Sec. 3.7) and the ``track`` driver with resumable results.
+
+For each frame i >= 1: the Kalman filters predict pose and translation; then
+
+    min_{pose_i, trans_i}  l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta
+
+is minimised coarse to fine over the flow pyramid (stages of :class:`TrackerConfig`),
+with the shape fixed after initialisation. ``E_f`` compares the observed backward flow
+F_o(i, i-1) with the flow rendered from the model at frame i (the variables) to the model
+at frame i-1 (the previous result, fixed). The optimised pose updates the filters.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flowmocap import __version__
+from flowmocap.body import BodyModel, Capsules, body_capsules
+from flowmocap.body.capsules import rest_capsules
+from flowmocap.errors import DataError, InputError, OptimizationError
+from flowmocap.fit import energies as en
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.kalman import PoseFilter
+from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.io.results import read_result, write_motion, write_run
+from flowmocap.io.sequence import Sequence
+from flowmocap.render import flow_loss, flow_target, prepare_faces
+from flowmocap.vision import FlowCache
+
+ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal")
+
+
+@dataclass
+class FrameState:
+    """Fitted parameters of one frame: ``pose (72,)`` radians, ``trans (3,)`` metres."""
+
+    pose: torch.Tensor
+    trans: torch.Tensor
+
+
+@dataclass
+class Scene:
+    """What every energy evaluation needs: the body, its shape, the camera, the faces."""
+
+    model: BodyModel
+    betas: torch.Tensor  # (1, 10)
+    camera: PinholeCamera
+    faces: object = None
+
+    def __post_init__(self):
+        if self.faces is None:
+            self.faces = prepare_faces(self.model.faces_np)
+        with torch.no_grad():
+            self.rest_capsules = rest_capsules(self.model, self.model(betas=self.betas))
+
+    def capsules(self, out) -> Capsules:
+        """Posed capsules of a forward pass with this scene's (fixed) shape."""
+        return body_capsules(self.model, out, rest=self.rest_capsules)
+
+    def forward(self, pose: torch.Tensor, trans: torch.Tensor):
+        """Body output and ``(V, 2)`` projected vertices, ``(V,)`` depths."""
+        out = self.model(betas=self.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3))
+        v = out.vertices[0]
+        return out, self.camera.project(v), self.camera.depth(v)
+
+
+@dataclass
+class FrameData:
+    """Observations of frame i: image mask (optional) and its chamfer map, flow target(s)."""
+
+    mask: np.ndarray | None
+    silhouette: object  # fit.energies.SilhouetteTarget or None
+    person_pixels: float
+    targets: list = field(default_factory=list)  # one FlowTarget per stage
+
+
+def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
+               fallback_pixels: float) -> FrameData:
+    """Prepare the observations of one frame for repeated energy evaluations."""
+    target = None
+    pixels = fallback_pixels
+    if mask is not None:
+        target = en.silhouette_target(mask)
+        pixels = float(mask.sum())
+    targets = []
+    if flow is not None:
+        # With a mask, E_f counts only person pixels: observed flow smeared across the
+        # motion boundary (every dense method blurs it) would otherwise dominate E_f and
+        # pull the outline; the silhouette term carries the outline instead.
+        weight = mask.astype(np.float32) if (mask is not None and cfg.flow_in_mask) else None
+        for stage in cfg.stages:
+            lw = [float(4 ** l) if l in stage else 0.0 for l in range(cfg.levels)]
+            targets.append(flow_target(flow, weight=weight, levels=cfg.levels, level_weights=lw))
+    return FrameData(mask=mask, silhouette=target, person_pixels=max(pixels, 1.0), targets=targets)
+
+
+def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, stage: int | None,
+                 prev_px: torch.Tensor | None, prev_pose: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+    """The paper's Eq. 4 for one frame; returns ``(total, {name: value})`` (floats detached)."""
+    out, px, depth = scene.forward(state.pose, state.trans)
+    terms = {}
+    if prev_px is not None and data.targets and cfg.flow_weight > 0:
+        ef = flow_loss(px, prev_px, scene.faces, data.targets[stage], depth_cur=depth, cull_backfaces=True)
+        terms["flow"] = cfg.flow_weight * ef / data.person_pixels
+    if data.mask is not None and cfg.silhouette_weight > 0:
+        caps = scene.capsules(out)
+        ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,
+                                  grid_step=cfg.capsule_grid_step)
+        terms["silhouette"] = cfg.silhouette_weight * ec[0]
+    else:
+        caps = None
+    if cfg.limit_weight > 0:
+        terms["limits"] = cfg.limit_weight * en.joint_limit_energy(state.pose.reshape(1, 72))[0]
+    if cfg.penetration_weight > 0:
+        caps = caps if caps is not None else scene.capsules(out)
+        terms["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
+    if prev_pose is not None and cfg.temporal_weight > 0:
+        terms["temporal"] = cfg.temporal_weight * en.temporal_energy(
+            state.pose.reshape(1, 72), prev_pose.reshape(1, 72))[0]
+    total = sum(terms.values())
+    return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> float:
+    """L-BFGS (strong Wolfe) on ``params``; raises OptimizationError on non-finite energy."""
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-7, tolerance_change=1e-9, history_size=20)
+
+    def closure():
+        opt.zero_grad()
+        e = closure_energy()
+        if not torch.isfinite(e):
+            raise OptimizationError("the energy became non-finite (NaN or inf)")
+        e.backward()
+        return e
+
+    opt.step(closure)
+    with torch.no_grad():
+        return float(closure_energy())
+
+
+def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerConfig,
+                prev: FrameState) -> tuple[FrameState, dict]:
+    """Optimise one frame from ``init`` (the prediction) against the previous frame ``prev``."""
+    with torch.no_grad():
+        _, prev_px, _ = scene.forward(prev.pose, prev.trans)
+    pose = init.pose.detach().clone().requires_grad_()
+    trans = init.trans.detach().clone().requires_grad_()
+    state = FrameState(pose, trans)
+    for stage in range(len(cfg.stages)):
+        minimise([pose, trans], lambda: frame_energy(scene, state, data, cfg, stage, prev_px, prev.pose)[0],
+                 cfg.iterations)
+    with torch.no_grad():
+        total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, prev.pose)
+    terms["total"] = float(total)
+    return FrameState(pose.detach(), trans.detach()), terms
+
+
+def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameData, d1: FrameData,
+                      cfg: TrackerConfig, j2d: torch.Tensor, conf: torch.Tensor) -> tuple[FrameState, FrameState]:
+    """Initialisation step 3: the flow step on frame 1 while frame 0 may still move."""
+    p0, t0 = s0.pose.clone().requires_grad_(), s0.trans.clone().requires_grad_()
+    p1, t1 = s1.pose.clone().requires_grad_(), s1.trans.clone().requires_grad_()
+    a, b = FrameState(p0, t0), FrameState(p1, t1)
+
+    def energy(stage):
+        out0, px0, _ = scene.forward(p0, t0)
+        e1, _ = frame_energy(scene, b, d1, cfg, stage, px0, p0)
+        e0, _ = frame_energy(scene, a, d0, cfg, stage, None, None)
+        pj = scene.camera.project(out0.joints[0])
+        ek = cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0]
+        return e1 + e0 + ek
+
+    for stage in range(len(cfg.stages)):
+        minimise([p0, t0, p1, t1], lambda: energy(stage), cfg.init_flow_iterations)
+    return FrameState(p0.detach(), t0.detach()), FrameState(p1.detach(), t1.detach())
+
+
+@dataclass
+class KnownStart:
+    """A start that needs no initialisation: the first two frames' ``poses (2, 72)``,
+    ``trans (2, 3)`` and the ``betas (10,)`` (e.g. ground truth, for ablations and tests)."""
+
+    poses: np.ndarray
+    trans: np.ndarray
+    betas: np.ndarray
+
+
+class ResultBuffer:
+    """Per-frame results, flushed to ``motion.npz`` + ``run.json`` after every frame."""
+
+    def __init__(self, out_dir: Path, scene: Scene, fps: float, run: dict):
+        self.out_dir = Path(out_dir)
+        self.scene = scene
+        self.fps = fps
+        self.run = run
+        self.poses, self.trans, self.j3d, self.j2d, self.energies, self.index = [], [], [], [], [], []
+
+    def add(self, frame: int, state: FrameState, terms: dict) -> None:
+        with torch.no_grad():
+            out, _, _ = self.scene.forward(state.pose, state.trans)
+            j3 = out.joints[0]
+            self.j3d.append(j3.numpy())
+            self.j2d.append(self.scene.camera.project(j3).numpy())
+        self.poses.append(state.pose.numpy().astype(np.float32))
+        self.trans.append(state.trans.numpy().astype(np.float32))
+        self.energies.append([terms.get(n, np.nan) for n in ENERGY_NAMES])
+        self.index.append(frame)
+
+    def flush(self) -> None:
+        write_motion(self.out_dir, {
+            "poses": np.asarray(self.poses, np.float32).reshape(-1, 72),
+            "trans": np.asarray(self.trans, np.float32).reshape(-1, 3),
+            "betas": self.scene.betas[0].numpy().astype(np.float32),
+            "gender": np.array(self.scene.model.gender),
+            "fps": np.array(float(self.fps)),
+            "camera": np.array(json.dumps(self.scene.camera.to_dict())),
+            "joints3d": np.asarray(self.j3d, np.float32).reshape(-1, 24, 3),
+            "joints2d": np.asarray(self.j2d, np.float32).reshape(-1, 24, 2),
+            "energies": np.asarray(self.energies, np.float64).reshape(-1, len(ENERGY_NAMES)),
+            "energy_names": np.array(ENERGY_NAMES),
+            "frame_index": np.asarray(self.index, np.int64),
+        })
+        write_run(self.out_dir, self.run)
+
+    def restore(self, motion: dict) -> None:
+        self.poses = list(motion["poses"])
+        self.trans = list(motion["trans"])
+        self.j3d = list(motion["joints3d"])
+        self.j2d = list(motion["joints2d"])
+        self.energies = [list(e) for e in motion["energies"]]
+        self.index = [int(i) for i in motion["frame_index"]]
+
+
+def _frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
+    if frames is None:
+        return 0, n
+    if isinstance(frames, str):
+        try:
+            a, _, b = frames.partition(":")
+            a = int(a) if a else 0
+            b = int(b) if b else n
+        except ValueError:
+            raise InputError(f"--frames must look like A:B (e.g. 0:100); got {frames!r}.") from None
+    else:
+        a, b = frames
+    if not (0 <= a < b <= n) or b - a < 2:
+        raise InputError(f"frames {a}:{b} do not select at least 2 of the {n} frames.")
+    return a, b
+
+
+def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera: PinholeCamera, init,
+                   cfg: TrackerConfig | None = None, frames=None, resume: bool = False,
+                   progress: bool = True) -> dict:
+    """Track a sequence and write ``out_dir/motion.npz`` and ``run.json`` frame by frame.
+
+    Args:
+        seq: the input frames (and masks).
+        out_dir: result folder.
+        model: body model; camera: the static camera.
+        init: an :class:`~flowmocap.fit.init.InitSpec` for the first tracked frame, or a
+            :class:`KnownStart` to skip the initialisation.
+        cfg: settings (default :class:`TrackerConfig`).
+        frames: ``"A:B"`` or ``(A, B)``: the frame range (default all).
+        resume: continue an interrupted run in ``out_dir`` with the same input and settings.
+        progress: show a progress bar.
+
+    Returns:
+        the final ``run.json`` contents.
+    """
+    from tqdm import tqdm
+
+    from flowmocap.fit.init import fit_frame0
+
+    cfg = cfg or TrackerConfig()
+    out_dir = Path(out_dir)
+    a, b = _frame_range(frames, len(seq))
+    run = {
+        "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
+        "input": str(seq.root), "frames": [a, b], "config": cfg.to_dict(), "model": model.source,
+        "gender": model.gender, "camera": camera.to_dict(), "status": "running", "events": [],
+        "timings": {},
+    }
+    done_states: list[FrameState] = []
+    kf = None
+    if resume and (out_dir / "motion.npz").exists():
+        motion, old = read_result(out_dir)
+        for key in ("input", "frames", "config"):
+            if old.get(key) != json.loads(json.dumps(run[key])):
+                raise InputError(f"cannot resume: {key} differs from the interrupted run in {out_dir} "
+                                 f"({old.get(key)!r} vs {run[key]!r}); start a new result folder instead.")
+        run = old
+        run["status"] = "running"
+        betas = torch.as_tensor(motion["betas"])[None]
+        scene = Scene(model, betas, camera)
+        buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
+        buf.restore(motion)
+        done_states = [FrameState(torch.as_tensor(p), torch.as_tensor(t)) for p, t in zip(motion["poses"], motion["trans"])]
+        kf = PoseFilter.from_state_dict(run["kalman"]) if cfg.kalman and run.get("kalman") else None
+    else:
+        if out_dir.exists() and (out_dir / "motion.npz").exists() and not resume:
+            raise InputError(f"{out_dir} already holds a result; pass --resume to continue it or choose another folder.")
+        out_dir.mkdir(parents=True, exist_ok=True)
+    cache = FlowCache(out_dir / "flow_cache", method=cfg.flow_method)
+
+    def load(i: int):
+        mask = seq.mask(i)
+        if mask is not None and not mask.any():
+            run["events"].append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
+            return None
+        return mask
+
+    def flow_of(i: int) -> np.ndarray:
+        return cache.flow(i, seq.frame(i), seq.frame(i - 1))
+
+    t_start = time.perf_counter()
+    if not done_states and isinstance(init, KnownStart):
+        f = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
+        scene = Scene(model, f(init.betas).reshape(1, -1), camera)
+        buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
+        done_states = [FrameState(f(init.poses[k]), f(init.trans[k])) for k in (0, 1)]
+        buf.add(a, done_states[0], {})
+        buf.add(a + 1, done_states[1], {})
+        kf = PoseFilter(init.poses[0].astype(np.float64), init.trans[0].astype(np.float64)) if cfg.kalman else None
+        if kf is not None:
+            kf.update(init.poses[1].astype(np.float64), init.trans[1].astype(np.float64))
+            run["kalman"] = kf.state_dict()
+        buf.flush()
+    if not done_states:
+        t0 = time.perf_counter()
+        m0 = load(a)
+        d0 = frame_data(m0, None, cfg, 1.0)
+        pose0, trans0, betas, init_terms = fit_frame0(model, camera, init, d0.silhouette, cfg)
+        scene = Scene(model, betas, camera)
+        buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
+        s0 = FrameState(pose0, trans0)
+        m1 = load(a + 1)
+        d1 = frame_data(m1, flow_of(a + 1), cfg, d0.person_pixels)
+        j2d = torch.as_tensor(init.joints2d, dtype=torch.float32)
+        conf = torch.as_tensor(init.confidence, dtype=torch.float32)
+        s0, s1 = refine_first_pair(scene, s0, FrameState(pose0.clone(), trans0.clone()), d0, d1, cfg, j2d, conf)
+        _, terms1 = frame_energy(scene, s1, d1, cfg, len(cfg.stages) - 1,
+                                 scene.forward(s0.pose, s0.trans)[1].detach(), s0.pose)
+        buf.add(a, s0, init_terms)
+        buf.add(a + 1, s1, terms1)
+        done_states = [s0, s1]
+        run["timings"]["init_s"] = time.perf_counter() - t0
+        kf = PoseFilter(s0.pose.numpy().astype(np.float64), s0.trans.numpy().astype(np.float64)) if cfg.kalman else None
+        if kf is not None:
+            kf.update(s1.pose.numpy().astype(np.float64), s1.trans.numpy().astype(np.float64))
+            run["kalman"] = kf.state_dict()
+        buf.flush()
+    frame_times = run["timings"].get("frame_s", [])
+    start = a + len(done_states)
+    bar = tqdm(range(start, b), initial=start - a, total=b - a, disable=not progress, unit="frame",
+               desc="tracking")
+    for i in bar:
+        t0 = time.perf_counter()
+        prev = done_states[-1]
+        if kf is not None:
+            p, t = kf.predict()
+            pred = FrameState(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32))
+        else:
+            pred = FrameState(prev.pose.clone(), prev.trans.clone())
+        mask = load(i)
+        data = frame_data(mask, flow_of(i), cfg, buf_pixels(done_states, scene))
+        try:
+            state, terms = track_frame(scene, pred, data, cfg, prev)
+        except OptimizationError as e:
+            run["events"].append({"frame": i, "event": "non-finite energy; retried from the previous pose",
+                                  "detail": str(e)})
+            try:
+                state, terms = track_frame(scene, FrameState(prev.pose.clone(), prev.trans.clone()), data, cfg, prev)
+            except OptimizationError as e2:
+                run["events"].append({"frame": i, "event": "retry failed; kept the prediction", "detail": str(e2)})
+                state, terms = pred, {"total": float("nan")}
+        if kf is not None:
+            kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+            run["kalman"] = kf.state_dict()
+        done_states.append(state)
+        buf.add(i, state, terms)
+        frame_times.append(time.perf_counter() - t0)
+        run["timings"]["frame_s"] = frame_times
+        run["timings"]["s_per_frame_median"] = float(np.median(frame_times))
+        buf.flush()
+        bar.set_postfix({k[:4]: f"{v:.3g}" for k, v in terms.items()})
+    run["status"] = "finished"
+    run["timings"]["total_s"] = run["timings"].get("total_s", 0.0) + time.perf_counter() - t_start
+    buf.flush()
+    return run
+
+
+def buf_pixels(states: list[FrameState], scene: Scene) -> float:
+    """Projected person size (pixels) of the last state: the E_f normaliser without a mask."""
+    from flowmocap.render import rasterize
+
+    with torch.no_grad():
+        _, px, d = scene.forward(states[-1].pose, states[-1].trans)
+    r = rasterize(px.numpy(), d.numpy(), scene.faces, scene.camera.height, scene.camera.width, cull_backfaces=True)
+    return float((r.face_id >= 0).sum())

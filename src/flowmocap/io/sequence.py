@@ -1,0 +1,130 @@
+"""Sequence folders (DESIGN.md): frames, optional masks, camera.json, optional gt.npz.
+
+    SEQ/frames/000000.png ...   RGB frames
+    SEQ/masks/000000.png ...    person masks (optional; non-zero = person)
+    SEQ/camera.json             PinholeCamera.to_dict()
+    SEQ/gt.npz                  optional ground truth: poses, trans, betas, joints3d, joints2d
+    SEQ/meta.json               optional
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.errors import DataError, InputError
+from flowmocap.geometry.camera import PinholeCamera
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class Sequence:
+    """A frame sequence on disk.
+
+    Attributes:
+        frames: paths of the frames in order, length T.
+        masks: paths of the masks (length T) or ``None``.
+        camera: the camera, or ``None`` when the folder has no camera.json.
+        gt: ground-truth arrays from gt.npz (empty dict when absent).
+        meta: meta.json contents (empty dict when absent).
+        size: ``(width, height)`` of the frames in pixels.
+    """
+
+    root: Path
+    frames: list[Path]
+    masks: list[Path] | None
+    camera: PinholeCamera | None
+    gt: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    size: tuple[int, int] = (0, 0)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame(self, i: int) -> np.ndarray:
+        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB."""
+        return read_image(self.frames[i], self.size)
+
+    def mask(self, i: int) -> np.ndarray | None:
+        """Mask ``i`` as ``(H, W)`` bool, or ``None`` without masks."""
+        if self.masks is None:
+            return None
+        m = read_image(self.masks[i], self.size, gray=True)
+        return m > 0
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def read_image(path: Path, size: tuple[int, int] | None = None, gray: bool = False) -> np.ndarray:
+    """Read an image as uint8 RGB ``(H, W, 3)`` (or ``(H, W)`` with ``gray``).
+
+    Raises:
+        DataError: unreadable file or a size other than ``size = (width, height)``.
+    """
+    import cv2
+
+    flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise DataError(f"cannot read image {path}: the file is missing or not an image.")
+    if not gray:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise DataError(
+            f"{path} is {img.shape[1]}x{img.shape[0]} but the sequence's frames are "
+            f"{size[0]}x{size[1]}; frames and masks must all have one size."
+        )
+    return img
+
+
+def load_sequence(path: str | Path, masks: str | Path | None = None) -> Sequence:
+    """Open a sequence folder, or a plain folder of frames.
+
+    Args:
+        path: a sequence folder (with ``frames/``) or a folder of images.
+        masks: a folder of masks overriding ``path/masks``.
+
+    Raises:
+        DataError: no frames, unreadable files, mask count or size not matching.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DataError(f"{root} is not a folder of frames or a sequence folder.")
+    frame_dir = root / "frames" if (root / "frames").is_dir() else root
+    frames = list_images(frame_dir)
+    if not frames:
+        raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) found in {frame_dir}.")
+    first = read_image(frames[0])
+    size = (first.shape[1], first.shape[0])
+    mask_dir = Path(masks) if masks is not None else (root / "masks" if (root / "masks").is_dir() else None)
+    mask_paths = None
+    if mask_dir is not None:
+        if not mask_dir.is_dir():
+            raise DataError(f"mask folder {mask_dir} does not exist.")
+        mask_paths = list_images(mask_dir)
+        if len(mask_paths) != len(frames):
+            raise DataError(
+                f"{len(mask_paths)} masks in {mask_dir} but {len(frames)} frames in {frame_dir}; "
+                "give one mask per frame, in the same order."
+            )
+        read_image(mask_paths[0], size, gray=True)
+    camera = None
+    if (root / "camera.json").exists():
+        try:
+            camera = PinholeCamera.from_dict(json.loads((root / "camera.json").read_text()))
+        except (json.JSONDecodeError, InputError) as e:
+            raise DataError(f"{root / 'camera.json'} is not a valid camera file: {e}") from e
+        if (camera.width, camera.height) != size:
+            raise DataError(f"camera.json is for {camera.width}x{camera.height} images but the frames are {size[0]}x{size[1]}.")
+    gt = {}
+    if (root / "gt.npz").exists():
+        with np.load(root / "gt.npz", allow_pickle=False) as z:
+            gt = {k: z[k] for k in z.files}
+    meta = json.loads((root / "meta.json").read_text()) if (root / "meta.json").exists() else {}
+    return Sequence(root=root, frames=frames, masks=mask_paths, camera=camera, gt=gt, meta=meta, size=size)

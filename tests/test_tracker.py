@@ -1,0 +1,177 @@
+"""The tracker end to end on short synthetic clips: accuracy with and without the flow
+term, resuming an interrupted run, init.json checks and bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import load_body_model
+from flowmocap.errors import DataError, InputError, NoPersonError, OptimizationError
+from flowmocap.eval.protocol import evaluate, noisy_init
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.init import parse_init
+from flowmocap.fit.tracker import KnownStart, track_sequence
+from flowmocap.io.results import read_result
+from flowmocap.io.sequence import load_sequence
+from flowmocap.synth import synthesize
+
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """A short 320x240 built-in walk seen close up, with a non-mean body shape."""
+    d = tmp_path_factory.mktemp("clip") / "seq"
+    synthesize("builtin:walk", d, fps=30, frames=FRAMES, size="320x240", betas="random", seed=3,
+               azimuth=70.0, distance=3.2, flow=False)
+    return d
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_body_model("default")
+
+
+def _known_start(seq):
+    gt = seq.gt
+    return KnownStart(poses=gt["poses"][:2], trans=gt["trans"][:2], betas=gt["betas"])
+
+
+def _track(seq, out, model, cfg=None, **kw):
+    track_sequence(seq, out, model, seq.camera, _known_start(seq), cfg=cfg or TrackerConfig(), progress=False, **kw)
+    motion, run = read_result(out)
+    return motion, run
+
+
+def test_flow_term_keeps_the_error_small(clip, model, tmp_path):
+    seq = load_sequence(clip)
+    with_flow, _ = _track(seq, tmp_path / "flow", model)
+    # without flow: only silhouette, limits and temporal terms remain
+    without, _ = _track(seq, tmp_path / "noflow", model, TrackerConfig(flow_weight=0.0))
+    e_flow = evaluate(with_flow, seq.gt)
+    e_none = evaluate(without, seq.gt)
+    print("local cm with flow", e_flow["local_cm"], "without", e_none["local_cm"])
+    assert with_flow["poses"].shape == (FRAMES, 72)
+    assert e_flow["local_cm"] < 4.0
+    assert e_flow["local_cm"] < 0.8 * e_none["local_cm"]
+
+
+def test_interrupted_run_resumes_to_the_same_result(clip, model, tmp_path, monkeypatch):
+    import flowmocap.fit.tracker as tracker
+
+    seq = load_sequence(clip)
+    ref, _ = _track(seq, tmp_path / "ref", model, frames="0:6")
+    original = tracker.track_frame
+    calls = {"n": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracker, "track_frame", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _track(seq, tmp_path / "run", model, frames="0:6")
+    partial, run = read_result(tmp_path / "run")
+    assert len(partial["poses"]) == 4 and run["status"] == "running"
+    monkeypatch.setattr(tracker, "track_frame", original)
+    with pytest.raises(InputError, match="already holds a result"):
+        _track(seq, tmp_path / "run", model, frames="0:6")
+    resumed, run = _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
+    assert run["status"] == "finished"
+    np.testing.assert_array_equal(resumed["poses"], ref["poses"])
+    np.testing.assert_array_equal(resumed["trans"], ref["trans"])
+    with pytest.raises(InputError, match="cannot resume"):
+        _track(seq, tmp_path / "run", model, frames="0:5", resume=True)
+
+
+def test_non_finite_energy_is_rolled_back_and_recorded(clip, model, tmp_path, monkeypatch):
+    import flowmocap.fit.tracker as tracker
+
+    seq = load_sequence(clip)
+    original = tracker.track_frame
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise OptimizationError("the energy became non-finite (NaN or inf)")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracker, "track_frame", flaky)
+    motion, run = _track(seq, tmp_path / "nan", model, frames="0:4")
+    assert len(motion["poses"]) == 4 and np.isfinite(motion["poses"]).all()
+    assert run["events"] and run["events"][0]["frame"] == 2
+    assert "non-finite" in run["events"][0]["event"]
+
+
+def test_initialisation_from_noisy_joints(clip, model, tmp_path):
+    seq = load_sequence(clip)
+    init = parse_init(noisy_init(seq.gt, frame=0, seed=1), *seq.size)
+    cfg = TrackerConfig(init_iterations=40, init_flow_iterations=10)
+    track_sequence(seq, tmp_path / "init", model, seq.camera, init, cfg=cfg, frames="0:3", progress=False)
+    motion, run = read_result(tmp_path / "init")
+    scores = evaluate(motion, seq.gt)
+    assert scores["local_cm_per_frame"][0] < 9.0
+    assert run["timings"]["init_s"] > 0
+
+
+def test_init_json_checks(tmp_path):
+    with pytest.raises(InputError, match="joints2d"):
+        parse_init({"pose": {}})
+    with pytest.raises(InputError, match="unknown joint"):
+        parse_init({"joints2d": {"left_hipp": [1, 2]}})
+    with pytest.raises(InputError, match="outside"):
+        parse_init({"joints2d": {"left_hip": [500, 20], "right_hip": [1, 1], "left_shoulder": [2, 2],
+                                 "right_shoulder": [3, 3]}}, 320, 240)
+    with pytest.raises(NoPersonError):
+        parse_init({"joints2d": {"left_hip": [5, 5], "right_hip": None}})
+    p = tmp_path / "init.json"
+    p.write_text("{not json")
+    with pytest.raises(InputError, match="not valid JSON"):
+        parse_init(p)
+
+
+def test_bad_sequences(clip, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(clip, bad)
+    (bad / "masks" / "000003.png").unlink()
+    with pytest.raises(DataError, match="masks"):
+        load_sequence(bad)
+    import cv2
+
+    shutil.copy(clip / "masks" / "000000.png", bad / "masks" / "000003.png")
+    cv2.imwrite(str(bad / "frames" / "000002.png"), np.zeros((10, 10, 3), np.uint8))
+    seq = load_sequence(bad)
+    with pytest.raises(DataError, match="one size"):
+        seq.frame(2)
+    with pytest.raises(DataError, match="no images"):
+        load_sequence(tmp_path)
+
+
+def test_empty_mask_is_recorded(clip, model, tmp_path):
+    import cv2
+
+    d = tmp_path / "seq"
+    shutil.copytree(clip, d)
+    cv2.imwrite(str(d / "masks" / "000002.png"), np.zeros((240, 320), np.uint8))
+    seq = load_sequence(d)
+    motion, run = _track(seq, tmp_path / "out", model, frames="0:3")
+    assert len(motion["poses"]) == 3
+    assert any(e["frame"] == 2 and "empty mask" in e["event"] for e in run["events"])
+
+
+def test_config_file(tmp_path):
+    p = tmp_path / "cfg.json"
+    p.write_text(json.dumps({"flow_weight": 2.0, "stages": [[0]]}))
+    cfg = TrackerConfig.load(p)
+    assert cfg.flow_weight == 2.0 and cfg.stages == ((0,),)
+    p.write_text(json.dumps({"flow_wieght": 2.0}))
+    with pytest.raises(InputError, match="unknown config"):
+        TrackerConfig.load(p)
