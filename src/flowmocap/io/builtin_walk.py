@@ -28,7 +28,7 @@ from scipy.interpolate import CubicSpline
 
 from flowmocap.body.skeleton import JOINT_INDEX
 from flowmocap.errors import InputError
-from flowmocap.io.smpl_motion import SmplMotion
+from flowmocap.io.smpl_motion import SmplMotion, betas_tensor
 
 __all__ = ["GAIT_KEYPOINTS", "gait_angles", "walk_poses", "builtin_walk", "BUILTIN_MOTIONS"]
 
@@ -215,12 +215,8 @@ def builtin_walk(
     if T < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
     dt = model.v_template.dtype
-    nb = model.num_betas
-    b = np.zeros(nb) if betas is None else np.asarray(betas, dtype=np.float64).reshape(-1)
-    if b.shape[0] > nb or not np.all(np.isfinite(b)):
-        raise InputError(f"betas must be at most {nb} finite numbers")
-    b = np.pad(b, (0, nb - b.shape[0]))
-    betas_t = torch.as_tensor(b[None], dtype=dt)
+    betas_t = betas_tensor(model, betas)
+    b = betas_t[0].double().numpy()
 
     _, cycle_trans, stride = _cycle_path(model, betas_t, samples_per_cycle)
     if stride <= 0:

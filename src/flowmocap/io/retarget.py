@@ -52,7 +52,7 @@ from flowmocap.body.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS, children
 from flowmocap.errors import DataError, InputError
 from flowmocap.geometry import matrix_to_axis_angle
 from flowmocap.io.mocap import MocapClip, resample
-from flowmocap.io.smpl_motion import SmplMotion
+from flowmocap.io.smpl_motion import SmplMotion, betas_tensor
 
 __all__ = ["RIGS", "REST_RELATIVE", "retarget", "resolve_joint_map", "normalize_joint_name", "body_yaw"]
 
@@ -407,12 +407,8 @@ def retarget(
         m[JOINT_INDEX[smpl_name]] = clip.index(mocap_name)
 
     dt = model.v_template.dtype
-    nb = model.num_betas
-    b = np.zeros(nb) if betas is None else np.asarray(betas, dtype=np.float64).reshape(-1)
-    if b.shape[0] > nb or not np.all(np.isfinite(b)):
-        raise InputError(f"betas must be at most {nb} finite numbers, got {b.shape[0]}")
-    b = np.pad(b, (0, nb - b.shape[0]))
-    betas_t = torch.as_tensor(b[None], dtype=dt)
+    betas_t = betas_tensor(model, betas)
+    b = betas_t[0].double().numpy()
     with torch.no_grad():
         js = model(betas=betas_t).rest_joints[0].double().numpy()
 

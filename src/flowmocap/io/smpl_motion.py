@@ -59,3 +59,20 @@ class SmplMotion:
             )
         return replace(self, poses=self.poses[s], trans=self.trans[s], fps=self.fps / step,
                        info=dict(self.info))
+
+
+def betas_tensor(model, betas) -> "torch.Tensor":
+    """``(1, num_betas)`` tensor of ``model``'s dtype from ``betas`` (None = mean shape;
+    fewer values are zero-padded).
+
+    Raises:
+        InputError: more values than the model has, or non-finite values.
+    """
+    import torch
+
+    nb = model.num_betas
+    b = np.zeros(nb) if betas is None else np.asarray(betas, dtype=np.float64).reshape(-1)
+    if b.shape[0] > nb or not np.all(np.isfinite(b)):
+        raise InputError(f"betas must be at most {nb} finite numbers, got {b.shape[0]}")
+    b = np.pad(b, (0, nb - b.shape[0]))
+    return torch.as_tensor(b[None], dtype=model.v_template.dtype)
