@@ -175,3 +175,16 @@ def test_config_file(tmp_path):
     p.write_text(json.dumps({"flow_wieght": 2.0}))
     with pytest.raises(InputError, match="unknown config"):
         TrackerConfig.load(p)
+
+
+def test_all_weights_zero_keeps_the_prediction(clip, model):
+    """With every term switched off the energy is an exact 0-d zero, not a Python int."""
+    from flowmocap.fit.tracker import FrameState, Scene, frame_data, frame_energy
+
+    seq = load_sequence(clip)
+    cfg = TrackerConfig(flow_weight=0.0, silhouette_weight=0.0, temporal_weight=0.0, limit_weight=0.0,
+                        penetration_weight=0.0)
+    scene = Scene(model, torch.as_tensor(seq.gt["betas"])[None], seq.camera)
+    state = FrameState(torch.as_tensor(seq.gt["poses"][2]).requires_grad_(), torch.as_tensor(seq.gt["trans"][2]))
+    total, terms = frame_energy(scene, state, frame_data(seq.mask(2), None, cfg, 1.0), cfg, 0, None, None)
+    assert isinstance(total, torch.Tensor) and total.dim() == 0 and float(total) == 0.0 and terms == {}
