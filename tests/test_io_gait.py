@@ -6,7 +6,6 @@ Figures for the default body are printed (run with ``-s`` to see them).
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -19,12 +18,9 @@ from flowmocap.io import builtin_walk, load_motion, read_mocap, retarget, walk_p
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CMU = SHARED_DATA / "mocap" / "cmu"
-DEFAULT_MODEL = resources.files("flowmocap.body") / "data" / "default_neutral.npz"
 
 
 def _default_model():
-    if not Path(str(DEFAULT_MODEL)).exists():
-        pytest.skip("the bundled default body model (default_neutral.npz) is not there yet")
     return load_body_model("default", gender="neutral", dtype=torch.float64)
 
 
