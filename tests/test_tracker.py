@@ -188,3 +188,47 @@ def test_all_weights_zero_keeps_the_prediction(clip, model):
     state = FrameState(torch.as_tensor(seq.gt["poses"][2]).requires_grad_(), torch.as_tensor(seq.gt["trans"][2]))
     total, terms = frame_energy(scene, state, frame_data(seq.mask(2), None, cfg, 1.0), cfg, 0, None, None)
     assert isinstance(total, torch.Tensor) and total.dim() == 0 and float(total) == 0.0 and terms == {}
+
+
+def _write_video(frames_dir, path):
+    import imageio.v3 as iio
+
+    from flowmocap.io.sequence import list_images, read_image
+
+    frames = np.stack([read_image(p) for p in list_images(frames_dir)])
+    iio.imwrite(path, frames, plugin="pyav", codec="mpeg4", fps=30)
+    return frames
+
+
+def test_video_input_tracks(clip, model, tmp_path):
+    from flowmocap.io.video import load_video
+
+    video = tmp_path / "clip.mp4"
+    frames = _write_video(clip / "frames", video)
+    seq = load_video(video, masks=clip / "masks")
+    assert len(seq) == len(frames) and seq.size == (320, 240)
+    assert seq.meta["fps"] == pytest.approx(30.0)
+    assert np.abs(seq.frame(3).astype(int) - frames[3]).mean() < 8  # lossy codec
+    gt = load_sequence(clip).gt
+    start = KnownStart(poses=gt["poses"][:2], trans=gt["trans"][:2], betas=gt["betas"])
+    track_sequence(seq, tmp_path / "out", model, load_sequence(clip).camera, start, frames="0:4", progress=False)
+    motion, run = read_result(tmp_path / "out")
+    assert len(motion["poses"]) == 4 and run["status"] == "finished"
+
+
+def test_bad_videos(clip, tmp_path):
+    from flowmocap.io.video import load_video
+
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"\x00\x00\x00\x18ftypmp42 this is not a video")
+    with pytest.raises(DataError, match="cannot decode"):
+        load_video(broken)
+    with pytest.raises(DataError, match="does not exist"):
+        load_video(tmp_path / "missing.mp4")
+    video = tmp_path / "clip.mp4"
+    _write_video(clip / "frames", video)
+    few = tmp_path / "few"
+    few.mkdir()
+    shutil.copy(clip / "masks" / "000000.png", few / "000000.png")
+    with pytest.raises(DataError, match="one mask per frame"):
+        load_video(video, masks=few)

@@ -12,7 +12,7 @@ from flowmocap.errors import FlowMocapError, InputError
 
 NOT_BUILT_YET = (
     "Not built yet: evaluation against a baseline (flowmocap eval/bench), automatic masks "
-    "and joints for real video (video input), and exports."
+    "and 2D joints for real video (track needs --init and masks), and exports."
 )
 
 
@@ -69,12 +69,12 @@ def cmd_track(args) -> int:
     from flowmocap.io.sequence import load_sequence
 
     src = Path(args.input)
-    if src.is_file():
-        raise InputError(
-            f"{src} is a file: video input is not supported yet. Extract its frames into a folder "
-            "(e.g. ffmpeg -i video.mp4 frames/%06d.png) and pass that folder with --focal and --init."
-        )
-    seq = load_sequence(src, masks=args.masks)
+    from flowmocap.io.video import VIDEO_SUFFIXES, load_video
+
+    if src.is_file() or src.suffix.lower() in VIDEO_SUFFIXES:
+        seq = load_video(src, masks=args.masks)
+    else:
+        seq = load_sequence(src, masks=args.masks)
     if args.camera:
         from flowmocap.synth import read_camera_json
 
@@ -140,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     t = sub.add_parser("track", help="fit the body to a frame sequence by optical flow")
-    t.add_argument("input", help="a sequence folder (frames/, masks/, camera.json) or a folder of frames")
+    t.add_argument("input", help="a video file, a sequence folder (frames/, masks/, camera.json) or a folder of frames")
     t.add_argument("--out", required=True, help="result folder (motion.npz, run.json)")
     t.add_argument("--init", help="init.json: 2D joints of the first frame, optional rough pose")
     t.add_argument("--masks", help="folder of person masks, one per frame (default: INPUT/masks)")
