@@ -184,6 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-flow", action="store_true", help="do not write the true flow")
     s.add_argument("--overwrite", action="store_true")
     s.set_defaults(func=cmd_synth)
+
+    from flowmocap.commands import register_all
+
+    register_all(sub)
     return p
 
 

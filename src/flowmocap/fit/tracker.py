@@ -259,7 +259,7 @@ def _frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
 
 def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera: PinholeCamera, init,
                    cfg: TrackerConfig | None = None, frames=None, resume: bool = False,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, monitor=None) -> dict:
     """Track a sequence and write ``out_dir/motion.npz`` and ``run.json`` frame by frame.
 
     Args:
@@ -272,6 +272,13 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
         frames: ``"A:B"`` or ``(A, B)``: the frame range (default all).
         resume: continue an interrupted run in ``out_dir`` with the same input and settings.
         progress: show a progress bar.
+        monitor: optional failure check, called after every tracked frame ``i`` (from the
+            third frame on) as ``monitor(i, state, scene, mask)`` with the optimised
+            :class:`FrameState`, the :class:`Scene` and the frame's mask (or None). It
+            returns None to accept the frame, or ``(new_state, info)`` to re-initialise:
+            the frame is replaced by ``new_state``, the Kalman filters restart from it,
+            and ``{"frame": i, "event": "re-initialised", **info}`` is recorded in
+            ``run.json``. It must not rely on state of its own that a ``--resume`` loses.
 
     Returns:
         the final ``run.json`` contents.
@@ -382,8 +389,15 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
             except OptimizationError as e2:
                 run["events"].append({"frame": i, "event": "retry failed; kept the prediction", "detail": str(e2)})
                 state, terms = pred, {"total": float("nan")}
-        if kf is not None:
+        reinit = monitor(i, state, scene, mask) if monitor is not None else None
+        if reinit is not None:
+            state, info = reinit
+            run["events"].append({"frame": i, "event": "re-initialised", **info})
+            if kf is not None:
+                kf = PoseFilter(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+        elif kf is not None:
             kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+        if kf is not None:
             run["kalman"] = kf.state_dict()
         done_states.append(state)
         buf.add(i, state, terms)
