@@ -1,0 +1,129 @@
+"""Exports of a result folder to animation and research formats (``flowmocap export``).
+
+Formats (:data:`FORMATS`): ``bvh`` (skeleton with the fitted bone lengths),
+``glb`` (animated mesh sequence), ``obj`` (one mesh per frame in a folder), ``json``
+(per-frame joints and parameters), ``npz`` (AMASS layout). All 3D output is in metres,
+in the y-up export frame of :mod:`flowmocap.export.motion` unless ``frame="world"``
+(the AMASS file is z up, as AMASS's own).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.errors import InputError
+from flowmocap.export.motion import FRAMES, FittedMotion, load_fitted_motion, rotate_motion, up_rotation
+
+__all__ = ["FORMATS", "export_result", "default_output", "write_json", "FittedMotion", "load_fitted_motion",
+           "rotate_motion", "up_rotation", "FRAMES"]
+
+#: format name -> default output name inside the result folder.
+FORMATS: dict[str, str] = {
+    "bvh": "motion.bvh",
+    "glb": "motion.glb",
+    "obj": "obj",
+    "json": "motion.json",
+    "npz": "motion_amass.npz",
+}
+
+
+def default_output(result_dir: str | Path, fmt: str) -> Path:
+    """Where ``fmt`` goes when no output path is given: ``RESULT/export/<name>``."""
+    _check_format(fmt)
+    return Path(result_dir) / "export" / FORMATS[fmt]
+
+
+def _check_format(fmt: str) -> None:
+    if fmt not in FORMATS:
+        raise InputError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}.")
+
+
+def _vertex_frames(motion: FittedMotion, chunk: int = 32):
+    for s in range(0, motion.num_frames, chunk):
+        yield from motion.body(s, s + chunk)[0]
+
+
+def write_json(path: str | Path, motion: FittedMotion) -> Path:
+    """Per-frame joints and parameters as JSON.
+
+    Layout: ``{"format": "flowmocap-motion", "fps", "gender", "betas" (10),
+    "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
+    to the result's world), "camera" (the result's camera, world frame), "units",
+    "frames": [{"index", "time_s", "pose" (72, radians), "trans" (3, metres),
+    "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels)}, ...]}``.
+    """
+    from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
+
+    j3d = motion.joints()
+    r = lambda a, n=6: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
+    frames = [{
+        "index": int(motion.frame_index[k]),
+        "time_s": round(float(k / motion.fps), 6),
+        "pose": r(motion.poses[k]),
+        "trans": r(motion.trans[k]),
+        "joints3d": r(j3d[k]),
+        "joints2d": r(motion.joints2d[k], 3),
+    } for k in range(motion.num_frames)]
+    doc = {
+        "format": "flowmocap-motion", "version": 1, "fps": motion.fps, "gender": motion.gender,
+        "betas": r(motion.betas), "joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
+        "frame": motion.frame,
+        "rotation": r(motion.rotation, 9), "camera": motion.camera.to_dict(),
+        "units": "metres, radians, pixels (joints2d); y up unless frame is 'world'",
+        "frames": frames,
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1))
+    return path
+
+
+def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "up",
+                  model=None, units_per_metre: float = 1.0, progress: bool = False) -> Path:
+    """Export a result folder.
+
+    Args:
+        result_dir: the result folder (``motion.npz``, ``run.json``).
+        fmt: one of :data:`FORMATS`.
+        out: output file (a folder for ``obj``); default :func:`default_output`.
+        frame: ``"up"`` (y up) or ``"world"`` (the result's own world frame).
+        model: body model override (default: the one recorded in ``run.json``).
+        units_per_metre: BVH length unit (1 = metres, 100 = centimetres).
+        progress: progress bars for the per-frame formats.
+
+    Returns:
+        The path written (file or folder).
+
+    Raises:
+        InputError: unknown format or frame. DataError: not a result folder.
+    """
+    _check_format(fmt)
+    out = Path(out) if out is not None else default_output(result_dir, fmt)
+    motion = load_fitted_motion(result_dir, frame=frame, model=model)
+    rest = motion.rest_joints()
+    if fmt == "bvh":
+        from flowmocap.export.bvh import write_motion_bvh
+
+        return write_motion_bvh(out, motion.poses, motion.trans, rest, motion.fps, units_per_metre=units_per_metre)
+    if fmt == "glb":
+        from flowmocap.export.glb import write_mesh_sequence_glb
+
+        return write_mesh_sequence_glb(out, _vertex_frames(motion), motion.model.faces_np, motion.fps,
+                                       motion.num_frames, progress=progress)
+    if fmt == "obj":
+        from flowmocap.export.obj import write_obj_sequence
+
+        write_obj_sequence(out, _vertex_frames(motion), motion.model.faces_np, motion.frame_index,
+                           motion.num_frames, progress=progress)
+        return out
+    if fmt == "json":
+        return write_json(out, motion)
+    from flowmocap.export.amass import write_amass_npz
+
+    if frame != "up":
+        raise InputError("the AMASS layout is always z up; use the default frame ('up') for --format npz.")
+    return write_amass_npz(out, motion.poses, motion.trans, motion.betas, motion.gender, motion.fps, rest[0],
+                           frame_index=motion.frame_index)

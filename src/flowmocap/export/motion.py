@@ -1,0 +1,197 @@
+"""A result folder's motion, ready to export: parameters, the body model, the up axis.
+
+A result's 3D quantities live in the world frame of its camera (``X_cam = R X + t``).
+Synthetic sequences and cameras placed with :func:`flowmocap.geometry.look_at` have a
+y-up world; a result tracked with only a focal length has ``R = I``, so its world *is*
+the camera frame (x right, y down, z forward) and a person standing in the video stands
+upside down there. Animation tools expect y up, so the exports turn the motion by
+:func:`up_rotation` first (``frame="up"``, the default); ``frame="world"`` keeps the
+result's own world frame.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.errors import DataError, InputError
+
+__all__ = ["FittedMotion", "load_fitted_motion", "up_rotation", "rotate_motion", "FRAMES"]
+
+#: Export frames: ``"up"`` (y up; see :func:`up_rotation`) or ``"world"`` (the result's own).
+FRAMES = ("up", "world")
+
+#: 180 degrees about x: the camera frame (y down, z forward) to y up, z towards the camera.
+CAMERA_TO_Y_UP = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class FittedMotion:
+    """T frames of a fitted body, in one export frame.
+
+    Attributes:
+        poses: ``(T, 72)`` float64 axis-angle in radians, SMPL joint order.
+        trans: ``(T, 3)`` float64 translation in metres.
+        betas: ``(10,)`` float64 shape coefficients of ``model``.
+        gender: ``"neutral"``, ``"male"`` or ``"female"``.
+        fps: frames per second (Hz).
+        frame_index: ``(T,)`` int64 frame numbers in the input video.
+        rotation: ``(3, 3)`` the rotation applied to the result's world frame
+            (``x_export = rotation @ x_world``).
+        model: the :class:`~flowmocap.body.BodyModel` (float64) the motion was fitted with.
+        joints2d: ``(T, 24, 2)`` float64 projected joints in input-image pixels.
+        camera: the result's :class:`~flowmocap.geometry.PinholeCamera` (world frame).
+        run: the result's ``run.json``.
+        frame: ``"up"`` or ``"world"``, the frame the motion is in.
+    """
+
+    poses: np.ndarray
+    trans: np.ndarray
+    betas: np.ndarray
+    gender: str
+    fps: float
+    frame_index: np.ndarray
+    rotation: np.ndarray
+    model: object
+    joints2d: np.ndarray
+    camera: object
+    run: dict
+    frame: str = "up"
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+    def rest_joints(self) -> np.ndarray:
+        """``(24, 3)`` float64 joints of the fitted shape in the rest (T-) pose, metres, y up."""
+        import torch
+
+        with torch.no_grad():
+            out = self.model(betas=torch.as_tensor(self.betas[None], dtype=torch.float64))
+        return out.rest_joints[0].numpy()
+
+    def body(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Posed vertices and joints of frames ``start:stop``.
+
+        Returns:
+            ``vertices (n, V, 3)`` and ``joints (n, 24, 3)``, float64 metres, export frame.
+        """
+        import torch
+
+        with torch.no_grad():
+            out = self.model(betas=torch.as_tensor(self.betas[None], dtype=torch.float64),
+                             pose=torch.as_tensor(self.poses[start:stop], dtype=torch.float64),
+                             trans=torch.as_tensor(self.trans[start:stop], dtype=torch.float64))
+        return out.vertices.numpy(), out.joints.numpy()
+
+    def joints(self, chunk: int = 128) -> np.ndarray:
+        """``(T, 24, 3)`` float64 posed joints in metres, export frame."""
+        return np.concatenate([self.body(s, s + chunk)[1] for s in range(0, self.num_frames, chunk)])
+
+
+def up_rotation(camera) -> np.ndarray:
+    """``(3, 3)`` rotation from a result's world frame to a y-up frame.
+
+    Identity when the camera has a pose (its world was set up y-up, as synthetic
+    sequences and :func:`~flowmocap.geometry.look_at` do); 180 degrees about x
+    (:data:`CAMERA_TO_Y_UP`) when the world is the camera frame (``R = I``, ``t = 0``).
+    """
+    if np.allclose(camera.R, np.eye(3), atol=1e-9):
+        return CAMERA_TO_Y_UP.copy()
+    return np.eye(3)
+
+
+def rotate_motion(poses: np.ndarray, trans: np.ndarray, rest_pelvis: np.ndarray,
+                  rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Turn a whole SMPL motion rigidly about the world origin.
+
+    SMPL rotates the body about its rest pelvis ``J0``: ``x = R0 (x_rest - J0) + J0 + trans``.
+    Turning everything by ``W`` gives ``R0' = W R0`` and ``trans' = W (J0 + trans) - J0``.
+
+    Args:
+        poses: ``(T, 72)`` axis-angle in radians (only the first 3, the root, change).
+        trans: ``(T, 3)`` metres.
+        rest_pelvis: ``(3,)`` pelvis of the shaped rest pose, metres.
+        rotation: ``(3, 3)`` rotation ``W``.
+
+    Returns:
+        ``poses (T, 72)``, ``trans (T, 3)``, float64.
+    """
+    from scipy.spatial.transform import Rotation
+
+    W = np.asarray(rotation, np.float64)
+    poses = np.array(poses, np.float64).reshape(-1, 72)
+    trans = np.asarray(trans, np.float64).reshape(-1, 3)
+    J0 = np.asarray(rest_pelvis, np.float64).reshape(3)
+    root = Rotation.from_matrix(W @ Rotation.from_rotvec(poses[:, :3]).as_matrix())
+    poses[:, :3] = root.as_rotvec()
+    return poses, (trans + J0) @ W.T - J0
+
+
+def _model_for(run: dict, gender: str, model):
+    import torch
+
+    from flowmocap.body import BodyModel, load_body_model
+
+    if isinstance(model, BodyModel):
+        import copy
+
+        return copy.deepcopy(model).to(torch.float64)  # .to() is in place; leave the caller's model alone
+    name = model
+    if name is None:
+        recorded = str(run.get("model", "default"))
+        name = recorded if Path(recorded).exists() else "default"
+    return load_body_model(name, gender=gender, dtype=torch.float64)
+
+
+def load_fitted_motion(result_dir: str | Path, frame: str = "up", model=None) -> FittedMotion:
+    """Read a result folder's ``motion.npz`` and ``run.json`` for export.
+
+    Args:
+        result_dir: the result folder written by ``flowmocap track`` / ``demo``.
+        frame: ``"up"`` (turn to y up, see :func:`up_rotation`) or ``"world"``.
+        model: the body model: ``None`` for the one recorded in ``run.json`` (or the
+            default body when that path is gone), a name/path for
+            :func:`~flowmocap.body.load_body_model`, or a ``BodyModel``.
+
+    Raises:
+        DataError: not a result folder, or a result without frames.
+        InputError: unknown ``frame``.
+    """
+    from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.io.results import read_result
+
+    if frame not in FRAMES:
+        raise InputError(f"unknown export frame {frame!r}; choose one of {', '.join(FRAMES)}.")
+    result_dir = Path(result_dir)
+    if not result_dir.is_dir():
+        raise DataError(f"result folder {result_dir} does not exist; give the --out folder of "
+                        "`flowmocap track` or the result/ folder of `flowmocap demo`.")
+    motion, run = read_result(result_dir)
+    for key in ("poses", "trans", "betas"):
+        if key not in motion:
+            raise DataError(f"{result_dir / 'motion.npz'} has no {key!r}; it is not a flowmocap result.")
+    poses = np.asarray(motion["poses"], np.float64).reshape(-1, 72)
+    if poses.shape[0] == 0:
+        raise DataError(f"{result_dir} holds no tracked frames yet; run or resume the tracking first.")
+    trans = np.asarray(motion["trans"], np.float64).reshape(-1, 3)
+    betas = np.asarray(motion["betas"], np.float64).reshape(-1)
+    gender = str(motion["gender"]) if "gender" in motion else str(run.get("gender", "neutral"))
+    fps = float(motion["fps"]) if "fps" in motion else 30.0
+    T = poses.shape[0]
+    index = np.asarray(motion.get("frame_index", np.arange(T)), np.int64)
+    cam_dict = json.loads(str(motion["camera"])) if "camera" in motion else run.get("camera")
+    if cam_dict is None:
+        raise DataError(f"{result_dir} records no camera (motion.npz 'camera' or run.json 'camera').")
+    camera = PinholeCamera.from_dict(cam_dict)
+    body = _model_for(run, gender, model)
+    W = up_rotation(camera) if frame == "up" else np.eye(3)
+    fm = FittedMotion(poses=poses, trans=trans, betas=betas, gender=gender, fps=fps, frame_index=index,
+                      rotation=W, model=body, camera=camera, run=run, frame=frame,
+                      joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64))
+    if not np.allclose(W, np.eye(3)):
+        fm.poses, fm.trans = rotate_motion(poses, trans, fm.rest_joints()[0], W)
+    return fm

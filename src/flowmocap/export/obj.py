@@ -1,0 +1,58 @@
+"""Wavefront OBJ export: one mesh per frame in a folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_obj", "write_obj_sequence"]
+
+
+def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, comment: str = "") -> Path:
+    """Write one triangle mesh as OBJ (``v`` and 1-based ``f`` lines).
+
+    Args:
+        path: output ``.obj`` file.
+        vertices: ``(V, 3)`` positions in metres.
+        faces: ``(F, 3)`` 0-based triangle indices, counter-clockwise seen from outside.
+        comment: one line written as a ``#`` comment at the top.
+
+    Returns:
+        The path written.
+    """
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3) + 1
+    lines = [f"# {comment}"] if comment else []
+    lines.append("\n".join("v %.6f %.6f %.6f" % tuple(p) for p in v))
+    lines.append("\n".join("f %d %d %d" % tuple(t) for t in f))
+    path = Path(path)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numbers, num_frames: int,
+                       progress: bool = False) -> list[Path]:
+    """Write ``frame_<number>.obj`` per frame into ``folder``.
+
+    Args:
+        folder: output folder (created).
+        frames: iterable of ``(V, 3)`` vertex arrays in metres.
+        faces: ``(F, 3)`` triangle indices.
+        frame_numbers: ``(T,)`` the input video's frame numbers (used in the file names).
+        num_frames: the number of arrays ``frames`` yields (for the progress bar).
+        progress: show a progress bar.
+
+    Returns:
+        The paths written, in order.
+    """
+    from tqdm import tqdm
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for verts, n in zip(tqdm(frames, total=num_frames, disable=not progress, unit="frame", desc="obj"),
+                        frame_numbers):
+        paths.append(write_obj(folder / f"frame_{int(n):06d}.obj", verts, faces,
+                               comment=f"flowmocap frame {int(n)}, metres"))
+    return paths

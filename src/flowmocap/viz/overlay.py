@@ -1,0 +1,105 @@
+"""The fitted body drawn over a video frame, and seen from a second, orbiting camera."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flowmocap.errors import InputError
+from flowmocap.geometry.camera import PinholeCamera, look_at
+
+__all__ = ["BODY_RGB", "overlay_body", "render_body_view", "side_camera", "camera_up"]
+
+#: Default body colour (RGB in [0, 1]): a light blue that stands out on most footage.
+BODY_RGB = (0.45, 0.70, 1.0)
+
+
+def _shade_over(vertices: np.ndarray, faces, camera: PinholeCamera, background: np.ndarray,
+                colour, supersample: int) -> np.ndarray:
+    from flowmocap.render import shade
+
+    v = np.asarray(vertices, np.float64)
+    v_cam = camera.to_camera(v)
+    if not np.all(v_cam[:, 2] > 1e-3):
+        return background.copy()  # (part of) the body behind the camera: draw nothing
+    px = camera.project(v)
+    colours = np.tile(np.asarray(colour, np.float32), (len(v), 1))
+    return shade(px, v_cam[:, 2], faces, v_cam, colours, background=background, supersample=supersample)
+
+
+def overlay_body(image: np.ndarray, vertices: np.ndarray, faces, camera: PinholeCamera, alpha: float = 0.6,
+                 colour=BODY_RGB, supersample: int = 2) -> np.ndarray:
+    """Draw a shaded, semi-transparent body over an image.
+
+    Args:
+        image: ``(H, W, 3)`` uint8 RGB frame, the camera's size.
+        vertices: ``(V, 3)`` world positions in metres.
+        faces: ``(F, 3)`` triangle indices (or prepared ``Faces``).
+        camera: the camera that took ``image``.
+        alpha: opacity of the body in ``[0, 1]``.
+        colour: body RGB in ``[0, 1]``.
+        supersample: anti-aliasing samples per pixel and axis.
+
+    Returns:
+        ``(H, W, 3)`` uint8 RGB; pixels off the body are ``image`` unchanged.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (camera.height, camera.width):
+        raise InputError(f"image must be ({camera.height}, {camera.width}, 3) RGB for this camera; "
+                         f"got {img.shape}.")
+    if not 0.0 <= alpha <= 1.0:
+        raise InputError(f"alpha must be in [0, 1], got {alpha}.")
+    img = img.astype(np.uint8)
+    shaded = _shade_over(vertices, faces, camera, img, colour, supersample)
+    out = alpha * shaded.astype(np.float32) + (1.0 - alpha) * img.astype(np.float32)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def render_body_view(vertices: np.ndarray, faces, camera: PinholeCamera, background=(235, 235, 235),
+                     colour=BODY_RGB, supersample: int = 2) -> np.ndarray:
+    """The body, opaque and shaded, over a plain background.
+
+    Args:
+        vertices: ``(V, 3)`` world positions in metres.
+        faces: ``(F, 3)`` triangle indices.
+        camera: the viewing camera.
+        background: RGB 0..255.
+
+    Returns:
+        ``(camera.height, camera.width, 3)`` uint8 RGB.
+    """
+    bg = np.empty((camera.height, camera.width, 3), np.uint8)
+    bg[:] = background
+    return _shade_over(vertices, faces, camera, bg, colour, supersample)
+
+
+def camera_up(camera: PinholeCamera) -> np.ndarray:
+    """``(3,)`` the camera's image-up direction in world coordinates (``-R[1]``, unit)."""
+    return -np.asarray(camera.R[1], np.float64)
+
+
+def side_camera(camera: PinholeCamera, centre, angle_deg: float = 90.0) -> PinholeCamera:
+    """The camera orbited about the vertical axis through ``centre``.
+
+    The vertical is the camera's own image-up direction, so no world up is assumed; the
+    new camera keeps the intrinsics and distance to ``centre`` and looks at it.
+
+    Args:
+        camera: the input camera.
+        centre: ``(3,)`` world point to orbit about (e.g. the mean pelvis), metres.
+        angle_deg: orbit angle in degrees (90: a side view; positive is anticlockwise
+            seen from above).
+
+    Returns:
+        :class:`PinholeCamera` of the same size and intrinsics.
+    """
+    from scipy.spatial.transform import Rotation
+
+    c = np.asarray(centre, np.float64).reshape(3)
+    up = camera_up(camera)
+    rot = Rotation.from_rotvec(np.deg2rad(angle_deg) * up).as_matrix()
+    eye = c + rot @ (camera.center - c)
+    if np.linalg.norm(eye - c) < 1e-6:
+        eye = c + rot @ np.asarray(camera.R[2]) * -3.0
+    R, t = look_at(eye, c, up=up)
+    return PinholeCamera(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
+                         height=camera.height, R=R, t=t)

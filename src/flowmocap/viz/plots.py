@@ -1,0 +1,71 @@
+"""Per-frame plots of a result: energy terms and, with ground truth, the 3D joint error."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flowmocap.errors import InputError
+
+__all__ = ["energy_error_plot"]
+
+
+def energy_error_plot(frame_index: np.ndarray, energies: np.ndarray, names, errors: dict | None = None,
+                      title: str = "", dpi: int = 100) -> np.ndarray:
+    """A figure of the per-frame energies (one panel per term) and the 3D joint error.
+
+    Args:
+        frame_index: ``(T,)`` frame numbers.
+        energies: ``(T, K)`` energy values per frame (NaN where a term was not computed);
+            terms that are NaN or zero on every frame are left out.
+        names: ``K`` term names.
+        errors: optional ``{label: (T,) centimetres}`` joint errors to plot in a last panel
+            (e.g. local Procrustes, MPJPE).
+        title: figure title.
+        dpi: resolution.
+
+    Returns:
+        ``(h, w, 3)`` uint8 RGB image of the figure.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    x = np.asarray(frame_index)
+    e = np.asarray(energies, np.float64).reshape(len(x), -1)
+    names = [str(n) for n in names]
+    if e.shape[1] != len(names):
+        raise InputError(f"energies have {e.shape[1]} columns but {len(names)} names were given.")
+    keep = [k for k in range(e.shape[1]) if np.any(np.isfinite(e[:, k]) & (e[:, k] != 0))]
+    panels = len(keep) + (1 if errors else 0)
+    if panels == 0:
+        raise InputError("nothing to plot: every energy is NaN or zero and there is no ground truth.")
+    cols = min(3, panels)
+    rows = int(np.ceil(panels / cols))
+    fig = Figure(figsize=(4.2 * cols, 2.6 * rows), dpi=dpi)
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(rows, cols, i + 1) for i in range(panels)]
+    for ax, k in zip(axes, keep):
+        y = e[:, k]
+        ax.plot(x, y, ".-", lw=1.2, ms=3, color="tab:blue")
+        ax.set_title(f"E: {names[k]}", fontsize=10)
+        pos = y[np.isfinite(y)]
+        if pos.size and np.all(pos > 0) and pos.max() / max(pos.min(), 1e-300) > 50:
+            ax.set_yscale("log")
+        ax.set_xlabel("frame", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=8)
+    if errors:
+        ax = axes[-1]
+        for label, err in errors.items():
+            err = np.asarray(err, np.float64)
+            ax.plot(x, err, ".-", lw=1.2, ms=3, label=f"{label} (mean {np.nanmean(err):.2f})")
+        ax.set_title("3D joint error vs ground truth [cm]", fontsize=10)
+        ax.set_xlabel("frame", fontsize=8)
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=8)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()

@@ -1,0 +1,261 @@
+"""flowmocap export: BVH, glb, OBJ, JSON and AMASS npz from a result folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import JOINT_NAMES, PARENTS, load_body_model
+from flowmocap.cli import main
+from flowmocap.errors import DataError, InputError
+from flowmocap.export import export_result, load_fitted_motion
+from flowmocap.export.motion import CAMERA_TO_Y_UP
+from flowmocap.geometry.camera import PinholeCamera, look_at
+from flowmocap.io.results import write_motion, write_run
+
+T = 5
+
+
+def _walk_poses(rng) -> np.ndarray:
+    """(T, 72) a moving, non-trivial pose sequence (every joint bent)."""
+    base = rng.normal(0.0, 0.25, (1, 72))
+    steps = rng.normal(0.0, 0.05, (T, 72)).cumsum(0)
+    poses = base + steps
+    poses[:, :3] = [0.2, 2.5, 0.1]  # root turned towards the camera side
+    return poses
+
+
+def make_result(folder: Path, camera: PinholeCamera, seed: int = 0, gender: str = "female") -> dict:
+    """A result folder written directly (motion.npz as the tracker writes it)."""
+    rng = np.random.default_rng(seed)
+    poses = _walk_poses(rng).astype(np.float32)
+    trans = (np.array([0.1, 0.0, 0.0]) + np.linspace(0, 0.3, T)[:, None] * [1.0, 0.0, 0.5]).astype(np.float32)
+    if np.allclose(camera.R, np.eye(3)):  # stand upright in the y-down camera frame, 4 m away
+        from scipy.spatial.transform import Rotation
+
+        root = Rotation.from_rotvec([np.pi, 0, 0]) * Rotation.from_rotvec(poses[:, :3].astype(np.float64))
+        poses[:, :3] = root.as_rotvec()
+        trans = trans + np.float32([0.0, 0.0, 4.0])
+    betas = rng.normal(0, 1, 10).astype(np.float32)
+    model = load_body_model("default", gender=gender)
+    with torch.no_grad():
+        out = model(betas=torch.as_tensor(betas), pose=torch.as_tensor(poses), trans=torch.as_tensor(trans))
+    j3 = out.joints.numpy()
+    write_motion(folder, {
+        "poses": poses, "trans": trans, "betas": betas, "gender": np.array(gender), "fps": np.array(25.0),
+        "camera": np.array(json.dumps(camera.to_dict())), "joints3d": j3,
+        "joints2d": camera.project(j3).astype(np.float32), "energies": rng.random((T, 2)),
+        "energy_names": np.array(["total", "flow"]), "frame_index": np.arange(3, 3 + T),
+    })
+    write_run(folder, {"input": str(folder / "missing_input"), "model": "default", "gender": gender})
+    return {"joints3d": j3.astype(np.float64), "poses": poses, "trans": trans, "betas": betas, "gender": gender}
+
+
+@pytest.fixture(scope="module")
+def posed_result(tmp_path_factory):
+    """A result whose camera was placed in a y-up world (as synthetic sequences are)."""
+    d = tmp_path_factory.mktemp("posed") / "result"
+    R, t = look_at([2.5, 1.2, 3.5], [0.2, 0.9, 0.1])
+    cam = PinholeCamera.from_focal(96, 72, 100.0, R=R, t=t)
+    return d, make_result(d, cam, seed=1)
+
+
+@pytest.fixture(scope="module")
+def camera_frame_result(tmp_path_factory):
+    """A result tracked with only a focal length: world = camera frame (y down)."""
+    d = tmp_path_factory.mktemp("camframe") / "result"
+    return d, make_result(d, PinholeCamera.from_focal(96, 72, 100.0), seed=2, gender="male")
+
+
+def _fk_from_bvh_package(path: Path) -> tuple[list[str], np.ndarray]:
+    """Joint positions of a BVH file parsed by the third-party ``bvh`` package, with forward
+    kinematics written here (scipy rotations), independent of flowmocap's BVH code."""
+    bvh = pytest.importorskip("bvh")
+    from scipy.spatial.transform import Rotation
+
+    mocap = bvh.Bvh(path.read_text())
+    names = mocap.get_joints_names()
+    pos = np.zeros((mocap.nframes, len(names), 3))
+    glob = np.zeros((mocap.nframes, len(names), 3, 3))
+    for j, name in enumerate(names):
+        chans = mocap.joint_channels(name)
+        vals = np.asarray(mocap.frames_joint_channels(name, chans), np.float64)  # (T, C)
+        rot_ch = [c for c in chans if c.endswith("rotation")]
+        order = "".join(c[0] for c in rot_ch)
+        angles = vals[:, [chans.index(c) for c in rot_ch]]
+        local = Rotation.from_euler(order.upper(), angles, degrees=True).as_matrix()  # intrinsic
+        offset = np.asarray(mocap.joint_offset(name), np.float64)
+        parent = mocap.joint_parent(name)
+        if parent is None:
+            p = offset + vals[:, [chans.index(c) for c in ("Xposition", "Yposition", "Zposition")]]
+            glob[:, j] = local
+        else:
+            pj = names.index(parent.name)
+            p = pos[:, pj] + np.einsum("tab,b->ta", glob[:, pj], offset)
+            glob[:, j] = glob[:, pj] @ local
+        pos[:, j] = p
+    return names, pos
+
+
+def test_bvh_joint_positions_reproduce_the_fit_within_1mm(posed_result, tmp_path):
+    folder, truth = posed_result
+    path = export_result(folder, "bvh", tmp_path / "m.bvh")
+    names, pos = _fk_from_bvh_package(path)
+    assert set(JOINT_NAMES) <= set(names)
+    idx = [names.index(n) for n in JOINT_NAMES]
+    err = np.linalg.norm(pos[:, idx] - truth["joints3d"], axis=-1)
+    assert pos.shape[0] == T
+    assert err.max() < 1e-3, err.max()
+
+
+def test_bvh_bones_have_the_fitted_shapes_lengths(posed_result, tmp_path):
+    """The skeleton's offsets are the rest joints of the fitted betas, not the mean shape's."""
+    from flowmocap.io.mocap import read_bvh
+
+    folder, truth = posed_result
+    clip = read_bvh(export_result(folder, "bvh", tmp_path / "m.bvh"), scale=1.0)
+    model = load_body_model("default", gender=truth["gender"])
+    with torch.no_grad():
+        rest_fit = model(betas=torch.as_tensor(truth["betas"])).rest_joints[0].numpy()
+        rest_mean = model().rest_joints[0].numpy()
+    lengths = lambda r: np.array([np.linalg.norm(r[j] - r[PARENTS[j]]) for j in range(1, 24)])  # noqa: E731
+    got = np.array([np.linalg.norm(clip.offsets[clip.index(n)]) for n in JOINT_NAMES[1:]])
+    np.testing.assert_allclose(got, lengths(rest_fit), atol=1e-6)
+    assert np.abs(got - lengths(rest_mean)).max() > 5e-3  # the shape matters, so the test can fail
+
+
+def test_bvh_in_centimetres_and_read_by_our_reader(posed_result, tmp_path):
+    from flowmocap.io.mocap import read_bvh
+
+    folder, truth = posed_result
+    assert main([
+        "export", str(folder), "--format", "bvh", "--out", str(tmp_path / "cm.bvh"), "--bvh-unit", "cm", "--quiet",
+    ]) == 0
+    clip = read_bvh(tmp_path / "cm.bvh")  # the unit is guessed from the skeleton's height
+    assert clip.info["unit"] == "cm"
+    assert clip.fps == pytest.approx(25.0)
+    idx = [clip.index(n) for n in JOINT_NAMES]
+    assert np.abs(clip.positions[:, idx] - truth["joints3d"]).max() < 1e-3
+
+
+def test_camera_frame_results_are_turned_upright(camera_frame_result, tmp_path):
+    folder, truth = camera_frame_result
+    up = load_fitted_motion(folder)
+    np.testing.assert_allclose(up.rotation, CAMERA_TO_Y_UP)
+    expect = truth["joints3d"] @ CAMERA_TO_Y_UP.T
+    np.testing.assert_allclose(up.joints(), expect, atol=1e-5)
+    # head above the pelvis in the export (it was below in the y-down camera frame)
+    assert (up.joints()[:, 15, 1] > up.joints()[:, 0, 1]).all()
+    names, pos = _fk_from_bvh_package(export_result(folder, "bvh", tmp_path / "up.bvh"))
+    idx = [names.index(n) for n in JOINT_NAMES]
+    assert np.abs(pos[:, idx] - expect).max() < 1e-3
+    world = load_fitted_motion(folder, frame="world")
+    np.testing.assert_allclose(world.joints(), truth["joints3d"], atol=1e-5)
+
+
+def test_glb_loads_with_trimesh_with_one_mesh_per_frame(posed_result, tmp_path):
+    import trimesh
+
+    folder, truth = posed_result
+    path = export_result(folder, "glb", tmp_path / "m.glb")
+    scene = trimesh.load(path)
+    assert len(scene.geometry) == T
+    model = load_body_model("default")
+    for k in (0, T - 1):
+        mesh = scene.geometry[f"frame_{k:06d}"]
+        assert mesh.vertices.shape == (model.num_vertices, 3)
+        assert len(mesh.faces) == model.faces.shape[0]
+    # the animation switches frames on one after the other at the motion's rate
+    raw = path.read_bytes()
+    n = int.from_bytes(raw[12:16], "little")
+    doc = json.loads(raw[20:20 + n])
+    anim = doc["animations"][0]
+    assert len(anim["channels"]) == T
+    assert {c["target"]["path"] for c in anim["channels"]} == {"scale"}
+    last = doc["accessors"][anim["samplers"][-1]["input"]]
+    assert last["max"][0] == pytest.approx((T - 1) / 25.0)
+
+
+def test_glb_vertices_are_the_fitted_body(posed_result, tmp_path):
+    import trimesh
+
+    folder, truth = posed_result
+    scene = trimesh.load(export_result(folder, "glb", tmp_path / "m.glb"))
+    mesh = scene.geometry["frame_000002"]
+    model = load_body_model("default", gender=truth["gender"])
+    with torch.no_grad():
+        v = model(betas=torch.as_tensor(truth["betas"]), pose=torch.as_tensor(truth["poses"][2]),
+                  trans=torch.as_tensor(truth["trans"][2])).vertices[0].numpy()
+    np.testing.assert_allclose(mesh.vertices, v, atol=1e-5)
+
+
+def test_amass_npz_round_trips_through_our_loader(posed_result, camera_frame_result, tmp_path):
+    from flowmocap.export.amass import read_amass_npz
+
+    for k, (folder, truth) in enumerate((posed_result, camera_frame_result)):
+        path = export_result(folder, "npz", tmp_path / f"amass{k}.npz")
+        with np.load(path) as z:
+            assert z["poses"].shape == (T, 156)
+            assert z["trans"].shape == (T, 3)
+            assert float(z["mocap_framerate"]) == 25.0
+            assert str(z["gender"]) == truth["gender"]
+            np.testing.assert_allclose(z["betas"], truth["betas"], atol=1e-6)
+        motion = read_amass_npz(path)
+        assert motion.fps == 25.0 and motion.gender == truth["gender"] and motion.num_frames == T
+        model = load_body_model("default", gender=motion.gender)
+        with torch.no_grad():
+            j = model(betas=torch.as_tensor(motion.betas), pose=torch.as_tensor(motion.poses),
+                      trans=torch.as_tensor(motion.trans)).joints.numpy()
+        expect = load_fitted_motion(folder).joints()  # y up
+        assert np.abs(j - expect).max() < 1e-4
+        np.testing.assert_allclose(motion.poses[:, 3:], truth["poses"][:, 3:], atol=1e-5)
+
+
+def test_amass_npz_is_z_up(posed_result, tmp_path):
+    """AMASS worlds are z up: the head is above the pelvis along z in the file."""
+    folder, truth = posed_result
+    path = export_result(folder, "npz", tmp_path / "a.npz")
+    with np.load(path) as z:
+        poses, trans, betas = z["poses"], z["trans"], z["betas"]
+    model = load_body_model("default", gender=truth["gender"])
+    pose72 = np.concatenate([poses[:, :66], np.zeros((T, 6))], axis=1)
+    with torch.no_grad():
+        j = model(betas=torch.as_tensor(betas, dtype=torch.float32), pose=torch.as_tensor(pose72, dtype=torch.float32),
+                  trans=torch.as_tensor(trans, dtype=torch.float32)).joints.numpy()
+    assert (j[:, 15, 2] - j[:, 0, 2] > 0.3).all()
+
+
+def test_obj_and_json(posed_result, tmp_path):
+    folder, truth = posed_result
+    obj_dir = export_result(folder, "obj", tmp_path / "obj")
+    files = sorted(obj_dir.glob("*.obj"))
+    assert [f.name for f in files] == [f"frame_{i:06d}.obj" for i in range(3, 3 + T)]
+    text = files[1].read_text().splitlines()
+    verts = np.array([[float(x) for x in ln.split()[1:]] for ln in text if ln.startswith("v ")])
+    faces = np.array([[int(x) for x in ln.split()[1:]] for ln in text if ln.startswith("f ")])
+    model = load_body_model("default", gender=truth["gender"])
+    assert verts.shape == (model.num_vertices, 3) and faces.min() == 1
+    np.testing.assert_array_equal(faces - 1, model.faces_np)
+    doc = json.loads(export_result(folder, "json", tmp_path / "m.json").read_text())
+    assert doc["joint_names"] == list(JOINT_NAMES) and len(doc["frames"]) == T
+    assert doc["frames"][0]["index"] == 3
+    np.testing.assert_allclose(np.array(doc["frames"][4]["joints3d"]), truth["joints3d"][4], atol=1e-5)
+    assert np.array(doc["frames"][4]["pose"]).shape == (72,)
+
+
+def test_export_errors_tell_what_to_do(posed_result, tmp_path, capsys):
+    folder, _ = posed_result
+    with pytest.raises(InputError, match="choose one of"):
+        export_result(folder, "fbx")
+    with pytest.raises(DataError, match="does not exist"):
+        export_result(tmp_path / "nothing", "bvh")
+    assert main(["export", str(tmp_path / "nothing"), "--format", "bvh"]) == 2
+    assert "flowmocap track" in capsys.readouterr().err
+    assert main(["export", str(folder), "--format", "fbx"]) == 2
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="not a flowmocap result"):
+        export_result(tmp_path / "empty", "json")

@@ -1,0 +1,167 @@
+"""flowmocap render: overlay MP4, Fig.-1 panel, joint traces, energy plot."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import load_body_model
+from flowmocap.cli import main
+from flowmocap.errors import DataError, InputError
+from flowmocap.io.results import write_motion, write_run
+from flowmocap.synth import synthesize
+from flowmocap.viz.traces import TRACE_RGB, draw_traces
+
+W, H, T = 96, 72, 5
+
+
+def write_result(folder: Path, seq_dir: Path, camera, gt: dict, pose_noise: float = 0.0, seed: int = 0) -> None:
+    """A result folder for the sequence, from its ground truth (plus noise on the pose)."""
+    rng = np.random.default_rng(seed)
+    poses = (gt["poses"] + pose_noise * rng.normal(size=gt["poses"].shape)).astype(np.float32)
+    model = load_body_model("default", gender=str(gt["gender"]))
+    with torch.no_grad():
+        j3 = model(betas=torch.as_tensor(gt["betas"], dtype=torch.float32), pose=torch.as_tensor(poses),
+                   trans=torch.as_tensor(gt["trans"], dtype=torch.float32)).joints.numpy()
+    n = len(poses)
+    write_motion(folder, {
+        "poses": poses, "trans": gt["trans"].astype(np.float32), "betas": gt["betas"].astype(np.float32),
+        "gender": np.array(str(gt["gender"])), "fps": np.array(30.0),
+        "camera": np.array(json.dumps(camera.to_dict())), "joints3d": j3, "joints2d": camera.project(j3),
+        "energies": np.column_stack([np.linspace(1, 2, n), np.full(n, np.nan)]),
+        "energy_names": np.array(["total", "unused"]), "frame_index": np.arange(n),
+    })
+    write_run(folder, {"input": str(seq_dir), "model": "default", "gender": str(gt["gender"]),
+                      "config": {"flow_method": "dis"}})
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    root = tmp_path_factory.mktemp("render")
+    seq = root / "seq"
+    res = synthesize("builtin:walk", seq, frames=T, size=f"{W}x{H}", betas="random", seed=4, flow=True)
+    with np.load(seq / "gt.npz") as z:
+        gt = {k: z[k] for k in z.files}
+    write_result(root / "exact", seq, res.camera, gt)
+    write_result(root / "noisy", seq, res.camera, gt, pose_noise=0.08)
+    return root, seq, gt
+
+
+def test_overlay_mp4_has_the_inputs_frame_count_and_size(demo, tmp_path):
+    import imageio.v3 as iio
+
+    root, seq, _ = demo
+    assert main(["render", str(root / "exact"), "--video", str(tmp_path / "o.mp4"), "--quiet"]) == 0
+    video = iio.imread(tmp_path / "o.mp4", plugin="pyav")
+    assert video.shape == (T, H, W, 3)
+    # the body is drawn: frames differ from the input where the body is, not elsewhere
+    frame = iio.imread(seq / "frames" / "000002.png")[..., :3].astype(float)
+    mask = iio.imread(seq / "masks" / "000002.png") > 0
+    diff = np.abs(video[2].astype(float) - frame).mean(-1)
+    assert diff[mask].mean() > 4 * diff[~mask].mean()
+    assert main(["render", str(root / "exact"), "--video", str(tmp_path / "s.mp4"), "--side", "--quiet"]) == 0
+    assert iio.imread(tmp_path / "s.mp4", plugin="pyav").shape == (T, H, 2 * W, 3)
+
+
+def test_render_without_options_writes_all_four_outputs(demo):
+    import imageio.v3 as iio
+
+    root, _, _ = demo
+    out = root / "exact" / "render"
+    shutil.rmtree(out, ignore_errors=True)
+    assert main(["render", str(root / "exact"), "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["energies.png", "figure1.png", "joint_traces.png", "overlay.mp4"]
+    fig = iio.imread(out / "figure1.png")
+    assert fig.ndim == 3 and fig.shape[1] > 4 * fig.shape[0] / 2  # one row of five tiles
+
+
+def test_rendered_flow_of_the_true_motion_matches_the_true_flow(demo):
+    """Figure 1's rendered flow is the model's flow between consecutive fitted frames."""
+    from flowmocap.viz.result_render import ResultScene
+
+    root, seq, _ = demo
+    scene = ResultScene(root / "exact")
+    flow, mask = scene.rendered_flow(3)
+    with np.load(seq / "flow" / "000003.npz") as z:
+        true = z["flow"]
+    assert mask.sum() > 50
+    assert np.linalg.norm(flow[mask] - true[mask], axis=1).mean() < 0.05
+    assert np.abs(true[mask]).max() > 0.3  # the body moves, so a wrong flow would show
+    obs = scene.observed_flow(3)
+    assert obs.shape == (H, W, 2)
+    with pytest.raises(InputError, match="previous frame"):
+        scene.rendered_flow(0)
+
+
+def test_figure1_colours_the_flow_on_the_body(demo):
+    from flowmocap.viz.result_render import ResultScene, figure1
+
+    root, _, _ = demo
+    scene = ResultScene(root / "exact")
+    one = figure1(scene, [3], crop=False, min_height=H)
+    two = figure1(scene, [2, 4], crop=False, min_height=H)
+    assert two.shape[0] > 1.8 * one.shape[0]
+    tile = one[26:26 + H, 2 * (W + 6):2 * (W + 6) + W]  # rendered flow tile, below its caption
+    body = scene.silhouette(scene.k_of(3))
+    assert (tile[body] < 250).any(axis=-1).mean() > 0.8  # coloured on the body
+    assert (tile[~body] == 255).all()  # white (zero flow) elsewhere
+    with pytest.raises(InputError, match="not tracked"):
+        figure1(scene, [77])
+
+
+def test_joint_errors_are_zero_for_the_truth_and_not_for_noise(demo):
+    from flowmocap.viz.result_render import ResultScene, energy_figure
+
+    root, _, _ = demo
+    exact = ResultScene(root / "exact").errors_cm()
+    noisy = ResultScene(root / "noisy").errors_cm()
+    assert max(v.max() for v in exact.values()) < 0.01
+    assert noisy["MPJPE"].mean() > 1.0
+    img = energy_figure(ResultScene(root / "noisy"))
+    assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8
+
+
+def test_draw_traces_draws_the_joint_path():
+    img = np.zeros((40, 60, 3), np.uint8)
+    j = np.zeros((3, 24, 2))
+    j[:, 15] = [[10.5, 20.5], [30.5, 20.5], [50.5, 20.5]]  # the head moves right along row 20
+    out = draw_traces(img, j, upto=2, joints=[15], fade=False, dots=False)
+    assert tuple(out[20, 20]) == TRACE_RGB and tuple(out[20, 40]) == TRACE_RGB
+    assert (out[5] == 0).all() and (out[35] == 0).all()
+    partial = draw_traces(img, j, upto=1, joints=[15], fade=False, dots=False)
+    assert (partial[20, 45] == 0).all()  # not drawn past frame `upto`
+
+
+def test_joint_traces_image(demo, tmp_path):
+    import imageio.v3 as iio
+
+    root, _, _ = demo
+    path = tmp_path / "tr.png"
+    assert main(["render", str(root / "noisy"), "--traces", str(path), "--frames", "2,4"]) == 0
+    img = iio.imread(path)
+    green = (img[..., 1] > 180) & (img[..., 0] < 120) & (img[..., 2] < 120)
+    orange = (img[..., 0] > 200) & (img[..., 1] < 140) & (img[..., 2] < 90)
+    assert green.sum() > 50 and orange.sum() > 5  # fitted and ground-truth traces
+
+
+def test_render_errors_tell_what_to_do(demo, tmp_path, capsys):
+    from flowmocap.viz.result_render import ResultScene
+
+    root, seq, gt = demo
+    assert main(["render", str(tmp_path / "missing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    moved = tmp_path / "moved"
+    shutil.copytree(root / "exact", moved, ignore=shutil.ignore_patterns("render"))
+    run = json.loads((moved / "run.json").read_text())
+    run["input"] = str(tmp_path / "gone")
+    (moved / "run.json").write_text(json.dumps(run))
+    with pytest.raises(DataError, match="--input"):
+        ResultScene(moved)
+    assert ResultScene(moved, input=seq).num_frames == T
+    assert main(["render", str(root / "exact"), "--figure1", str(tmp_path / "f.png"), "--frames", "a,b"]) == 2
+    assert main(["render", str(root / "exact"), "--video", str(tmp_path / "v.mp4"), "--alpha", "2"]) == 2
