@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from flowmocap.io.motion_source import load_motion
+
 from flowmocap.body import JOINT_NAMES, PARENTS, load_body_model
 from flowmocap.cli import main
 from flowmocap.errors import DataError, InputError
@@ -205,6 +207,8 @@ def test_amass_npz_round_trips_through_our_loader(posed_result, camera_frame_res
             assert str(z["gender"]) == truth["gender"]
             np.testing.assert_allclose(z["betas"], truth["betas"], atol=1e-6)
         motion = read_amass_npz(path)
+        via_loader = load_motion(path, load_body_model("default", gender=truth["gender"]))
+        np.testing.assert_allclose(via_loader.poses, motion.poses, atol=0)
         assert motion.fps == 25.0 and motion.gender == truth["gender"] and motion.num_frames == T
         model = load_body_model("default", gender=motion.gender)
         with torch.no_grad():

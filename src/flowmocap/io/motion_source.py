@@ -24,7 +24,8 @@ def load_motion(
     facing: float = 0.0,
     asf: str | Path | None = None,
 ) -> SmplMotion:
-    """SMPL motion from ``builtin:walk``, a ``.bvh`` file or a CMU ``.amc`` file.
+    """SMPL motion from ``builtin:walk``, a ``.bvh`` file, a CMU ``.amc`` file or an
+    AMASS-layout ``.npz`` (SMPL parameters, e.g. a ``flowmocap export --format npz``).
 
     Args:
         source: ``"builtin:walk"`` or a mocap file path (``.amc``: its ``.asf`` is found
@@ -55,5 +56,13 @@ def load_motion(
             )
         rate = 30.0 if fps is None else float(fps)
         return builtin_walk(model, betas=betas, fps=rate, frames=frames, facing=facing)
+    if Path(text).suffix.lower() == ".npz":
+        from flowmocap.export.amass import read_amass_npz
+
+        motion = read_amass_npz(text, model)
+        if fps is not None and abs(float(fps) - motion.fps) > 1e-6:
+            raise InputError(f"{text} holds SMPL parameters at {motion.fps:g} fps and is not resampled; "
+                             f"ask for fps={motion.fps:g} (or leave it unset).")
+        return motion
     clip = read_mocap(source, asf=asf)
     return retarget(clip, model, betas=betas, fps=fps, facing=facing)
