@@ -1,4 +1,20 @@
-"""3D joint error metrics of the paper (Sec. 4): Procrustes-aligned mean joint error."""
+"""Evaluation metrics (paper Sec. 4 and the usual additions), as pure array functions.
+
+==========================  ======================================  ================
+metric                       definition                              unit
+==========================  ======================================  ================
+local_procrustes_error       similarity Procrustes per frame          m (per frame)
+global_procrustes_error      one similarity Procrustes per sequence   m (per frame)
+mpjpe                        root-relative, no alignment              m (per frame)
+acceleration_error           |second difference pred - gt|, world     m/frame^2
+joint2d_error                Euclidean 2D distance                    px (per frame)
+silhouette_iou               intersection / union of masks            -- (per frame)
+==========================  ======================================  ================
+
+3D metrics use the paper's 13 joints (:data:`~flowmocap.body.skeleton.EVAL_JOINTS`) by
+default. :func:`render_silhouettes` rasterises a fitted body for the IoU;
+:mod:`flowmocap.eval.scoring` applies all of these to a result folder.
+"""
 
 from __future__ import annotations
 
@@ -51,3 +67,90 @@ def mpjpe(pred, gt, joints=EVAL_JOINTS, root: int = 0) -> np.ndarray:
     p = pred[:, list(joints)] - pred[:, root : root + 1]
     g = gt[:, list(joints)] - gt[:, root : root + 1]
     return np.linalg.norm(p - g, axis=-1).mean(-1)
+
+
+def acceleration_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
+    """Acceleration error: second finite difference of the joint positions, pred vs gt.
+
+    ``a_t = x_{t+1} - 2 x_t + x_{t-1}`` per joint, without any alignment (world / camera
+    frame, so jitter of the whole body counts too), then the mean over joints of
+    ``|a_pred - a_gt|``. The unit is metres per frame^2 at the sequence's frame rate
+    (multiply by 1000 for mm/frame^2); the frames must be consecutive.
+
+    Args:
+        pred, gt: ``(T, 24, 3)`` joints in metres, ``T >= 3``.
+        joints: the joints evaluated (default: the paper's 13).
+
+    Returns:
+        ``(T - 2,)`` metres / frame^2, one value per inner frame.
+    """
+    pred, gt = _check(pred, gt)
+    if pred.shape[0] < 3:
+        raise InputError(f"the acceleration error needs at least 3 frames; got {pred.shape[0]}.")
+    p, g = pred[:, list(joints)], gt[:, list(joints)]
+    acc = lambda x: x[2:] - 2 * x[1:-1] + x[:-2]  # noqa: E731
+    return np.linalg.norm(acc(p) - acc(g), axis=-1).mean(-1)
+
+
+def joint2d_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
+    """Mean Euclidean 2D joint distance per frame.
+
+    Args:
+        pred, gt: ``(T, 24, 2)`` joints in pixels.
+        joints: the joints evaluated (default: the paper's 13).
+
+    Returns:
+        ``(T,)`` pixels.
+    """
+    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != 2:
+        raise InputError(f"2D joints must be (T, J, 2) of equal shape; got {pred.shape} and {gt.shape}.")
+    return np.linalg.norm(pred[:, list(joints)] - gt[:, list(joints)], axis=-1).mean(-1)
+
+
+def silhouette_iou(pred, gt) -> np.ndarray:
+    """Intersection over union of binary masks, per frame.
+
+    Args:
+        pred, gt: ``(T, H, W)`` (or ``(H, W)``) masks; non-zero = person.
+
+    Returns:
+        ``(T,)`` (or a 0-d array) in [0, 1]; 1 where both masks are empty.
+    """
+    pred, gt = np.asarray(pred) != 0, np.asarray(gt) != 0
+    if pred.shape != gt.shape or pred.ndim not in (2, 3):
+        raise InputError(f"masks must be (T, H, W) or (H, W) of equal shape; got {pred.shape} and {gt.shape}.")
+    inter = (pred & gt).sum((-2, -1))
+    union = (pred | gt).sum((-2, -1))
+    return np.where(union > 0, inter / np.maximum(union, 1), 1.0)
+
+
+def render_silhouettes(model, poses, trans, betas, camera) -> np.ndarray:
+    """The fitted body's silhouettes, rasterised with :func:`flowmocap.render.rasterize`.
+
+    Args:
+        model: the :class:`~flowmocap.body.BodyModel` of the result.
+        poses: ``(T, 72)`` radians; trans: ``(T, 3)`` metres; betas: ``(10,)``.
+        camera: the :class:`~flowmocap.geometry.camera.PinholeCamera` of the result.
+
+    Returns:
+        ``(T, H, W)`` bool, True where the body covers the pixel centre.
+    """
+    import torch
+
+    from flowmocap.render import prepare_faces, rasterize, silhouette
+
+    poses = np.asarray(poses, np.float32).reshape(-1, 72)
+    trans = np.asarray(trans, np.float32).reshape(-1, 3)
+    faces = prepare_faces(model.faces_np)
+    b = torch.as_tensor(np.asarray(betas, np.float32).reshape(1, -1))
+    out = np.zeros((len(poses), camera.height, camera.width), bool)
+    with torch.no_grad():
+        for s in range(0, len(poses), 32):
+            v = model(betas=b.expand(len(poses[s:s + 32]), -1), pose=torch.as_tensor(poses[s:s + 32]),
+                      trans=torch.as_tensor(trans[s:s + 32])).vertices
+            for k in range(v.shape[0]):
+                r = rasterize(camera.project(v[k]).numpy(), camera.depth(v[k]).numpy(), faces,
+                              camera.height, camera.width)
+                out[s + k] = silhouette(r)
+    return out

@@ -1,0 +1,37 @@
+"""``flowmocap eval RESULT --gt SEQ``: all metrics of a result against a sequence."""
+
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    e = subparsers.add_parser(
+        "eval", help="score a result folder against a sequence (3D/2D joint errors, accel, IoU, speed)",
+        description="Print the metrics of a result against a sequence folder with gt.npz and/or masks, and "
+        "write them as JSON. Metrics that need what the sequence lacks are null.")
+    e.add_argument("result", help="result folder (motion.npz, run.json)")
+    e.add_argument("--gt", required=True, metavar="SEQ", help="sequence folder (gt.npz and/or masks/)")
+    e.add_argument("--masks", default=None, help="mask folder overriding SEQ/masks")
+    e.add_argument("--model", default="default", help="body model of the result (for the silhouettes)")
+    e.add_argument("--out", default=None, help="JSON file to write (default: RESULT/eval.json)")
+    e.set_defaults(func=cmd_eval)
+
+
+def cmd_eval(args) -> int:
+    import json
+    from pathlib import Path
+
+    from flowmocap.body import load_body_model
+    from flowmocap.eval.scoring import format_scores, score_result
+    from flowmocap.io.results import read_result
+    from flowmocap.io.sequence import load_sequence
+
+    seq = load_sequence(args.gt, masks=args.masks)
+    motion, _ = read_result(args.result)
+    model = load_body_model(args.model, gender=str(motion.get("gender", "neutral")))
+    scores = score_result(args.result, seq, model=model)
+    print(format_scores(scores))
+    out = Path(args.out) if args.out else Path(args.result) / "eval.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(scores, indent=2))
+    print(f"wrote {out}")
+    return 0
