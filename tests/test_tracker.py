@@ -111,6 +111,21 @@ def test_non_finite_energy_is_rolled_back_and_recorded(clip, model, tmp_path, mo
     assert "non-finite" in run["events"][0]["event"]
 
 
+def test_energy_that_cannot_be_evaluated_becomes_an_optimisation_error():
+    """A trial pose that puts a capsule behind the camera must roll the frame back, not crash."""
+    from flowmocap.fit.tracker import minimise
+
+    x = torch.zeros(3, requires_grad=True)
+
+    def energy():
+        if float(x.detach().abs().sum()) > 0.5:
+            raise InputError("a capsule is not in front of the camera")
+        return ((x - 2.0) ** 2).sum()
+
+    with pytest.raises(OptimizationError, match="trial pose"):
+        minimise([x], energy, 10)
+
+
 def test_initialisation_from_noisy_joints(clip, model, tmp_path):
     seq = load_sequence(clip)
     init = parse_init(noisy_init(seq.gt, frame=0, seed=1), *seq.size)
@@ -175,6 +190,10 @@ def test_config_file(tmp_path):
     p.write_text(json.dumps({"flow_wieght": 2.0}))
     with pytest.raises(InputError, match="unknown config"):
         TrackerConfig.load(p)
+    for bad in ({"silhouette_model": "voxels"}, {"temporal_reference": "next"}, {"optimizer": "adam"}):
+        p.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match=next(iter(bad))):
+            TrackerConfig.load(p)
 
 
 def test_all_weights_zero_keeps_the_prediction(clip, model):

@@ -26,11 +26,13 @@ class TrackerConfig:
     limit_weight: float = 10.0        # lambda_b: E_b joint limits
     penetration_weight: float = 10.0  # lambda_sp: E_sp capsule interpenetration (m^2)
     temporal_weight: float = 0.5      # lambda_theta: E_theta, rad^2, to the previous pose
+    temporal_reference: str = "prediction"  # E_theta towards the Kalman "prediction" (default) or the "previous" pose (paper)
     levels: int = 3                   # Gaussian pyramid levels of E_f
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
     iterations: int = 20              # optimiser iterations per stage
     optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe)
     capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
+    silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis"
     flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
@@ -67,6 +69,10 @@ class TrackerConfig:
         cfg = cls(**values)
         if cfg.optimizer not in ("lbfgs",):
             raise InputError(f"optimizer must be 'lbfgs'; got {cfg.optimizer!r}.")
+        if cfg.temporal_reference not in ("previous", "prediction"):
+            raise InputError(f"temporal_reference must be 'previous' or 'prediction'; got {cfg.temporal_reference!r}.")
+        if cfg.silhouette_model not in ("capsules", "mesh"):
+            raise InputError(f"silhouette_model must be 'capsules' or 'mesh'; got {cfg.silhouette_model!r}.")
         for s in cfg.stages:
             if not s or any(l < 0 or l >= cfg.levels for l in s):
                 raise InputError(f"stages {cfg.stages} must name pyramid levels 0..{cfg.levels - 1}.")

@@ -12,6 +12,7 @@ term                         energy                                         unit
 E_b  joint limits            sum (max(e^(lo-th)-1,0) + max(e^(th-hi)-1,0))^2  --
 E_sp interpenetration        sum_pairs max(r_a + r_b - d_ab - tol, 0)^2      m^2 (tol 2 cm)
 E_c  silhouette coverage     sum_p (a S_M C_I + (1-a) S_I C_M)^2 / |S_I|     px^2
+E_c  (mesh form)             a mean_v C_I(x_v)^2 + (1-a) mean_p C_M(p)^2     px^2
 keypoints (init)             sum_j c_j GM_sigma(x_j - x_obs_j)                px^2
 pose prior (init)            sum_i w_i (theta_i - theta_ref_i)^2             rad^2
 shape prior (init)           ||beta||^2                                      --
@@ -56,6 +57,8 @@ __all__ = [
     "capsule_signed_distance",
     "silhouette_residuals",
     "silhouette_energy",
+    "mesh_silhouette_residuals",
+    "mesh_silhouette_energy",
     "keypoint_residuals",
     "keypoint_energy",
     "pose_prior_residuals",
@@ -626,6 +629,124 @@ def silhouette_energy(
     target = _as_target(target, chamfer, capsules.start.dtype)
     res, _ = _silhouette_window(capsules, camera, target, a, grid_step, softness)
     return (res * res).sum((1, 2))
+
+
+def _bilinear(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of ``image (H, W)`` at points ``xy (N, 2)`` in pixels (pixel centres
+    at integer + 0.5). Points outside the image take the border value plus their distance
+    to the image, so the result keeps growing (with a gradient) away from the image."""
+    H, W = image.shape
+    x = xy[:, 0] - 0.5
+    y = xy[:, 1] - 0.5
+    xc = x.clamp(0.0, W - 1.0)
+    yc = y.clamp(0.0, H - 1.0)
+    outside = torch.sqrt((x - xc) ** 2 + (y - yc) ** 2 + 1e-12) - 1e-6
+    with torch.no_grad():
+        x0 = xc.floor().clamp(max=W - 2).long() if W > 1 else torch.zeros_like(xc, dtype=torch.long)
+        y0 = yc.floor().clamp(max=H - 2).long() if H > 1 else torch.zeros_like(yc, dtype=torch.long)
+        x1 = (x0 + 1).clamp(max=W - 1)
+        y1 = (y0 + 1).clamp(max=H - 1)
+    fx = xc - x0.to(xc.dtype)
+    fy = yc - y0.to(yc.dtype)
+    img = image.to(xy.dtype)
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy + outside.clamp(min=0.0)
+
+
+def mesh_silhouette_residuals(
+    verts_px: torch.Tensor,
+    depth: Any,
+    faces: Any,
+    target: SilhouetteTarget | Any,
+    *,
+    a: float = 0.6,
+    grid_step: int = 4,
+    margin: float = 0.5,
+    cull_backfaces: bool = True,
+) -> torch.Tensor:
+    """Residuals of E_c with the model silhouette taken from the mesh itself.
+
+    Two parts, each a mean in px^2 (so their weights ``a`` and ``1 - a`` mean what the
+    paper's do):
+
+    * model outside the mask (the paper's ``S_M C_I``): every vertex of the body, seen
+      or hidden, projects inside the person's silhouette, so each vertex ``v`` gets
+      ``sqrt(a / V) * max(C_I(x_v) - margin, 0)`` with ``C_I`` the image chamfer map
+      sampled bilinearly (``margin`` = 0.5 px: a vertex on the true outline lies half a
+      pixel from the centre of the nearest mask pixel);
+    * mask not covered by the model (``S_I C_M``): every mask pixel ``p`` on a grid of
+      ``grid_step`` pixels whose centre no triangle covers gets
+      ``sqrt((1 - a) / n) * |p - x_nn(p)|``, the distance to the nearest projected vertex
+      (``n``: mask pixels on the grid). The rasterised coverage and the nearest vertex
+      are piecewise constant in the vertices (no gradient flows through them).
+
+    Unlike the capsule form (:func:`silhouette_residuals`) this is zero at the true
+    pose for a mask of the body itself up to half a pixel, so it does not bias the fit.
+
+    Args:
+        verts_px: ``(V, 2)`` projected vertices in pixels (torch; the gradient flows here).
+        depth: ``(V,)`` camera-space depths in metres (for the rasteriser; no gradient).
+        faces: ``(F, 3)`` faces or a :class:`~flowmocap.render.Faces`.
+        target: from :func:`silhouette_target` (or an ``(H, W)`` mask).
+        a: weight of the model-outside-the-mask part, in ``[0, 1]``.
+        grid_step: pixels between the mask samples of the second part.
+        margin: pixels of chamfer distance tolerated (see above).
+        cull_backfaces: rasterise front faces only (same coverage, faster).
+
+    Returns:
+        ``(V + n_uncovered,)`` residuals in px (scaled as above).
+
+    Raises:
+        InputError: wrong shapes, bad ``a`` or ``grid_step``.
+    """
+    from scipy.spatial import cKDTree
+
+    from flowmocap.render.raster import rasterize
+
+    target = _as_target(target, None, verts_px.dtype)
+    if verts_px.ndim != 2 or verts_px.shape[1] != 2:
+        raise InputError(f"verts_px must be (V, 2), got {tuple(verts_px.shape)}")
+    if not 0.0 <= a <= 1.0:
+        raise InputError(f"a must be in [0, 1], got {a}")
+    if int(grid_step) != grid_step or grid_step < 1:
+        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
+    V = verts_px.shape[0]
+    H, W = target.height, target.width
+    inside = torch.relu(_bilinear(target.chamfer, verts_px) - margin) * math.sqrt(a / V)
+    step = int(grid_step)
+    grid = _mask_grid(target, step)
+    n = max(len(grid), 1)
+    with torch.no_grad():
+        xy = verts_px.detach().cpu().numpy().astype(np.float64)
+        z = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+        face_id = rasterize(xy, z, faces, H, W, cull_backfaces=cull_backfaces).face_id
+        uncovered = grid[face_id[grid[:, 1], grid[:, 0]] < 0]
+    if len(uncovered) == 0 or a == 1.0:
+        return inside
+    _, nn = cKDTree(xy).query(uncovered + 0.5)
+    p = torch.as_tensor(uncovered + 0.5, dtype=verts_px.dtype)
+    d = torch.sqrt(((p - verts_px[torch.as_tensor(nn)]) ** 2).sum(-1) + 1e-12)
+    return torch.cat([inside, d * math.sqrt((1.0 - a) / n)])
+
+
+def _mask_grid(target: SilhouetteTarget, step: int) -> np.ndarray:
+    """``(n, 2)`` integer ``(x, y)`` of the mask pixels on a ``step``-pixel grid (cached)."""
+    cache = getattr(target, "_grid_cache", None)
+    if cache is not None and cache[0] == step:
+        return cache[1]
+    m = target.mask.detach().cpu().numpy() > 0
+    ys, xs = np.nonzero(m[::step, ::step])
+    grid = np.stack([xs * step, ys * step], axis=1).astype(np.int64)
+    object.__setattr__(target, "_grid_cache", (step, grid))
+    return grid
+
+
+def mesh_silhouette_energy(verts_px: torch.Tensor, depth: Any, faces: Any, target: SilhouetteTarget | Any,
+                           **kwargs) -> torch.Tensor:
+    """E_c from the mesh: sum of squared :func:`mesh_silhouette_residuals`, a 0-d tensor in px^2."""
+    r = mesh_silhouette_residuals(verts_px, depth, faces, target, **kwargs)
+    return (r * r).sum()
 
 
 # ---------------------------------------------------------------------- 2D keypoints

@@ -37,6 +37,7 @@ from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.render import prepare_faces
 
 INIT_JOINTS = (
     "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
@@ -151,6 +152,8 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
     j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
     conf = torch.as_tensor(spec.confidence, dtype=torch.float32)
 
+    faces = prepare_faces(model.faces_np) if cfg.silhouette_model == "mesh" else None
+
     def energy(with_silhouette: bool, terms: dict | None = None):
         out = model(betas=betas, pose=pose[None], trans=trans[None])
         pj = camera.project(out.joints[0])
@@ -163,8 +166,14 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:
-            ec = en.silhouette_energy(caps, camera, silhouette, a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step)
-            t["silhouette"] = cfg.silhouette_weight * ec[0]
+            if cfg.silhouette_model == "mesh":
+                v = out.vertices[0]
+                ec = en.mesh_silhouette_energy(camera.project(v), camera.depth(v), faces, silhouette,
+                                               a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step)
+            else:
+                ec = en.silhouette_energy(caps, camera, silhouette, a=cfg.silhouette_a,
+                                          grid_step=cfg.capsule_grid_step)[0]
+            t["silhouette"] = cfg.silhouette_weight * ec
         if terms is not None:
             terms.update({k: float(v) for k, v in t.items()})
         return sum(t.values())

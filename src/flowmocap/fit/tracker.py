@@ -110,13 +110,16 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if prev_px is not None and data.targets and cfg.flow_weight > 0:
         ef = flow_loss(px, prev_px, scene.faces, data.targets[stage], depth_cur=depth, cull_backfaces=True)
         terms["flow"] = cfg.flow_weight * ef / data.person_pixels
+    caps = None
     if data.mask is not None and cfg.silhouette_weight > 0:
-        caps = scene.capsules(out)
-        ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,
-                                  grid_step=cfg.capsule_grid_step)
-        terms["silhouette"] = cfg.silhouette_weight * ec[0]
-    else:
-        caps = None
+        if cfg.silhouette_model == "mesh":
+            ec = en.mesh_silhouette_energy(px, depth, scene.faces, data.silhouette, a=cfg.silhouette_a,
+                                           grid_step=cfg.capsule_grid_step)
+        else:
+            caps = scene.capsules(out)
+            ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,
+                                      grid_step=cfg.capsule_grid_step)[0]
+        terms["silhouette"] = cfg.silhouette_weight * ec
     if cfg.limit_weight > 0:
         terms["limits"] = cfg.limit_weight * en.joint_limit_energy(state.pose.reshape(1, 72))[0]
     if cfg.penetration_weight > 0:
@@ -136,7 +139,10 @@ def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> flo
 
     def closure():
         opt.zero_grad()
-        e = closure_energy()
+        try:
+            e = closure_energy()
+        except InputError as err:  # e.g. a line-search trial put part of the body behind the camera
+            raise OptimizationError(f"the energy could not be evaluated at a trial pose: {err}") from err
         if not torch.isfinite(e):
             raise OptimizationError("the energy became non-finite (NaN or inf)")
         e.backward()
@@ -144,7 +150,10 @@ def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> flo
 
     opt.step(closure)
     with torch.no_grad():
-        return float(closure_energy())
+        try:
+            return float(closure_energy())
+        except InputError as err:
+            raise OptimizationError(f"the energy could not be evaluated at the final pose: {err}") from err
 
 
 def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerConfig,
@@ -155,11 +164,12 @@ def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerCon
     pose = init.pose.detach().clone().requires_grad_()
     trans = init.trans.detach().clone().requires_grad_()
     state = FrameState(pose, trans)
+    ref = init.pose.detach().clone() if cfg.temporal_reference == "prediction" else prev.pose
     for stage in range(len(cfg.stages)):
-        minimise([pose, trans], lambda: frame_energy(scene, state, data, cfg, stage, prev_px, prev.pose)[0],
+        minimise([pose, trans], lambda: frame_energy(scene, state, data, cfg, stage, prev_px, ref)[0],
                  cfg.iterations)
     with torch.no_grad():
-        total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, prev.pose)
+        total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, ref)
     terms["total"] = float(total)
     return FrameState(pose.detach(), trans.detach()), terms
 

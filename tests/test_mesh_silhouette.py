@@ -1,0 +1,96 @@
+"""E_c with the model silhouette from the mesh (fit.energies.mesh_silhouette_*)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import load_body_model
+from flowmocap.errors import InputError
+from flowmocap.fit.energies import _bilinear, mesh_silhouette_energy, mesh_silhouette_residuals, silhouette_target
+from flowmocap.geometry import PinholeCamera, look_at
+from flowmocap.io import walk_poses
+from flowmocap.render import prepare_faces, rasterize, silhouette
+
+
+@pytest.fixture(scope="module")
+def setup():
+    body = load_body_model("default", dtype=torch.float64)
+    H, W = 240, 320
+    R, t = look_at((0.3, 0.2, 3.0), (0.0, -0.1, 0.0))
+    cam = PinholeCamera.from_focal(W, H, 300.0, R, t)  # about 1 px per cm at the body
+    pose = torch.tensor(walk_poses(np.array([0.3])))
+    faces = prepare_faces(body.faces_np)
+
+    def project(trans):
+        v = body(pose=pose, trans=torch.as_tensor(trans, dtype=torch.float64).reshape(1, 3)).vertices[0]
+        return cam.project(v), cam.depth(v)
+
+    px, d = project([0.0, 0.0, 0.0])
+    mask = silhouette(rasterize(px.numpy(), d.numpy(), faces, H, W))
+    return {"project": project, "faces": faces, "target": silhouette_target(mask, dtype=torch.float64),
+            "mask": mask}
+
+
+def test_bilinear_sampling_matches_closed_form_and_grows_outside_the_image():
+    img = torch.tensor([[0.0, 1.0], [2.0, 3.0]], dtype=torch.float64)
+    # pixel centres at +0.5: (1.0, 1.0) is the middle of the four centres
+    pts = torch.tensor([[0.5, 0.5], [1.5, 1.5], [1.0, 1.0], [1.0, 0.5], [-2.5, 0.5]], dtype=torch.float64)
+    got = _bilinear(img, pts).numpy()
+    np.testing.assert_allclose(got, [0.0, 3.0, 1.5, 0.5, 3.0], atol=1e-5)
+
+
+def test_zero_at_the_true_pose_and_growing_with_the_offset(setup):
+    px, d = setup["project"]([0.0, 0.0, 0.0])
+    e0 = float(mesh_silhouette_energy(px, d, setup["faces"], setup["target"]))
+    assert e0 < 0.01  # px^2: the mask is the mesh's own silhouette
+    energies = []
+    for dx in (0.01, 0.02, 0.04):
+        px, d = setup["project"]([dx, 0.0, 0.0])
+        energies.append(float(mesh_silhouette_energy(px, d, setup["faces"], setup["target"])))
+    assert e0 < energies[0] < energies[1] < energies[2]
+    # 4 cm is about 4 px sideways: vertices on the far side leave the mask by up to 4 px
+    assert 0.3 < energies[2] < 16.0
+
+
+def test_both_parts_present_and_weighted_by_a(setup):
+    px, d = setup["project"]([0.03, 0.02, 0.0])
+    V = px.shape[0]
+    r = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], a=0.6)
+    assert r.shape[0] > V  # uncovered mask pixels add residuals
+    assert (r[:V] > 0).any() and (r[V:] > 0).all()
+    r1 = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], a=1.0)
+    assert r1.shape[0] == V
+    np.testing.assert_allclose(r1.numpy(), r[:V].numpy() * np.sqrt(1.0 / 0.6), rtol=1e-10)
+
+
+def test_gradient_matches_finite_differences(setup):
+    px, d = setup["project"]([0.03, 0.02, 0.0])
+    x = px.detach().clone().requires_grad_()
+    e = mesh_silhouette_energy(x, d, setup["faces"], setup["target"], a=0.6)
+    e.backward()
+    g = x.grad.numpy()
+    rng = np.random.default_rng(0)
+    # vertices that matter: those with a non-zero gradient, plus a few others
+    idx = np.flatnonzero(np.abs(g).sum(1) > 0)
+    assert len(idx) > 20
+    pick = np.concatenate([rng.choice(idx, 15, replace=False), rng.choice(len(g), 5, replace=False)])
+    h = 1e-5
+    for v in pick:
+        for c in range(2):
+            xp = px.detach().clone(); xp[v, c] += h
+            xm = px.detach().clone(); xm[v, c] -= h
+            fd = (float(mesh_silhouette_energy(xp, d, setup["faces"], setup["target"]))
+                  - float(mesh_silhouette_energy(xm, d, setup["faces"], setup["target"]))) / (2 * h)
+            assert abs(fd - g[v, c]) <= 1e-6 + 1e-4 * abs(g[v, c]), (v, c, fd, g[v, c])
+
+
+def test_bad_arguments(setup):
+    px, d = setup["project"]([0.0, 0.0, 0.0])
+    with pytest.raises(InputError):
+        mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], a=1.5)
+    with pytest.raises(InputError):
+        mesh_silhouette_residuals(px[:, :1], d, setup["faces"], setup["target"])
+    with pytest.raises(InputError):
+        mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], grid_step=0)
