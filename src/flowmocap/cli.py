@@ -66,37 +66,131 @@ def cmd_track(args) -> int:
     from flowmocap.fit.init import parse_init
     from flowmocap.fit.tracker import track_sequence
     from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.io.results import write_run
     from flowmocap.io.sequence import load_sequence
+    from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 
     src = Path(args.input)
-    from flowmocap.io.video import VIDEO_SUFFIXES, load_video
-
-    if src.is_file() or src.suffix.lower() in VIDEO_SUFFIXES:
-        seq = load_video(src, masks=args.masks)
+    out = Path(args.out)
+    if (out / "motion.npz").exists() and not args.resume:
+        raise InputError(f"{out} already holds a result; pass --resume to continue it or choose another folder.")
+    auto_masks = args.masks == "auto"
+    user_masks = None if args.masks in (None, "auto") else args.masks
+    is_video = src.is_file() or src.suffix.lower() in VIDEO_SUFFIXES
+    if is_video:
+        seq = load_video(src, masks=user_masks, max_side=args.max_size or None)
     else:
-        seq = load_sequence(src, masks=args.masks)
+        seq = load_sequence(src, masks=user_masks)
+    auto_masks = auto_masks or seq.masks is None
+    auto_init = args.init in (None, "auto")
+    if len(seq) < 2:
+        raise InputError(f"{src} holds only {len(seq)} frame; tracking needs at least 2 frames "
+                         "(the flow is measured between neighbouring frames).")
+    scale = float(seq.meta.get("scale", 1.0))
     if args.camera:
         from flowmocap.synth import read_camera_json
 
         camera = read_camera_json(args.camera)
+        if (camera.width, camera.height) != tuple(seq.size):
+            raise InputError(f"{args.camera} is for {camera.width}x{camera.height} images but the frames are "
+                             f"{seq.size[0]}x{seq.size[1]}" + (" (scaled by --max-size; pass --max-size 0 to keep "
+                                                             "the video's size)" if scale != 1.0 else "") + ".")
+        camera_source = f"--camera {args.camera}"
     elif args.focal:
-        camera = PinholeCamera.from_focal(seq.size[0], seq.size[1], args.focal)
+        camera = PinholeCamera.from_focal(seq.size[0], seq.size[1], args.focal * scale)
+        camera_source = f"--focal {args.focal:g} px" + (f" (x {scale:.4g} for the scaled frames)" if scale != 1.0 else "")
     elif seq.camera is not None:
-        camera = seq.camera
+        camera, camera_source = seq.camera, f"{src / 'camera.json'}"
     else:
-        raise InputError("no camera: give --focal (pixels) or --camera camera.json.")
-    if not args.init:
-        raise InputError("give --init init.json with the 2D joints of the first frame "
-                         "(automatic initialisation is not built yet); see flowmocap.fit.init for the schema.")
+        camera, camera_source = default_camera(seq.size[0], seq.size[1], seq.meta.get("focal_35mm"))
     cfg = TrackerConfig.load(args.config, flow_method=args.flow)
-    spec = parse_init(args.init, *seq.size)
     model = load_body_model(args.model, gender=args.gender)
-    run = track_sequence(seq, args.out, model, camera, spec, cfg=cfg, frames=args.frames, resume=args.resume)
+
+    track = None
+    if auto_masks or auto_init:  # the detections also drive re-initialisation
+        from flowmocap.vision.auto import detect_sequence
+
+        print(f"finding the person in {len(seq)} frames (MediaPipe pose; stored in {out / 'detections'}) ...")
+        track = detect_sequence(seq, out, progress=not args.quiet)
+        if auto_masks:
+            seq.masks = list(track.mask_paths)
+    frames = args.frames
+    notes: dict = {"camera_source": camera_source, "masks": "automatic" if auto_masks else str(user_masks or "input"),
+                   "init": "automatic" if auto_init else str(args.init)}
+    if auto_init:
+        spec, frames, range_note = _auto_start(track, frames, len(seq), out, seq.size)
+        notes["frame_range"] = range_note
+    else:
+        spec = parse_init(args.init, *seq.size)
+    if track is not None:
+        notes["detections"] = {k: track.info[k] for k in ("detector", "frames_with_person", "no_person",
+                                                          "ignored_people")}
+    if is_video:
+        notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
+                                                   "scale", "focal_35mm", "timestamps") if k in seq.meta}
+        notes["video"]["max_side"] = args.max_size or None
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "input.json").write_text(json.dumps(notes, indent=2))
+    monitor = None
+    if track is not None and not args.no_reinit:
+        from flowmocap.fit.reinit import ReinitMonitor
+
+        monitor = ReinitMonitor(track, cfg, out)
+    run = track_sequence(seq, out, model, camera, spec, cfg=cfg, frames=frames, resume=args.resume,
+                         progress=not args.quiet, monitor=monitor)
+    if track is not None:
+        a, b = run["frames"]
+        notes["gaps"] = [{"frames": r, "why": "no person found: tracked by flow alone, no silhouette term"}
+                         for r in _runs([i for i in range(a, b) if not track.found[i]])]
+    run.update(notes)
+    write_run(out, run)
     t = run["timings"]
-    print(f"tracked frames {run['frames'][0]}:{run['frames'][1]} into {args.out} "
+    reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
+    print(f"tracked frames {run['frames'][0]}:{run['frames'][1]} of {len(seq)} into {args.out} "
           f"({t.get('s_per_frame_median', float('nan')):.2f} s per frame median; "
-          f"{len(run['events'])} recorded events)")
+          f"{len(run['events'])} recorded events, {reinits} re-initialisations)")
+    print(f"camera: {camera_source}")
+    if "frame_range" in notes:
+        print(notes["frame_range"])
     return 0
+
+
+def _auto_start(track, frames, n: int, out: Path, size) -> tuple:
+    """Automatic initialisation: the InitSpec, the frame range and a sentence about it."""
+    from flowmocap.errors import NoPersonError
+    from flowmocap.fit.init import parse_init
+    from flowmocap.vision.auto import auto_init, first_person_frame
+
+    if frames:
+        from flowmocap.fit.tracker import _frame_range
+
+        a, b = _frame_range(frames, n)
+    else:
+        found = [i for i in range(n) if track.found[i]]
+        a, b = 0, (found[-1] + 1 if found else n)
+    first = first_person_frame(track, a)
+    if first is None or first >= b - 1:
+        raise NoPersonError(f"no frame in {a}:{b} shows a whole enough person to start on (hips, shoulders and "
+                            "at least 8 of the 12 main joints, each with confidence >= 0.5) before the last frame; "
+                            "give --init init.json with the 2D joints of the first frame.")
+    init = auto_init(track, first)
+    (out / "init_auto.json").write_text(json.dumps(init, indent=2))
+    note = f"frames {first}:{b}"
+    if first > a:
+        note += f"; started at frame {first}, the first with a confidently detected person (frames {a}..{first - 1} skipped)"
+    if not frames and b < n:
+        note += f"; stopped after frame {b - 1}, the last with the person (frames {b}..{n - 1} skipped)"
+    return parse_init(init, *size), f"{first}:{b}", note
+
+
+def _runs(idx: list[int]) -> list[list[int]]:
+    out: list[list[int]] = []
+    for i in idx:
+        if out and out[-1][1] == i - 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
 
 
 def cmd_synth(args) -> int:
@@ -139,19 +233,27 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=cmd_demo)
 
-    t = sub.add_parser("track", help="fit the body to a frame sequence by optical flow")
+    t = sub.add_parser("track", help="fit the body to a video or frame sequence by optical flow")
     t.add_argument("input", help="a video file, a sequence folder (frames/, masks/, camera.json) or a folder of frames")
-    t.add_argument("--out", required=True, help="result folder (motion.npz, run.json)")
-    t.add_argument("--init", help="init.json: 2D joints of the first frame, optional rough pose")
-    t.add_argument("--masks", help="folder of person masks, one per frame (default: INPUT/masks)")
-    t.add_argument("--focal", type=float, help="focal length in pixels (or --camera)")
+    t.add_argument("--out", required=True, help="result folder (motion.npz, run.json, detections/)")
+    t.add_argument("--init", default=None, help="'auto' (default: 2D joints found by MediaPipe on the first frame "
+                   "with a person) or init.json: 2D joints of the first frame, optional rough pose")
+    t.add_argument("--masks", default=None, help="'auto' (MediaPipe person segmentation; the default for a video "
+                   "or a folder without masks/) or a folder of person masks, one per frame (default: INPUT/masks)")
+    t.add_argument("--focal", type=float, help="focal length in pixels of the video's frames (default: from the "
+                   "video's metadata, else 0.9 x the long side, a 58 degree field of view)")
     t.add_argument("--camera", help="camera.json (default: INPUT/camera.json)")
+    t.add_argument("--max-size", type=int, default=1280, help="scale video frames down so that the long side is "
+                   "at most this many pixels (default 1280; 0 keeps the video's size)")
+    t.add_argument("--no-reinit", action="store_true", help="do not re-initialise from the detector when "
+                   "tracking fails (re-initialisation runs when the detector is used, i.e. with automatic init or masks)")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"])
     t.add_argument("--flow", default=None, help="observed flow: dis (default), deepflow, tvl1, rlof, farneback")
     t.add_argument("--config", help="JSON file overriding tracker settings (flowmocap.fit.config)")
-    t.add_argument("--frames", help="A:B, the frames to track (default all)")
+    t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.set_defaults(func=cmd_track)
 
     b = sub.add_parser("body", help="render a body model to a PNG")

@@ -1,0 +1,231 @@
+"""Re-initialisation when tracking fails (the paper's future work), for the tracker's
+``monitor`` hook (:func:`flowmocap.fit.tracker.track_sequence`).
+
+A tracked frame is *bad* when the rendered body covers the person's mask poorly
+(silhouette IoU below ``min_iou``) or its 2D joints disagree with the detector's
+(median distance over the confident joints above ``max_joint_error`` times the person's
+height in the image). After ``patience`` bad frames in a row, the frame is fitted afresh
+to the detector's 2D joints and the mask, with the body shape fixed (the scene's betas),
+from two starts -- the tracked pose and an upright body facing the way the keypoints
+say -- and the better fit replaces the tracked one if it agrees better with the
+detections. Frames without the person (no mask, too few confident joints) are neither
+good nor bad: they end a run of bad frames.
+
+Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
+a ``--resume`` it re-judges the frames before the resumed one by their stored 2D joints
+(``motion.npz``) against the detector's (the silhouette test needs the body rendered
+and is skipped for them), so a run of bad frames is not forgotten.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flowmocap.errors import OptimizationError
+from flowmocap.fit import energies as en
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.vision.auto import CONFIDENT, MIN_INIT_JOINTS, PersonTrack, facing_rotvec
+
+__all__ = ["body_silhouette", "silhouette_iou", "joint_disagreement", "fit_to_detection", "ReinitMonitor"]
+
+
+def body_silhouette(scene, pose: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
+    """``(H, W)`` bool: the pixels the body covers (rasterised mesh) with this pose."""
+    from flowmocap.render import rasterize
+
+    with torch.no_grad():
+        _, px, d = scene.forward(pose, trans)
+    r = rasterize(px.numpy().astype(np.float64), d.numpy(), scene.faces, scene.camera.height,
+                  scene.camera.width, cull_backfaces=True)
+    return r.face_id >= 0
+
+
+def silhouette_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two ``(H, W)`` bool masks (1 when both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def joint_disagreement(joints2d: np.ndarray, j2d: np.ndarray, conf: np.ndarray,
+                       min_confidence: float = CONFIDENT) -> float | None:
+    """Median pixel distance between the model's joints ``(24, 2)`` and the detected
+    ones ``(24, 2)`` over the joints with ``conf >= min_confidence``, divided by the
+    height of the detected joints' box; None with fewer than 4 such joints."""
+    ok = conf >= min_confidence
+    if ok.sum() < 4:
+        return None
+    p = j2d[ok]
+    height = max(float(p[:, 1].max() - p[:, 1].min()), float(p[:, 0].max() - p[:, 0].min()), 1.0)
+    return float(np.median(np.linalg.norm(joints2d[ok] - p, axis=1)) / height)
+
+
+def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarray, mask: np.ndarray | None,
+                     pose0: torch.Tensor, trans0: torch.Tensor, iterations: int | None = None) -> tuple:
+    """Fit pose and translation (shape fixed) to one frame's 2D joints and mask.
+
+    Steps 1 and 2 of the initialisation (:func:`flowmocap.fit.init.fit_frame0`) with the
+    scene's betas: translation alone, then pose and translation against the 2D joints
+    (robust, ``cfg.init_keypoint_*``) with joint limits, interpenetration and a prior
+    towards ``pose0``'s limbs (``cfg.init_pose_prior_weight``; none on the global
+    orientation), then the same plus the silhouette term.
+
+    Args:
+        scene: the tracker's :class:`~flowmocap.fit.tracker.Scene`.
+        j2d: ``(24, 2)`` pixels; conf: ``(24,)``; mask: ``(H, W)`` bool or None.
+        pose0: ``(72,)`` start and prior; trans0: ``(3,)`` metres.
+
+    Returns:
+        ``pose (72,)``, ``trans (3,)`` and the final energy (float).
+    """
+    from flowmocap.fit.tracker import minimise
+
+    iterations = iterations or cfg.init_iterations
+    ref = pose0.detach().clone().float()
+    pose = ref.clone().requires_grad_()
+    trans = trans0.detach().clone().float().requires_grad_()
+    jt = torch.as_tensor(j2d, dtype=torch.float32)
+    ct = torch.as_tensor(conf, dtype=torch.float32)
+    sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
+
+    def energy(with_silhouette: bool):
+        out = scene.model(betas=scene.betas, pose=pose[None], trans=trans[None])
+        pj = scene.camera.project(out.joints[0])
+        e = cfg.init_keypoint_weight * en.keypoint_energy(pj[None], jt, ct, sigma=cfg.init_keypoint_sigma)[0]
+        e = e + cfg.init_pose_prior_weight * en.pose_prior_energy(pose[None], ref[None])[0]
+        e = e + cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
+        caps = scene.capsules(out)
+        e = e + cfg.penetration_weight * en.interpenetration_energy(caps)[0]
+        if with_silhouette and sil is not None:
+            e = e + cfg.silhouette_weight * en.silhouette_energy(caps, scene.camera, sil, a=cfg.silhouette_a,
+                                                                 grid_step=cfg.capsule_grid_step)[0]
+        return e
+
+    minimise([trans], lambda: energy(False), max(iterations // 3, 1))
+    minimise([trans, pose], lambda: energy(False), iterations)
+    if sil is not None and cfg.silhouette_weight > 0:
+        minimise([trans, pose], lambda: energy(True), iterations)
+    with torch.no_grad():
+        final = float(energy(sil is not None))
+    return pose.detach(), trans.detach(), final
+
+
+class ReinitMonitor:
+    """The tracker's ``monitor``: re-initialise a frame from the detector after a run of
+    bad frames (see the module docstring).
+
+    Args:
+        track: the detector's keypoints per frame (:class:`~flowmocap.vision.auto.PersonTrack`).
+        cfg: the tracker settings (the fit uses its ``init_*`` weights).
+        out_dir: the result folder, to re-judge earlier frames after a resume.
+        min_iou: silhouette IoU below which a frame is bad.
+        max_joint_error: median joint distance (fraction of the person's height) above which
+            a frame is bad.
+        patience: bad frames in a row before re-initialising.
+    """
+
+    def __init__(self, track: PersonTrack, cfg: TrackerConfig, out_dir: str | Path | None = None,
+                 min_iou: float = 0.5, max_joint_error: float = 0.15, patience: int = 3):
+        self.track = track
+        self.cfg = cfg
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.min_iou = min_iou
+        self.max_joint_error = max_joint_error
+        self.patience = max(int(patience), 1)
+        self.verdicts: dict[int, bool | None] = {}  # frame -> bad (None: cannot tell)
+        self.scores: dict[int, dict] = {}
+        self._stored: dict | None = None
+        self._last_attempt = -(10 ** 9)
+
+    def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
+        """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections."""
+        j2d, conf = self.track.smpl_joints(i) if i < len(self.track) else (None, None)
+        with torch.no_grad():
+            out, _, _ = scene.forward(pose, trans)
+            pj = scene.camera.project(out.joints[0]).numpy()
+        err = joint_disagreement(pj, j2d, conf) if j2d is not None else None
+        iou = silhouette_iou(body_silhouette(scene, pose, trans), mask) if mask is not None and mask.any() else None
+        if err is None and iou is None:
+            bad = None
+        else:
+            bad = bool((iou is not None and iou < self.min_iou) or (err is not None and err > self.max_joint_error))
+        return {"iou": iou, "joint_error": err, "bad": bad}
+
+    def _stored_verdict(self, j: int) -> bool | None:
+        """Joint-only verdict of an earlier frame from ``motion.npz`` (after a resume)."""
+        if self.out_dir is None:
+            return None
+        if self._stored is None:
+            try:
+                with np.load(self.out_dir / "motion.npz", allow_pickle=False) as z:
+                    self._stored = {int(f): z["joints2d"][k] for k, f in enumerate(z["frame_index"])}
+            except (FileNotFoundError, KeyError, ValueError, OSError):
+                self._stored = {}
+        if j not in self._stored or j >= len(self.track):
+            return None
+        j2d, conf = self.track.smpl_joints(j)
+        err = joint_disagreement(self._stored[j], j2d, conf)
+        return None if err is None else err > self.max_joint_error
+
+    def _confident(self, i: int) -> bool:
+        if i >= len(self.track) or not self.track.found[i]:
+            return False
+        _, conf = self.track.smpl_joints(i)
+        return int((conf >= CONFIDENT).sum()) >= MIN_INIT_JOINTS
+
+    def __call__(self, i: int, state, scene, mask: np.ndarray | None):
+        s = self.judge(i, scene, state.pose, state.trans, mask)
+        self.verdicts[i] = s["bad"]
+        self.scores[i] = s
+        if not s["bad"]:
+            return None
+        run = 1
+        for j in range(i - 1, i - self.patience, -1):
+            v = self.verdicts[j] if j in self.verdicts else self._stored_verdict(j)
+            if not v:
+                break
+            run += 1
+        if run < self.patience or not self._confident(i) or i - self._last_attempt < self.patience:
+            return None
+        self._last_attempt = i
+        return self._reinitialise(i, state, scene, mask, s)
+
+    def _reinitialise(self, i: int, state, scene, mask, before: dict):
+        from flowmocap.fit.init import InitSpec, guess_translation
+        from flowmocap.fit.tracker import FrameState
+
+        j2d, conf = self.track.smpl_joints(i)
+        fresh = np.zeros(72)
+        fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
+        spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
+        starts = [(state.pose, state.trans),
+                  (torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec))]
+        best = None
+        for pose0, trans0 in starts:
+            try:
+                pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0)
+            except OptimizationError:
+                continue
+            if math.isfinite(e) and (best is None or e < best[2]):
+                best = (pose, trans, e)
+        if best is None:
+            return None
+        after = self.judge(i, scene, best[0], best[1], mask)
+        better = (after["joint_error"] is not None and before["joint_error"] is not None
+                  and after["joint_error"] < before["joint_error"]) or (
+                  after["iou"] is not None and before["iou"] is not None and after["iou"] > before["iou"])
+        if not better:
+            return None
+        self.verdicts[i] = after["bad"]
+        self.scores[i] = after
+        info = {"why": f"{self.patience} bad frames in a row (silhouette IoU < {self.min_iou} or joint error > "
+                       f"{self.max_joint_error} of the person's height)",
+                "before": _rounded(before), "after": _rounded(after)}
+        return FrameState(best[0], best[1]), info
+
+
+def _rounded(s: dict) -> dict:
+    return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in s.items() if k != "bad"}

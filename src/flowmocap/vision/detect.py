@@ -1,0 +1,190 @@
+"""Person detectors: 2D joints and a person mask for one RGB image.
+
+A detector is anything with ``detect(image_rgb) -> Detection | None`` (the
+:class:`PersonDetector` protocol); ``None`` means no person in the image. The default is
+:class:`MediaPipePoseDetector`, MediaPipe's legacy ``solutions.pose`` (BlazePose GHUM
+"full" landmarks and its person segmentation), whose models ship inside the
+``mediapipe==0.10.21`` wheel: it runs offline and downloads nothing.
+
+Keypoints come in the order of :data:`KEYPOINT_NAMES`: the twelve SMPL joints an
+``init.json`` takes (hips, knees, ankles, shoulders, elbows, wrists, by SMPL's names,
+"left" being the person's own left), then the nose and the ears, which are not SMPL
+joints and serve only to tell which way the person faces.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from flowmocap.errors import InputError
+
+__all__ = ["KEYPOINT_NAMES", "SMPL_KEYPOINTS", "Detection", "PersonDetector", "MediaPipePoseDetector",
+           "MEDIAPIPE_LANDMARKS"]
+
+#: Keypoints that are SMPL joints (the joints of an init.json), in this order.
+SMPL_KEYPOINTS: tuple[str, ...] = (
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+)
+#: Every keypoint of a :class:`Detection`, in order: SMPL joints, then face points.
+KEYPOINT_NAMES: tuple[str, ...] = SMPL_KEYPOINTS + ("nose", "left_ear", "right_ear")
+
+#: MediaPipe Pose landmark index of each keypoint (its 33-landmark BlazePose topology).
+MEDIAPIPE_LANDMARKS: dict[str, int] = {
+    "nose": 0, "left_ear": 7, "right_ear": 8,
+    "left_shoulder": 11, "right_shoulder": 12, "left_elbow": 13, "right_elbow": 14,
+    "left_wrist": 15, "right_wrist": 16, "left_hip": 23, "right_hip": 24,
+    "left_knee": 25, "right_knee": 26, "left_ankle": 27, "right_ankle": 28,
+}
+
+
+@dataclass
+class Detection:
+    """One person in one image.
+
+    Attributes:
+        keypoints: ``(K, 2)`` pixels (x right, y down; pixel centres at integer + 0.5),
+            in the order of :data:`KEYPOINT_NAMES`.
+        confidence: ``(K,)`` in ``[0, 1]``; 0 for a keypoint outside the image or unknown.
+        mask: ``(H, W)`` bool, True on the person.
+        soft_mask: ``(H, W)`` float32 person probability, or None.
+    """
+
+    keypoints: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    soft_mask: np.ndarray | None = None
+
+    def box(self, min_confidence: float = 0.3) -> tuple[float, float, float, float] | None:
+        """``(x0, y0, x1, y1)`` pixels around the confident keypoints, or None."""
+        ok = self.confidence >= min_confidence
+        if ok.sum() < 2:
+            return None
+        p = self.keypoints[ok]
+        return float(p[:, 0].min()), float(p[:, 1].min()), float(p[:, 0].max()), float(p[:, 1].max())
+
+
+@runtime_checkable
+class PersonDetector(Protocol):
+    """What the automatic masks and joints need from a detector.
+
+    ``name`` says which detector (and settings) made a stored result, so a rerun can tell
+    whether stored detections still apply. ``detect`` takes the frames of one video in
+    order (a detector may track the person from frame to frame) and returns None when
+    the image shows no person. ``reset`` forgets the tracked person (a new video).
+    """
+
+    name: str
+
+    def detect(self, image_rgb: np.ndarray) -> Detection | None: ...
+
+    def reset(self) -> None: ...
+
+
+class MediaPipePoseDetector:
+    """MediaPipe's legacy Pose solution: 33 landmarks and a person segmentation.
+
+    Runs in tracking mode (``static_image_mode=False``): the person found first is
+    followed from frame to frame. With ``augment`` (default) the segmentation is the
+    mean of four runs: the image as is, mirrored, with a 64-pixel black border, and in
+    single-image mode; a run whose mask does not overlap the tracked person's is left
+    out. On DAVIS dance-twirl this raises the mask IoU against the hand-made masks from
+    0.843 (one run) to 0.855, for about 4x the detector time (~0.1 s per 854x480 frame
+    on one core; the tracker takes > 1 s per frame). The soft mask is then smoothed
+    with a guided filter on the image (radius 4 px), which follows the image edges.
+
+    Args:
+        augment: average the segmentation over the four runs described above.
+        min_confidence: MediaPipe's detection and tracking confidence thresholds.
+        threshold: the soft mask's person probability above which a pixel is the person.
+    """
+
+    def __init__(self, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5):
+        try:
+            import mediapipe as mp
+        except ImportError as e:  # pragma: no cover - depends on the environment
+            raise InputError(
+                "automatic masks and joints need mediapipe 0.10.21 (pip install mediapipe==0.10.21, "
+                "which ships its models); or give --init init.json and --masks FOLDER."
+            ) from e
+        if not 0.0 < threshold < 1.0:
+            raise InputError(f"threshold must be in (0, 1); got {threshold}.")
+        self._mp = mp
+        self.augment = bool(augment)
+        self.min_confidence = float(min_confidence)
+        self.threshold = float(threshold)
+        self.name = (f"mediapipe-pose-{mp.__version__}-full"
+                     f"{'-tta4' if self.augment else ''}-c{self.min_confidence:g}-t{self.threshold:g}")
+        self._runs: dict = {}
+        self.reset()
+
+    def _pose(self, static: bool):
+        return self._mp.solutions.pose.Pose(
+            static_image_mode=static, model_complexity=1, smooth_landmarks=True, enable_segmentation=True,
+            smooth_segmentation=not static, min_detection_confidence=self.min_confidence,
+            min_tracking_confidence=self.min_confidence)
+
+    def reset(self) -> None:
+        """Forget the tracked person (call between videos)."""
+        for p in self._runs.values():
+            p.close()
+        self._runs = {"main": self._pose(False)}
+        if self.augment:
+            self._runs.update({"mirror": self._pose(False), "border": self._pose(False), "single": self._pose(True)})
+
+    def close(self) -> None:
+        for p in self._runs.values():
+            p.close()
+        self._runs = {}
+
+    def detect(self, image_rgb: np.ndarray) -> Detection | None:
+        """Keypoints and mask of the tracked person in ``image_rgb (H, W, 3)`` uint8 RGB."""
+        import cv2
+
+        img = np.asarray(image_rgb)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise InputError(f"detect needs an (H, W, 3) uint8 RGB image; got {img.shape} {img.dtype}.")
+        img = np.ascontiguousarray(img)
+        H, W = img.shape[:2]
+        res = self._runs["main"].process(img)
+        if res.pose_landmarks is None or res.segmentation_mask is None:
+            return None
+        lm = res.pose_landmarks.landmark
+        kp = np.zeros((len(KEYPOINT_NAMES), 2))
+        conf = np.zeros(len(KEYPOINT_NAMES))
+        for k, name in enumerate(KEYPOINT_NAMES):
+            p = lm[MEDIAPIPE_LANDMARKS[name]]
+            kp[k] = (p.x * W, p.y * H)
+            inside = 0.0 <= kp[k, 0] <= W and 0.0 <= kp[k, 1] <= H
+            conf[k] = float(np.clip(p.visibility, 0.0, 1.0)) if inside else 0.0
+        soft = np.asarray(res.segmentation_mask, np.float32)
+        if self.augment:
+            soft = self._augmented(img, soft)
+        soft = cv2.ximgproc.guidedFilter(img, soft, 4, 1e-3 * 255.0 ** 2) if hasattr(cv2, "ximgproc") else soft
+        soft = np.clip(soft, 0.0, 1.0)
+        return Detection(keypoints=kp, confidence=conf, mask=soft > self.threshold, soft_mask=soft)
+
+    def _augmented(self, img: np.ndarray, soft: np.ndarray) -> np.ndarray:
+        import cv2
+
+        main = soft > self.threshold
+        views = [soft]
+        r = self._runs["mirror"].process(np.ascontiguousarray(img[:, ::-1]))
+        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[:, ::-1])
+        b = 64
+        r = self._runs["border"].process(cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_CONSTANT, value=0))
+        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[b:-b, b:-b])
+        r = self._runs["single"].process(img)
+        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask))
+        kept = [views[0]]
+        for v in views[1:]:
+            if v is None:
+                continue
+            m = v > self.threshold
+            union = (m | main).sum()
+            if union and (m & main).sum() / union > 0.5:  # the same person
+                kept.append(v.astype(np.float32))
+        return np.mean(kept, axis=0).astype(np.float32)

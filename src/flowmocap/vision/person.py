@@ -1,0 +1,110 @@
+"""One person's mask and identity over time: mask cleaning and frame-to-frame continuity.
+
+Masks are ``(H, W)`` bool arrays; keypoints ``(K, 2)`` pixels with ``(K,)`` confidences
+(see :mod:`flowmocap.vision.detect`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+
+__all__ = ["person_box", "clean_mask", "box_iou", "same_person"]
+
+
+def person_box(keypoints: np.ndarray, confidence: np.ndarray, mask: np.ndarray | None = None,
+               min_confidence: float = 0.3) -> tuple[float, float, float, float] | None:
+    """``(x0, y0, x1, y1)`` pixels around the confident keypoints (and the mask, if given).
+
+    Returns None when fewer than two keypoints are confident and the mask is empty.
+    """
+    xs, ys = [], []
+    ok = np.asarray(confidence) >= min_confidence
+    if ok.sum() >= 2:
+        p = np.asarray(keypoints)[ok]
+        xs += [p[:, 0].min(), p[:, 0].max()]
+        ys += [p[:, 1].min(), p[:, 1].max()]
+    if mask is not None and mask.any():
+        rows = np.nonzero(mask.any(1))[0]
+        cols = np.nonzero(mask.any(0))[0]
+        xs += [cols[0], cols[-1] + 1]
+        ys += [rows[0], rows[-1] + 1]
+    if not xs:
+        return None
+    return float(min(xs)), float(min(ys)), float(max(xs)), float(max(ys))
+
+
+def clean_mask(mask: np.ndarray, keypoints: np.ndarray, confidence: np.ndarray, min_fraction: float = 0.02,
+               max_hole_fraction: float = 0.01, min_confidence: float = 0.3) -> np.ndarray:
+    """The person's part of a segmentation: components touching the person, holes filled.
+
+    Keeps the largest connected component that overlaps the box around the confident
+    keypoints (enlarged by 15% of its size on each side), and every other overlapping
+    component of at least ``min_fraction`` of its area (a hand or a foot the
+    segmentation cut off); drops the rest (specks, other people). Fills holes smaller
+    than ``max_hole_fraction`` of the person's area (larger holes, e.g. between an arm and
+    the body, are real).
+
+    Args:
+        mask: ``(H, W)`` bool segmentation.
+        keypoints: ``(K, 2)`` pixels; confidence: ``(K,)``.
+
+    Returns:
+        ``(H, W)`` bool; empty when no component overlaps the person.
+    """
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return m.copy()
+    H, W = m.shape
+    box = person_box(keypoints, confidence, None, min_confidence)
+    lab, n = ndi.label(m)
+    sizes = ndi.sum(m, lab, np.arange(1, n + 1))
+    if box is None:
+        region = np.ones_like(m)
+    else:
+        x0, y0, x1, y1 = box
+        px, py = 0.15 * (x1 - x0) + 4, 0.15 * (y1 - y0) + 4
+        region = np.zeros_like(m)
+        region[max(0, int(y0 - py)):min(H, int(np.ceil(y1 + py))), max(0, int(x0 - px)):min(W, int(np.ceil(x1 + px)))] = True
+    touching = np.unique(lab[region & m])
+    touching = touching[touching > 0]
+    if len(touching) == 0:
+        return np.zeros_like(m)
+    largest = sizes[touching - 1].max()
+    keep = touching[sizes[touching - 1] >= min_fraction * largest]
+    out = np.isin(lab, keep)
+    holes = ndi.binary_fill_holes(out) & ~out
+    if holes.any():
+        hl, hn = ndi.label(holes)
+        hs = ndi.sum(holes, hl, np.arange(1, hn + 1))
+        small = np.nonzero(hs <= max_hole_fraction * out.sum())[0] + 1
+        out |= np.isin(hl, small)
+    return out
+
+
+def box_iou(a, b) -> float:
+    """Intersection over union of two ``(x0, y0, x1, y1)`` boxes (0 if either is None)."""
+    if a is None or b is None:
+        return 0.0
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+def same_person(prev_box, cur_box, frames_apart: int = 1) -> bool:
+    """Whether a detection continues the person of an earlier one.
+
+    True when the boxes overlap (IoU > 0.1) or their centres lie within 0.5 of the
+    earlier box's height per frame apart (at most 2 heights): a person moves less than
+    half their height between neighbouring frames.
+    """
+    if prev_box is None or cur_box is None:
+        return True
+    if box_iou(prev_box, cur_box) > 0.1:
+        return True
+    h = max(prev_box[3] - prev_box[1], prev_box[2] - prev_box[0], 1.0)
+    c0 = np.array([(prev_box[0] + prev_box[2]) / 2, (prev_box[1] + prev_box[3]) / 2])
+    c1 = np.array([(cur_box[0] + cur_box[2]) / 2, (cur_box[1] + cur_box[3]) / 2])
+    return float(np.linalg.norm(c1 - c0)) < min(0.5 * frames_apart, 2.0) * h

@@ -1,0 +1,186 @@
+"""Automatic masks, joints and initialisation through the detector interface (a fake
+detector, so the logic is tested apart from MediaPipe): frames without the person, the
+person leaving the frame, another person, stored detections reused, the facing guess,
+and ``flowmocap track video.mp4`` end to end with no other input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from flowmocap.body.skeleton import JOINT_INDEX
+from flowmocap.errors import NoPersonError
+from flowmocap.vision.auto import auto_init, detect_sequence, facing_rotvec, first_person_frame, load_detections
+from flowmocap.vision.detect import KEYPOINT_NAMES, Detection
+
+from test_detect import FakeDetector, stick_keypoints
+
+
+class Frames:
+    """A sequence-like object of blank frames."""
+
+    def __init__(self, n, size=(96, 128)):
+        self.n, self.size = n, size
+        self.root = "frames"
+
+    def __len__(self):
+        return self.n
+
+    def frame(self, i):
+        return np.zeros((self.size[1], self.size[0], 3), np.uint8)
+
+
+class Nobody:
+    name = "nobody"
+
+    def reset(self):
+        pass
+
+    def detect(self, image):
+        return None
+
+
+def test_gaps_and_partial_exit_are_recorded(tmp_path):
+    boxes = {i: (30 + 2 * i, 20, 60 + 2 * i, 110) for i in range(2, 10) if i != 5}
+    boxes[9] = (80, 20, 110, 110)  # partly out of the 96-wide frame
+    track = detect_sequence(Frames(10), tmp_path, FakeDetector(boxes), progress=False)
+    assert track.found.tolist() == [i in boxes for i in range(10)]
+    assert track.info["no_person"] == [[0, 1], [5, 5]]
+    assert not track.mask(0).any() and track.mask(3).any()
+    assert not track.mask(3)[0:2, 0:2].any()  # the speck was cleaned away
+    assert (track.confidence[9] == 0).any() and (track.confidence[9] > 0).any()  # joints outside: unknown
+    assert first_person_frame(track) == 2
+    assert (tmp_path / "detections" / "masks" / "000009.png").exists()
+
+
+def test_stored_detections_are_reused(tmp_path):
+    boxes = {i: (30, 20, 60, 110) for i in range(4)}
+    first = detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False)
+    again = detect_sequence(Frames(4), tmp_path, FakeDetector({}), progress=False)  # would find nobody
+    assert again.found.all() and np.allclose(again.keypoints, first.keypoints)
+    assert load_detections(tmp_path, "another detector") is None
+    assert load_detections(tmp_path, "fake", num_frames=5) is None
+
+
+def test_no_person_anywhere(tmp_path):
+    with pytest.raises(NoPersonError, match="no person found"):
+        detect_sequence(Frames(3), tmp_path, Nobody(), progress=False)
+
+
+def test_the_main_person_is_kept(tmp_path):
+    """The tracking detector follows a small person in the background; the searcher finds
+    the big one who walks through: the big one is kept, the small one ignored."""
+    small = {i: (5, 5, 20, 40) for i in range(12)}
+    big = {i: (30 + 3 * i, 30, 70 + 3 * i, 126) for i in range(3, 12)}
+    track = detect_sequence(Frames(12, (128, 128)), tmp_path, FakeDetector(small), progress=False,
+                            searcher=FakeDetector(big))
+    assert track.found.tolist() == [i >= 3 for i in range(12)]
+    assert track.keypoints[5, 0, 1] > 40  # the big person's hip, not the small one's
+    assert track.info["ignored_people"] and track.info["ignored_people"][0]["frames"] == [0, 11]
+
+
+def _facing(kp, conf):
+    R = Rotation.from_rotvec(facing_rotvec(kp, conf)).as_matrix()
+    return R @ np.array([0.0, 1.0, 0.0]), R @ np.array([0.0, 0.0, 1.0])  # body up, body front (camera frame)
+
+
+def test_facing_guess():
+    kp = stick_keypoints(40, 20, 80, 120)
+    conf = np.full(len(kp), 0.9)
+    up, front = _facing(kp, conf)
+    assert up[1] < -0.99 and front[2] < -0.99  # upright (image y down), facing the camera
+    back = kp.copy()
+    for n in ("left", "right"):  # seen from behind: left and right swap sides
+        for j in ("hip", "knee", "ankle", "shoulder", "elbow", "wrist", "ear"):
+            back[KEYPOINT_NAMES.index(f"{n}_{j}"), 0] = kp[KEYPOINT_NAMES.index(f"{'right' if n == 'left' else 'left'}_{j}"), 0]
+    conf_back = conf.copy()
+    conf_back[KEYPOINT_NAMES.index("nose")] = 0.0
+    up, front = _facing(back, conf_back)
+    assert up[1] < -0.99 and front[2] > 0.99
+    side = kp.copy()  # side-on, nose to the image right: walking to the right
+    for k, n in enumerate(KEYPOINT_NAMES):
+        side[k, 0] = 60.0
+    side[KEYPOINT_NAMES.index("nose"), 0] = 66.0
+    up, front = _facing(side, conf)
+    assert front[0] > 0.9
+
+
+def test_auto_init_schema(tmp_path):
+    from flowmocap.fit.init import parse_init
+
+    track = detect_sequence(Frames(3), tmp_path, FakeDetector({i: (30, 20, 60, 110) for i in range(3)}),
+                            progress=False)
+    init = auto_init(track, 1)
+    spec = parse_init(init, 96, 128)
+    assert spec.frame == 1 and (spec.confidence > 0).sum() == 12
+    assert np.allclose(spec.joints2d[JOINT_INDEX["left_hip"]], track.keypoints[1, 0])
+    json.dumps(init)
+
+
+# ------------------------------------------------------------------ end to end (CLI)
+
+
+class GroundTruthDetector:
+    """Keypoints and masks of a synthetic sequence, absent in some frames."""
+
+    name = "gt"
+
+    def __init__(self, seq, absent=()):
+        self.seq, self.absent, self.i = seq, set(absent), 0
+
+    def reset(self):
+        self.i = 0
+
+    def detect(self, image):
+        i = self.i
+        self.i += 1
+        if i in self.absent:
+            return None
+        j2d = self.seq.gt["joints2d"][i]
+        kp = np.zeros((len(KEYPOINT_NAMES), 2))
+        conf = np.zeros(len(KEYPOINT_NAMES))
+        for k, n in enumerate(KEYPOINT_NAMES):
+            if n in JOINT_INDEX:
+                kp[k], conf[k] = j2d[JOINT_INDEX[n]], 0.95
+        return Detection(kp, conf, self.seq.mask(i))
+
+
+@pytest.fixture(scope="module")
+def small_clip(tmp_path_factory):
+    from flowmocap.synth import synthesize
+
+    d = tmp_path_factory.mktemp("auto") / "seq"
+    synthesize("builtin:walk", d, fps=30, frames=6, size="160x120", seed=1, azimuth=80.0, distance=3.0, flow=False)
+    return d
+
+
+def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
+    import flowmocap.vision.detect as detect
+    from flowmocap.cli import main
+    from flowmocap.io.results import read_result
+    from flowmocap.io.sequence import load_sequence
+
+    from test_video import write_video
+
+    seq = load_sequence(small_clip)
+    video = write_video(tmp_path / "walk.mp4", [seq.frame(i) for i in range(len(seq))])
+    fake = GroundTruthDetector(seq, absent={0, 4})
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: fake if augment else Nobody())
+    cfg = tmp_path / "fast.json"
+    cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
+    out = tmp_path / "out"
+    assert main(["track", str(video), "--out", str(out), "--config", str(cfg), "--quiet"]) == 0
+    motion, run = read_result(out)
+    assert run["status"] == "finished"
+    assert motion["frame_index"].tolist() == [1, 2, 3, 4, 5]  # frame 0 has nobody: started at 1
+    assert "started at frame 1" in run["frame_range"]
+    assert run["gaps"] == [{"frames": [4, 4], "why": "no person found: tracked by flow alone, no silhouette term"}]
+    assert run["masks"] == "automatic" and run["init"] == "automatic"
+    assert "default focal length" in run["camera_source"]
+    assert len(run["video"]["timestamps"]) == 6 and run["video"]["fps"] == pytest.approx(30, rel=0.02)
+    assert any(e.get("frame") == 4 and "empty mask" in e["event"] for e in run["events"])
+    assert (out / "init_auto.json").exists() and (out / "detections" / "masks" / "000004.png").exists()
+    assert np.isfinite(motion["poses"]).all()

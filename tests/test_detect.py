@@ -1,0 +1,110 @@
+"""Person detection: the detector interface, MediaPipe (on a real frame when the shared
+data is present), mask cleaning and person continuity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, Detection, PersonDetector
+from flowmocap.vision.person import box_iou, clean_mask, person_box, same_person
+
+DAVIS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video" / "davis-dance-twirl"
+
+
+def stick_keypoints(x0, y0, x1, y1) -> np.ndarray:
+    """``(K, 2)`` keypoints of an upright person facing the camera inside a box."""
+    w, h = x1 - x0, y1 - y0
+    cx = (x0 + x1) / 2
+    rel = {  # (x offset as a fraction of the width, y as a fraction of the height); left = image right
+        "left_hip": (0.12, 0.5), "right_hip": (-0.12, 0.5), "left_knee": (0.12, 0.72),
+        "right_knee": (-0.12, 0.72), "left_ankle": (0.12, 0.95), "right_ankle": (-0.12, 0.95),
+        "left_shoulder": (0.2, 0.2), "right_shoulder": (-0.2, 0.2), "left_elbow": (0.3, 0.35),
+        "right_elbow": (-0.3, 0.35), "left_wrist": (0.32, 0.48), "right_wrist": (-0.32, 0.48),
+        "nose": (0.0, 0.08), "left_ear": (0.05, 0.06), "right_ear": (-0.05, 0.06),
+    }
+    return np.array([[cx + rel[n][0] * w, y0 + rel[n][1] * h] for n in KEYPOINT_NAMES])
+
+
+class FakeDetector:
+    """Person boxes per frame index; the mask is the box (with a speck elsewhere)."""
+
+    name = "fake"
+
+    def __init__(self, boxes: dict, size=(96, 128)):
+        self.boxes = boxes
+        self.size = size
+        self.i = 0
+
+    def reset(self):
+        self.i = 0
+
+    def detect(self, image_rgb):
+        box = self.boxes.get(self.i)
+        self.i += 1
+        if box is None:
+            return None
+        H, W = image_rgb.shape[:2]
+        x0, y0, x1, y1 = box
+        mask = np.zeros((H, W), bool)
+        mask[max(0, y0):y1, max(0, x0):x1] = True
+        mask[0:2, 0:2] = True  # a speck far from the person
+        kp = stick_keypoints(x0, y0, x1, y1)
+        conf = np.where((kp[:, 0] >= 0) & (kp[:, 0] <= W) & (kp[:, 1] >= 0) & (kp[:, 1] <= H), 0.9, 0.0)
+        return Detection(kp, conf, mask)
+
+
+def test_fake_detector_satisfies_the_protocol():
+    assert isinstance(FakeDetector({}), PersonDetector)
+    assert len(KEYPOINT_NAMES) == 15 and KEYPOINT_NAMES[:12] == SMPL_KEYPOINTS
+
+
+def test_clean_mask_keeps_the_person():
+    H, W = 100, 120
+    m = np.zeros((H, W), bool)
+    m[20:90, 40:70] = True          # the person
+    m[50:54, 50:54] = False         # a small hole (16 px < 1% of the person)
+    m[20:90, 72:74] = True          # a cut-off arm next to it
+    m[5:8, 5:8] = True              # a speck
+    m[20:90, 100:115] = True        # someone else, away from the keypoints
+    kp = stick_keypoints(40, 20, 74, 90)
+    out = clean_mask(m, kp, np.full(len(kp), 0.9))
+    assert out[52, 52] and out[50, 73]
+    assert not out[6, 6] and not out[50, 105]
+    assert not clean_mask(np.zeros((H, W), bool), kp, np.ones(len(kp))).any()
+
+
+def test_box_continuity():
+    a = (10, 10, 30, 70)
+    assert box_iou(a, a) == pytest.approx(1.0)
+    assert same_person(a, (14, 10, 34, 70))
+    assert not same_person(a, (90, 10, 110, 70))
+    assert same_person(a, (60, 10, 80, 70), frames_apart=3)  # moving fast over a gap
+    assert person_box(np.zeros((3, 2)), np.zeros(3)) is None
+
+
+@pytest.mark.skipif(not DAVIS.exists(), reason=f"shared data not found at {DAVIS} (real frames for MediaPipe)")
+def test_mediapipe_on_a_real_frame():
+    from flowmocap.io.sequence import read_image
+    from flowmocap.vision.detect import MediaPipePoseDetector
+    from flowmocap.vision.masks import load_mask
+
+    img = read_image(DAVIS / "JPEGImages" / "00000.jpg")
+    gt = load_mask(DAVIS / "Annotations" / "00000.png")
+    det = MediaPipePoseDetector().detect(img)
+    assert det is not None and det.mask.shape == gt.shape
+    iou = (det.mask & gt).sum() / (det.mask | gt).sum()
+    assert iou > 0.75
+    ok = det.confidence[:12] > 0.5
+    assert ok.sum() >= 10
+    xy = det.keypoints[:12][ok].astype(int)
+    assert gt[xy[:, 1].clip(0, 479), xy[:, 0].clip(0, 853)].mean() > 0.7  # joints lie on the person
+
+
+def test_mediapipe_finds_nobody_in_an_empty_image():
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    img = np.full((120, 160, 3), 90, np.uint8)
+    assert MediaPipePoseDetector(augment=False).detect(img) is None

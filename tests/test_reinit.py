@@ -1,0 +1,77 @@
+"""Re-initialisation monitor: good frames pass, a run of bad frames is re-fitted from the
+detector, earlier verdicts survive a resume (re-judged from motion.npz)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.reinit import ReinitMonitor, joint_disagreement
+from flowmocap.vision.auto import detect_sequence
+
+from test_auto import GroundTruthDetector
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.tracker import Scene
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.synth import synthesize
+
+    d = tmp_path_factory.mktemp("reinit") / "seq"
+    synthesize("builtin:walk", d, fps=30, frames=6, size="160x120", seed=2, azimuth=60.0, distance=3.0, flow=False)
+    seq = load_sequence(d)
+    track = detect_sequence(seq, tmp_path_factory.mktemp("det"), GroundTruthDetector(seq), progress=False)
+    model = load_body_model("default")
+    scene = Scene(model, torch.as_tensor(seq.gt["betas"])[None], seq.camera)
+    return seq, track, scene
+
+
+def _state(seq, i, shift=(0.0, 0.0, 0.0)):
+    from flowmocap.fit.tracker import FrameState
+
+    return FrameState(torch.as_tensor(seq.gt["poses"][i]), torch.as_tensor(seq.gt["trans"][i]) + torch.tensor(shift))
+
+
+def test_good_frames_pass(setup):
+    seq, track, scene = setup
+    mon = ReinitMonitor(track, TrackerConfig())
+    for i in range(2, 6):
+        assert mon(i, _state(seq, i), scene, seq.mask(i)) is None
+        assert mon.scores[i]["iou"] > 0.9 and mon.scores[i]["joint_error"] < 0.05
+
+
+def test_a_run_of_bad_frames_is_reinitialised(setup):
+    seq, track, scene = setup
+    cfg = TrackerConfig(init_iterations=15)
+    mon = ReinitMonitor(track, cfg, patience=3)
+    off = (0.5, 0.0, 0.0)  # half a metre to the side: the body misses the person
+    assert mon(2, _state(seq, 2, off), scene, seq.mask(2)) is None
+    assert mon(3, _state(seq, 3, off), scene, seq.mask(3)) is None
+    res = mon(4, _state(seq, 4, off), scene, seq.mask(4))
+    assert res is not None
+    state, info = res
+    assert info["after"]["iou"] > 0.6 > info["before"]["iou"]
+    with torch.no_grad():
+        out, _, _ = scene.forward(state.pose, state.trans)
+        pj = scene.camera.project(out.joints[0]).numpy()
+    j2d, conf = track.smpl_joints(4)
+    assert joint_disagreement(pj, j2d, conf) < 0.1
+
+
+def test_verdicts_survive_a_resume(setup, tmp_path):
+    """A fresh monitor (as after --resume) re-judges the earlier frames from motion.npz."""
+    seq, track, scene = setup
+    with torch.no_grad():
+        j2d = []
+        for i in range(4):
+            out, _, _ = scene.forward(*(lambda s: (s.pose, s.trans))(_state(seq, i, (0.5, 0.0, 0.0))))
+            j2d.append(scene.camera.project(out.joints[0]).numpy())
+    np.savez(tmp_path / "motion.npz", joints2d=np.array(j2d), frame_index=np.arange(4))
+    mon = ReinitMonitor(track, TrackerConfig(init_iterations=15), out_dir=tmp_path, patience=3)
+    assert mon(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is not None
+    fresh = ReinitMonitor(track, TrackerConfig(init_iterations=15), patience=3)  # no stored result
+    assert fresh(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is None

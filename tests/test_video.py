@@ -1,0 +1,146 @@
+"""Video input: decoding, timestamps of variable-frame-rate videos, rotation tags
+(portrait phone videos), scaling, broken and too-short files, the default camera."""
+
+from __future__ import annotations
+
+import struct
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from flowmocap.errors import DataError, InputError
+from flowmocap.io.video import (DEFAULT_FOCAL_FACTOR, decode_video, default_camera, focal_35mm_from_tags,
+                                load_video)
+
+
+def write_video(path, frames, times_ms=None, codec="mpeg4"):
+    """Write RGB frames with PyAV; ``times_ms`` gives each frame's presentation time."""
+    import av
+
+    h, w = frames[0].shape[:2]
+    with av.open(str(path), "w") as c:
+        s = c.add_stream(codec, rate=30)
+        s.width, s.height, s.pix_fmt = w, h, "yuv420p"
+        s.time_base = Fraction(1, 1000)
+        for i, img in enumerate(frames):
+            f = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+            f.pts = int(times_ms[i]) if times_ms is not None else int(round(i * 1000 / 30))
+            f.time_base = Fraction(1, 1000)
+            for p in s.encode(f):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    return path
+
+
+def _frames(n, w=64, h=48):
+    out = []
+    for i in range(n):
+        img = np.full((h, w, 3), 40, np.uint8)
+        img[: h // 4, : w // 3] = 255  # a white block in the top-left corner
+        img[h // 2, (4 * i) % w] = 128
+        out.append(img)
+    return out
+
+
+def test_constant_rate_video(tmp_path):
+    v = write_video(tmp_path / "a.mp4", _frames(5))
+    frames, info = decode_video(v)
+    assert len(frames) == 5 and frames[0].shape == (48, 64, 3)
+    assert info["fps"] == pytest.approx(30.0, rel=0.02)
+    assert not info["variable_frame_rate"]
+    assert info["timestamps"][0] == 0.0 and len(info["timestamps"]) == 5
+
+
+def test_variable_frame_rate_keeps_timestamps(tmp_path):
+    times = [0, 33, 100, 133, 200, 233]
+    v = write_video(tmp_path / "vfr.mp4", _frames(6), times_ms=times)
+    seq = load_video(v)
+    assert len(seq) == 6
+    assert seq.meta["variable_frame_rate"]
+    assert np.allclose(seq.meta["timestamps"], np.array(times) / 1000, atol=2e-3)
+    assert seq.meta["fps"] == pytest.approx(5 / 0.233, rel=0.02)  # the mean rate
+
+
+def _rotate_tag(src, dst, matrix):
+    """Write the track's display matrix (tkhd) of an mp4, as phones do for portrait video."""
+    data = bytearray(src.read_bytes())
+    ident = struct.pack(">9I", 0x10000, 0, 0, 0, 0x10000, 0, 0, 0, 0x40000000)
+    pos = data.rfind(ident)  # the last one is the video track's (the first is the movie's)
+    assert pos > 0
+    data[pos:pos + 36] = struct.pack(">9i", *matrix)
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def test_portrait_video_from_rotation_tag(tmp_path):
+    v = write_video(tmp_path / "land.mp4", _frames(3))
+    # a 90 degree display rotation: shown upright, the stored 64x48 frames are 48x64
+    rot = _rotate_tag(v, tmp_path / "portrait.mp4", (0, 0x10000, 0, -0x10000, 0, 0, 0, 0, 0x40000000))
+    seq = load_video(rot)
+    assert seq.size == (48, 64) and seq.frame(0).shape == (64, 48, 3)
+    assert seq.meta["rotation"] == -90 and seq.meta["decoded_size"] == [48, 64]
+    white = np.argwhere(seq.frame(0)[..., 0] > 200)
+    # turned clockwise: the top-left block is now top-right
+    assert white[:, 1].min() >= 48 - 16 - 1 and white[:, 0].max() <= 21
+
+
+def test_portrait_video_without_tag(tmp_path):
+    v = write_video(tmp_path / "p.mp4", _frames(3, w=48, h=96))
+    seq = load_video(v)
+    assert seq.size == (48, 96)
+    cam, how = default_camera(*seq.size)
+    assert cam.fx == pytest.approx(DEFAULT_FOCAL_FACTOR * 96) and "long side" in how
+
+
+def test_max_side_scales_frames(tmp_path):
+    v = write_video(tmp_path / "big.mp4", _frames(2, w=160, h=96))
+    seq = load_video(v, max_side=80)
+    assert seq.size == (80, 48) and seq.meta["scale"] == pytest.approx(0.5)
+    assert seq.meta["decoded_size"] == [160, 96]
+
+
+def test_undecodable_and_missing(tmp_path):
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"\x00\x00\x00\x18ftypmp42 this is not a video")
+    with pytest.raises(DataError, match="cannot decode"):
+        load_video(broken)
+    with pytest.raises(DataError, match="does not exist"):
+        load_video(tmp_path / "missing.mp4")
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    with pytest.raises(DataError):
+        load_video(empty)
+
+
+def test_truncated_video_keeps_decoded_frames(tmp_path):
+    v = write_video(tmp_path / "full.mkv", _frames(20))
+    data = v.read_bytes()
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    frames, _ = decode_video(cut)
+    assert 1 <= len(frames) < 20
+
+
+def test_default_camera_and_metadata():
+    cam, how = default_camera(854, 480)
+    assert cam.fx == pytest.approx(0.9 * 854) and cam.cx == pytest.approx(427.0)
+    assert "58 degree" in how
+    tags = {"com.apple.quicktime.camera.focal_length.35mm_equivalent": "26"}
+    assert focal_35mm_from_tags(tags) == 26.0
+    cam, how = default_camera(1920, 1080, 26.0)
+    assert cam.fx == pytest.approx(26 / 36 * 1920) and "35 mm" in how
+    assert focal_35mm_from_tags({"handler_name": "VideoHandler"}) is None
+
+
+def test_track_refuses_one_frame(tmp_path):
+    from flowmocap.cli import main
+
+    v = write_video(tmp_path / "one.mp4", _frames(1))
+    assert main(["track", str(v), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    with pytest.raises(InputError, match="at least 2 frames"):
+        from flowmocap.cli import build_parser
+
+        args = build_parser().parse_args(["track", str(v), "--out", str(tmp_path / "out2"), "--quiet"])
+        args.func(args)
