@@ -10,10 +10,6 @@ from pathlib import Path
 from flowmocap import __version__
 from flowmocap.errors import FlowMocapError, InputError
 
-NOT_BUILT_YET = (
-    "Not built yet: evaluation against a baseline (flowmocap eval/bench), automatic masks "
-    "and 2D joints for real video (track needs --init and masks), and exports."
-)
 
 
 def _parse_betas(text: str | None) -> list[float]:
@@ -56,7 +52,9 @@ def cmd_demo(args) -> int:
           f"MPJPE {scores['mpjpe_cm']:.2f} cm; {scores['s_per_frame']:.2f} s per frame (median)")
     print("paper's targets (HumanEva walking): local <= 5.5 cm, global <= 7.6 cm; ours: <= 1 s per frame")
     print(f"wrote {out / 'eval.json'}, the sequence in {out / 'sequence'} and the result in {out / 'result'}")
-    print(NOT_BUILT_YET)
+    print(f"next: flowmocap render {out / 'result'} (overlay video, figures); "
+          f"flowmocap export {out / 'result'} --format bvh|glb|obj|json|npz; "
+          f"flowmocap eval {out / 'result'} --gt {out / 'sequence'}")
     return 0
 
 

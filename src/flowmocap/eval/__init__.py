@@ -1,5 +1,15 @@
-"""Evaluation: the paper's 3D joint metrics (more metrics, baseline and bench later)."""
+"""Evaluation: the paper's metrics (:mod:`.metrics`), scoring a result folder
+(:mod:`.scoring`), the per-frame keypoint baseline (:mod:`.baseline`), the benchmark
+suites behind ``flowmocap bench`` (:mod:`.bench`) and the demo (:mod:`.demo`)."""
 
-from flowmocap.eval.metrics import global_procrustes_error, local_procrustes_error, mpjpe
+from flowmocap.eval.metrics import (
+    acceleration_error,
+    global_procrustes_error,
+    joint2d_error,
+    local_procrustes_error,
+    mpjpe,
+    silhouette_iou,
+)
 
-__all__ = ["local_procrustes_error", "global_procrustes_error", "mpjpe"]
+__all__ = ["local_procrustes_error", "global_procrustes_error", "mpjpe", "acceleration_error",
+           "joint2d_error", "silhouette_iou"]
