@@ -30,7 +30,7 @@ class TrackerConfig:
     levels: int = 3                   # Gaussian pyramid levels of E_f
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
     iterations: int = 20              # optimiser iterations per stage
-    optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe)
+    optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe) or "lm" (Levenberg-Marquardt; needs mesh E_c)
     capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
     # --- observed flow -----------------------------------------------------------------
@@ -67,8 +67,11 @@ class TrackerConfig:
         if "stages" in values:
             values["stages"] = tuple(tuple(int(l) for l in s) for s in values["stages"])
         cfg = cls(**values)
-        if cfg.optimizer not in ("lbfgs",):
-            raise InputError(f"optimizer must be 'lbfgs'; got {cfg.optimizer!r}.")
+        if cfg.optimizer not in ("lbfgs", "lm"):
+            raise InputError(f"optimizer must be 'lbfgs' or 'lm'; got {cfg.optimizer!r}.")
+        if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
+            raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
+                             "cheap Jacobian); set both.")
         if cfg.temporal_reference not in ("previous", "prediction"):
             raise InputError(f"temporal_reference must be 'previous' or 'prediction'; got {cfg.temporal_reference!r}.")
         if cfg.silhouette_model not in ("capsules", "mesh"):

@@ -16,6 +16,7 @@ import json
 import math
 import platform
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,9 +134,15 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
 
 
 def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> float:
-    """L-BFGS (strong Wolfe) on ``params``; raises OptimizationError on non-finite energy."""
+    """L-BFGS (strong Wolfe) on ``params``; raises OptimizationError on non-finite energy.
+
+    Returns the last energy L-BFGS evaluated (the parameters hold the result; callers
+    that need the energy's terms at the result evaluate them themselves, so no extra
+    evaluation is spent here).
+    """
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
                             tolerance_grad=1e-7, tolerance_change=1e-9, history_size=20)
+    last = [float("nan")]
 
     def closure():
         opt.zero_grad()
@@ -146,19 +153,21 @@ def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> flo
         if not torch.isfinite(e):
             raise OptimizationError("the energy became non-finite (NaN or inf)")
         e.backward()
+        last[0] = float(e.detach())
         return e
 
     opt.step(closure)
-    with torch.no_grad():
-        try:
-            return float(closure_energy())
-        except InputError as err:
-            raise OptimizationError(f"the energy could not be evaluated at the final pose: {err}") from err
+    return last[0]
 
 
 def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerConfig,
                 prev: FrameState) -> tuple[FrameState, dict]:
-    """Optimise one frame from ``init`` (the prediction) against the previous frame ``prev``."""
+    """Optimise one frame from ``init`` (the prediction) against the previous frame ``prev``
+    with the configured optimiser (L-BFGS here, or :func:`flowmocap.fit.lm.lm_track_frame`)."""
+    if cfg.optimizer == "lm":
+        from flowmocap.fit.lm import lm_track_frame
+
+        return lm_track_frame(scene, init, data, cfg, prev)
     with torch.no_grad():
         _, prev_px, _ = scene.forward(prev.pose, prev.trans)
     pose = init.pose.detach().clone().requires_grad_()
@@ -169,7 +178,10 @@ def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerCon
         minimise([pose, trans], lambda: frame_energy(scene, state, data, cfg, stage, prev_px, ref)[0],
                  cfg.iterations)
     with torch.no_grad():
-        total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, ref)
+        try:
+            total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, ref)
+        except InputError as err:
+            raise OptimizationError(f"the energy could not be evaluated at the result: {err}") from err
     terms["total"] = float(total)
     return FrameState(pose.detach(), trans.detach()), terms
 
@@ -338,6 +350,13 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     def flow_of(i: int) -> np.ndarray:
         return cache.flow(i, seq.frame(i), seq.frame(i - 1))
 
+    def observe(i: int) -> tuple[np.ndarray | None, FrameData]:
+        """Mask and prepared observations of frame i (run ahead in a worker thread; the
+        person-size fallback for a frame without a mask is filled in by the caller)."""
+        mask = seq.mask(i)
+        usable = mask if (mask is not None and mask.any()) else None
+        return mask, frame_data(usable, flow_of(i), cfg, float("nan"))
+
     t_start = time.perf_counter()
     if not done_states and isinstance(init, KnownStart):
         f = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
@@ -379,47 +398,66 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     start = a + len(done_states)
     bar = tqdm(range(start, b), initial=start - a, total=b - a, disable=not progress, unit="frame",
                desc="tracking")
-    for i in bar:
-        t0 = time.perf_counter()
-        prev = done_states[-1]
-        if kf is not None:
-            p, t = kf.predict()
-            pred = FrameState(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32))
-        else:
-            pred = FrameState(prev.pose.clone(), prev.trans.clone())
-        mask = load(i)
-        data = frame_data(mask, flow_of(i), cfg, buf_pixels(done_states, scene))
-        try:
-            state, terms = track_frame(scene, pred, data, cfg, prev)
-        except OptimizationError as e:
-            run["events"].append({"frame": i, "event": "non-finite energy; retried from the previous pose",
-                                  "detail": str(e)})
-            try:
-                state, terms = track_frame(scene, FrameState(prev.pose.clone(), prev.trans.clone()), data, cfg, prev)
-            except OptimizationError as e2:
-                run["events"].append({"frame": i, "event": "retry failed; kept the prediction", "detail": str(e2)})
-                state, terms = pred, {"total": float("nan")}
-        reinit = monitor(i, state, scene, mask) if monitor is not None else None
-        if reinit is not None:
-            state, info = reinit
-            run["events"].append({"frame": i, "event": "re-initialised", **info})
-            if kf is not None:
-                kf = PoseFilter(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
-        elif kf is not None:
-            kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
-        if kf is not None:
-            run["kalman"] = kf.state_dict()
-        done_states.append(state)
-        buf.add(i, state, terms)
-        frame_times.append(time.perf_counter() - t0)
-        run["timings"]["frame_s"] = frame_times
-        run["timings"]["s_per_frame_median"] = float(np.median(frame_times))
-        buf.flush()
-        bar.set_postfix({k[:4]: f"{v:.3g}" for k, v in terms.items()})
+    # The observed flow and targets of frame i+1 are prepared while frame i is optimised
+    # (OpenCV and numpy release the GIL, and the optimiser is single-threaded).
+    ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="flowmocap-observe")
+    pending = ahead.submit(observe, start) if start < b else None
+    try:
+        for i in bar:
+            kf = _track_one(i, done_states, kf, pending, scene, cfg, run, monitor, buf, frame_times, bar)
+            pending = ahead.submit(observe, i + 1) if i + 1 < b else None
+    finally:
+        ahead.shutdown(wait=True, cancel_futures=True)
     run["status"] = "finished"
     run["timings"]["total_s"] = run["timings"].get("total_s", 0.0) + time.perf_counter() - t_start
     buf.flush()
     return run
+
+
+def _track_one(i, done_states, kf, pending, scene, cfg, run, monitor, buf, frame_times, bar):
+    """One frame of :func:`track_sequence`'s loop: predict, optimise, check, record.
+    Returns the Kalman filter (a new one after a re-initialisation)."""
+    t0 = time.perf_counter()
+    prev = done_states[-1]
+    if kf is not None:
+        p, t = kf.predict()
+        pred = FrameState(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32))
+    else:
+        pred = FrameState(prev.pose.clone(), prev.trans.clone())
+    mask, data = pending.result()
+    if mask is not None and not mask.any():
+        run["events"].append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
+        mask = None
+    if mask is None:
+        data.person_pixels = max(buf_pixels(done_states, scene), 1.0)
+    try:
+        state, terms = track_frame(scene, pred, data, cfg, prev)
+    except OptimizationError as e:
+        run["events"].append({"frame": i, "event": "non-finite energy; retried from the previous pose",
+                              "detail": str(e)})
+        try:
+            state, terms = track_frame(scene, FrameState(prev.pose.clone(), prev.trans.clone()), data, cfg, prev)
+        except OptimizationError as e2:
+            run["events"].append({"frame": i, "event": "retry failed; kept the prediction", "detail": str(e2)})
+            state, terms = pred, {"total": float("nan")}
+    reinit = monitor(i, state, scene, mask) if monitor is not None else None
+    if reinit is not None:
+        state, info = reinit
+        run["events"].append({"frame": i, "event": "re-initialised", **info})
+        if kf is not None:
+            kf = PoseFilter(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+    elif kf is not None:
+        kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+    if kf is not None:
+        run["kalman"] = kf.state_dict()
+    done_states.append(state)
+    buf.add(i, state, terms)
+    frame_times.append(time.perf_counter() - t0)
+    run["timings"]["frame_s"] = frame_times
+    run["timings"]["s_per_frame_median"] = float(np.median(frame_times))
+    buf.flush()
+    bar.set_postfix({k[:4]: f"{v:.3g}" for k, v in terms.items()})
+    return kf
 
 
 def buf_pixels(states: list[FrameState], scene: Scene) -> float:
