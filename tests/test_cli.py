@@ -16,14 +16,14 @@ def test_help_lists_commands():
         assert cmd in out.stdout
 
 
-def test_demo_tracks_and_scores_and_says_what_is_missing(tmp_path, capsys):
+def test_demo_tracks_scores_and_points_to_the_next_commands(tmp_path, capsys):
     import imageio.v3 as iio
 
     from flowmocap.cli import main
 
     assert main(["demo", "--out", str(tmp_path), "--frames", "4", "--size", "240x180", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "3D joint error" in printed and "Not built yet" in printed
+    assert "3D joint error" in printed and "flowmocap render" in printed and "flowmocap export" in printed
     img = iio.imread(tmp_path / "default_body.png")
     assert img.ndim == 3 and (np.abs(img.astype(int) - 245).sum(2) > 30).mean() > 0.05
     scores = json.loads((tmp_path / "eval.json").read_text())
