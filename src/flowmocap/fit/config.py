@@ -38,6 +38,9 @@ class TrackerConfig:
     flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
     # --- Kalman filters ----------------------------------------------------------------
     kalman: bool = True
+    torch_threads: int = 1            # torch threads while tracking: the per-frame problem is small, so one
+                                      # thread is as fast, leaves a core to the flow of the next frame, and
+                                      # keeps results independent of the machine's core count
     # --- initialisation ----------------------------------------------------------------
     init_keypoint_weight: float = 1.0     # robust 2D joints (px^2 scale)
     init_keypoint_sigma: float = 50.0     # Geman-McClure scale, px
@@ -72,6 +75,8 @@ class TrackerConfig:
         if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
             raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
                              "cheap Jacobian); set both.")
+        if int(cfg.torch_threads) != cfg.torch_threads or cfg.torch_threads < 1:
+            raise InputError(f"torch_threads must be a positive integer; got {cfg.torch_threads!r}.")
         if cfg.temporal_reference not in ("previous", "prediction"):
             raise InputError(f"temporal_reference must be 'previous' or 'prediction'; got {cfg.temporal_reference!r}.")
         if cfg.silhouette_model not in ("capsules", "mesh"):

@@ -305,11 +305,20 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     Returns:
         the final ``run.json`` contents.
     """
+    cfg = cfg or TrackerConfig()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(int(cfg.torch_threads))
+    try:
+        return _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor) -> dict:
     from tqdm import tqdm
 
     from flowmocap.fit.init import fit_frame0
 
-    cfg = cfg or TrackerConfig()
     out_dir = Path(out_dir)
     a, b = _frame_range(frames, len(seq))
     run = {
@@ -404,8 +413,10 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     pending = ahead.submit(observe, start) if start < b else None
     try:
         for i in bar:
-            kf = _track_one(i, done_states, kf, pending, scene, cfg, run, monitor, buf, frame_times, bar)
+            t0 = time.perf_counter()
+            observed = pending.result()
             pending = ahead.submit(observe, i + 1) if i + 1 < b else None
+            kf = _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, frame_times, bar)
     finally:
         ahead.shutdown(wait=True, cancel_futures=True)
     run["status"] = "finished"
@@ -414,17 +425,17 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     return run
 
 
-def _track_one(i, done_states, kf, pending, scene, cfg, run, monitor, buf, frame_times, bar):
+def _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, frame_times, bar):
     """One frame of :func:`track_sequence`'s loop: predict, optimise, check, record.
+    ``t0``: when the frame started; ``observed``: ``(mask, FrameData)`` of the frame.
     Returns the Kalman filter (a new one after a re-initialisation)."""
-    t0 = time.perf_counter()
     prev = done_states[-1]
     if kf is not None:
         p, t = kf.predict()
         pred = FrameState(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32))
     else:
         pred = FrameState(prev.pose.clone(), prev.trans.clone())
-    mask, data = pending.result()
+    mask, data = observed
     if mask is not None and not mask.any():
         run["events"].append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
         mask = None
