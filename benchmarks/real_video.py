@@ -52,7 +52,8 @@ def body_ious(out: Path, reference) -> list[float]:
     from flowmocap.io.results import read_result
 
     motion, run = read_result(out)
-    model = load_body_model("default" if run["model"] in (None, "default") else run["model"], gender=run["gender"])
+    model = load_body_model(run["model"] if run.get("model") and Path(run["model"]).exists() else "default",
+                            gender=run["gender"])
     camera = PinholeCamera.from_dict(json.loads(str(motion["camera"])))
     scene = Scene(model, torch.as_tensor(motion["betas"])[None], camera)
     return [silhouette_iou(body_silhouette(scene, torch.as_tensor(p), torch.as_tensor(t)), reference(int(f)))

@@ -85,10 +85,20 @@ def test_interrupted_run_resumes_to_the_same_result(clip, model, tmp_path, monke
         _track(seq, tmp_path / "run", model, frames="0:6")
     resumed, run = _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
     assert run["status"] == "finished"
+    assert run["model"] == "default" and "anny" in run["model_source"]  # loadable again, and described
     np.testing.assert_array_equal(resumed["poses"], ref["poses"])
     np.testing.assert_array_equal(resumed["trans"], ref["trans"])
     with pytest.raises(InputError, match="cannot resume"):
         _track(seq, tmp_path / "run", model, frames="0:5", resume=True)
+    # a run written by an older version lacks newer settings: they count as their defaults
+    from flowmocap.io.results import write_run
+
+    _, old = read_result(tmp_path / "run")
+    del old["config"]["occlusion_temporal_gain"]
+    write_run(tmp_path / "run", old)
+    _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
+    with pytest.raises(InputError, match="config differs"):
+        _track(seq, tmp_path / "run", model, TrackerConfig(flow_weight=2.0), frames="0:6", resume=True)
 
 
 def test_non_finite_energy_is_rolled_back_and_recorded(clip, model, tmp_path, monkeypatch):
@@ -251,3 +261,26 @@ def test_bad_videos(clip, tmp_path):
     shutil.copy(clip / "masks" / "000000.png", few / "000000.png")
     with pytest.raises(DataError, match="one mask per frame"):
         load_video(video, masks=few)
+
+
+def test_hidden_parts_sees_the_far_arm_hidden_in_a_side_view(model):
+    """In the rest (T) pose seen from the body's left, the right arm hides behind the left."""
+    from flowmocap.body import JOINT_INDEX
+    from flowmocap.fit.tracker import FrameState, Scene, hidden_parts
+    from flowmocap.geometry import PinholeCamera, look_at
+
+    R, t = look_at((4.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # +x is the body's left
+    cam = PinholeCamera.from_focal(320, 240, 400.0, R, t)
+    scene = Scene(model, torch.zeros(1, 10), cam)
+    h = hidden_parts(scene, FrameState(torch.zeros(72), torch.zeros(3)))
+    assert h.shape == (24,) and ((h >= 0) & (h <= 1)).all()
+    # the near arm points at the camera (foreshortened, partly self-occluded); the far
+    # arm and leg are entirely behind the near ones
+    for part in ("elbow", "wrist", "hip", "knee"):
+        near, far = h[JOINT_INDEX[f"left_{part}"]], h[JOINT_INDEX[f"right_{part}"]]
+        assert far > 0.9 and near < 0.6, (part, near, far)
+    # from the front both arms are in view
+    R, t = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
+    front = hidden_parts(Scene(model, torch.zeros(1, 10), PinholeCamera.from_focal(320, 240, 400.0, R, t)),
+                         FrameState(torch.zeros(72), torch.zeros(3)))
+    assert front[JOINT_INDEX["right_elbow"]] < 0.3 and front[JOINT_INDEX["left_elbow"]] < 0.3

@@ -70,7 +70,10 @@ def load_body_model(
 
     gender = _check_gender(gender)
     arrays = read_model_arrays(name_or_path, gender)
-    return BodyModel(arrays, num_betas=num_betas, dtype=dtype or torch.float32)
+    model = BodyModel(arrays, num_betas=num_betas, dtype=dtype or torch.float32)
+    # how to load it again (recorded in results): "default" or the file's absolute path
+    model.name = "default" if str(name_or_path) == "default" else str(Path(name_or_path).expanduser().resolve())
+    return model
 
 
 def read_model_arrays(name_or_path: str | Path = "default", gender: str = "neutral") -> ModelArrays:

@@ -77,6 +77,7 @@ class BodyModel(torch.nn.Module):
         self.gender = a.gender
         self.kind = a.kind
         self.source = a.source
+        self.name: str | None = None  # set by load_body_model: "default" or the model file's path
         t = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=dtype)  # noqa: E731
         self.register_buffer("v_template", t(a.v_template))
         self.register_buffer("shapedirs", t(shapedirs))

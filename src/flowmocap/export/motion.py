@@ -142,8 +142,17 @@ def _model_for(run: dict, gender: str, model):
         return copy.deepcopy(model).to(torch.float64)  # .to() is in place; leave the caller's model alone
     name = model
     if name is None:
+        from flowmocap.body.files import read_model_arrays
+        from flowmocap.errors import DataError
+
         recorded = str(run.get("model", "default"))
-        name = recorded if Path(recorded).exists() else "default"
+        if recorded == "default" or recorded == read_model_arrays("default", gender).source:
+            name = "default"
+        elif Path(recorded).exists():
+            name = recorded
+        else:
+            raise DataError(f"the result was fitted with the body model {recorded!r}, which is not there any more; "
+                            "pass the model file (--model PATH).")
     return load_body_model(name, gender=gender, dtype=torch.float64)
 
 

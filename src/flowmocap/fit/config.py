@@ -26,6 +26,7 @@ class TrackerConfig:
     limit_weight: float = 10.0        # lambda_b: E_b joint limits
     penetration_weight: float = 10.0  # lambda_sp: E_sp capsule interpenetration (m^2)
     temporal_weight: float = 0.5      # lambda_theta: E_theta, rad^2, to the previous pose
+    occlusion_temporal_gain: float = 0.0  # E_theta of joint j times (1 + gain * hidden share of its body part)
     temporal_reference: str = "prediction"  # E_theta towards the Kalman "prediction" (default) or the "previous" pose (paper)
     levels: int = 3                   # Gaussian pyramid levels of E_f
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
@@ -75,6 +76,8 @@ class TrackerConfig:
         if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
             raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
                              "cheap Jacobian); set both.")
+        if not cfg.occlusion_temporal_gain >= 0:
+            raise InputError(f"occlusion_temporal_gain must be >= 0; got {cfg.occlusion_temporal_gain!r}.")
         if int(cfg.torch_threads) != cfg.torch_threads or cfg.torch_threads < 1:
             raise InputError(f"torch_threads must be a positive integer; got {cfg.torch_threads!r}.")
         if cfg.temporal_reference not in ("previous", "prediction"):

@@ -503,10 +503,12 @@ def residual_blocks(scene: Scene, state: FrameState, data: FrameData, cfg: Track
         blocks.append(Block("penetration", w * r.detach().double().numpy(), w * J))
     if ref_pose is not None and cfg.temporal_weight > 0:
         p = pose.clone().requires_grad_()
-        r = en.temporal_residuals(p.reshape(1, 72), ref_pose.detach().reshape(1, 72))[0]
+        r = en.temporal_residuals(p.reshape(1, 72), ref_pose.detach().reshape(1, 72), weights=data.temporal_weights)[0]
         J = np.zeros((r.numel(), NUM_PARAMS))
-        # joints 1..23: r = theta - theta_ref (identity); the root: the geodesic difference
-        J[3:, 3:72] = np.eye(69)
+        # joints 1..23: r = sqrt(w) (theta - theta_ref) (diagonal); the root: the geodesic difference
+        sw = np.ones(72) if data.temporal_weights is None else np.sqrt(
+            np.repeat(np.asarray(data.temporal_weights, np.float64), 3))
+        J[3:, 3:72] = np.diag(sw[3:])
         J[:3, :72] = _rows_jacobian(r[:3], [p])
         w = math.sqrt(cfg.temporal_weight)
         blocks.append(Block("temporal", w * r.detach().double().numpy(), w * J))

@@ -61,6 +61,9 @@ class Scene:
             self.faces = prepare_faces(self.model.faces_np)
         with torch.no_grad():
             self.rest_capsules = rest_capsules(self.model, self.model(betas=self.betas))
+        w = self.model.weights.detach().cpu().numpy()
+        self.part = w.argmax(1)  # (V,) the joint that moves each vertex most
+        self.part_size = np.maximum(np.bincount(self.part, minlength=w.shape[1]), 1)
 
     def capsules(self, out) -> Capsules:
         """Posed capsules of a forward pass with this scene's (fixed) shape."""
@@ -81,6 +84,7 @@ class FrameData:
     silhouette: object  # fit.energies.SilhouetteTarget or None
     person_pixels: float
     targets: list = field(default_factory=list)  # one FlowTarget per stage
+    temporal_weights: object = None  # (24,) per-joint factors of E_theta, or None (all 1)
 
 
 def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
@@ -128,7 +132,7 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
         terms["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
     if prev_pose is not None and cfg.temporal_weight > 0:
         terms["temporal"] = cfg.temporal_weight * en.temporal_energy(
-            state.pose.reshape(1, 72), prev_pose.reshape(1, 72))[0]
+            state.pose.reshape(1, 72), prev_pose.reshape(1, 72), weights=data.temporal_weights)[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
@@ -160,10 +164,34 @@ def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> flo
     return last[0]
 
 
+def hidden_parts(scene: Scene, state: FrameState) -> np.ndarray:
+    """Hidden share of each joint's body part at ``state``: ``(24,)`` in [0, 1].
+
+    A vertex counts as seen when a triangle holding it is visible in the rasterised
+    body; a body part is the vertices a joint moves most. An unoccluded part shows
+    about half its vertices (its front), so the share is ``1 - min(1, 2 seen / all)``.
+    """
+    from flowmocap.render import rasterize
+
+    with torch.no_grad():
+        _, px, depth = scene.forward(state.pose, state.trans)
+    face_id = rasterize(px.numpy(), depth.numpy(), scene.faces, scene.camera.height, scene.camera.width,
+                        cull_backfaces=True).face_id
+    faces = np.asarray(scene.model.faces_np)
+    seen = np.zeros(len(scene.part), bool)
+    seen[faces[np.unique(face_id[face_id >= 0])].ravel()] = True
+    count = np.bincount(scene.part[seen], minlength=len(scene.part_size))
+    return 1.0 - np.minimum(1.0, 2.0 * count / scene.part_size)
+
+
 def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerConfig,
                 prev: FrameState) -> tuple[FrameState, dict]:
     """Optimise one frame from ``init`` (the prediction) against the previous frame ``prev``
     with the configured optimiser (L-BFGS here, or :func:`flowmocap.fit.lm.lm_track_frame`)."""
+    if cfg.occlusion_temporal_gain > 0 and cfg.temporal_weight > 0:
+        factor = 1.0 + cfg.occlusion_temporal_gain * hidden_parts(scene, init)
+        factor[0] = 1.0  # the root moves the whole body; its part is the pelvis only
+        data.temporal_weights = torch.as_tensor(factor, dtype=init.pose.dtype)
     if cfg.optimizer == "lm":
         from flowmocap.fit.lm import lm_track_frame
 
@@ -323,7 +351,8 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
     a, b = _frame_range(frames, len(seq))
     run = {
         "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
-        "input": str(seq.root), "frames": [a, b], "config": cfg.to_dict(), "model": model.source,
+        "input": str(seq.root), "frames": [a, b], "config": cfg.to_dict(), "model": model.name or model.source,
+        "model_source": model.source,
         "gender": model.gender, "camera": camera.to_dict(), "status": "running", "events": [],
         "timings": {},
     }
@@ -331,6 +360,11 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
     kf = None
     if resume and (out_dir / "motion.npz").exists():
         motion, old = read_result(out_dir)
+        if isinstance(old.get("config"), dict):
+            # settings added in a later version count as their defaults in an older run
+            defaults = TrackerConfig().to_dict()
+            old["config"] = {**{k: v for k, v in json.loads(json.dumps(defaults)).items()
+                                if k not in old["config"]}, **old["config"]}
         for key in ("input", "frames", "config"):
             if old.get(key) != json.loads(json.dumps(run[key])):
                 raise InputError(f"cannot resume: {key} differs from the interrupted run in {out_dir} "
