@@ -36,7 +36,7 @@ class TrackerConfig:
     capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
     # --- observed flow -----------------------------------------------------------------
-    flow_method: str = "dis"
+    flow_method: str = "dis-fine"     # observed flow (flowmocap.vision.FLOW_METHODS); DIS refined to full resolution
     flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
     # --- Kalman filters ----------------------------------------------------------------
     kalman: bool = True

@@ -12,18 +12,25 @@ Methods (OpenCV / opencv-contrib; the paper's MDP-Flow is not available):
 ==============  ===============================================  ===========  ==========
 method           function                                         time         EPE
 ==============  ===============================================  ===========  ==========
-``dis``          ``cv2.DISOpticalFlow`` (default preset MEDIUM)    0.04 s       0.10 px
+``dis``          ``cv2.DISOpticalFlow`` (preset MEDIUM)            0.04 s       0.10 px
+``dis-fine``     the same, refined to full resolution (``FinestScale=0``)  0.09 s  --
 ``farneback``    ``cv2.calcOpticalFlowFarneback``                  0.07 s       0.07 px
 ``deepflow``     ``cv2.optflow.createOptFlow_DeepFlow``            0.6 s        0.07 px
 ``rlof``         ``cv2.optflow.calcOpticalFlowDenseRLOF`` (BGR)    0.5 s        0.38 px
 ``tvl1``         ``cv2.optflow.DualTVL1OpticalFlow_create``        1.6 s        0.02 px
 ==============  ===============================================  ===========  ==========
 
+On the body of a rendered walker (CMU 35_01 at 60 fps, 640x480, 9 pairs against the
+true flow) the mean / 95th-percentile end-point errors are: ``dis`` 0.35 / 1.37 px,
+``dis-fine`` 0.18 / 0.69 px, ``deepflow`` 0.32 / 1.53 px, ``tvl1`` 0.36 / 2.07 px,
+``farneback`` 0.45 / 2.01 px.
+
 Time: one 640x480 pair on 2 CPU cores. EPE: mean end-point error on a smooth random
 texture moved by (2.3, -1.7) px, 40 px from the border (a pure translation: motion
 boundaries, large displacements and untextured regions are not measured by it).
 
-:class:`FlowCache` keeps computed flows on disk, one compressed ``.npz`` per frame.
+:class:`FlowCache` keeps computed flows on disk, one ``.npz`` per frame, uncompressed
+(float flow fields shrink by only ~10 % under zlib, which costs ~0.1 s per 640x480 frame).
 """
 
 from __future__ import annotations
@@ -71,6 +78,12 @@ def _dis(cur: np.ndarray, prev: np.ndarray, preset: str | int = "medium", **para
     return dis.calc(_gray(cur), _gray(prev), None)
 
 
+def _dis_fine(cur: np.ndarray, prev: np.ndarray, **params: Any) -> np.ndarray:
+    """DIS MEDIUM refined down to the full resolution (``FinestScale=0``): on rendered
+    people about half the end-point error of plain DIS at twice its (small) cost."""
+    return _dis(cur, prev, "medium", **{"FinestScale": 0, **params})
+
+
 def _deepflow(cur: np.ndarray, prev: np.ndarray) -> np.ndarray:
     return cv2.optflow.createOptFlow_DeepFlow().calc(_gray(cur), _gray(prev), None)
 
@@ -93,6 +106,7 @@ def _farneback(cur: np.ndarray, prev: np.ndarray, pyr_scale: float = 0.5, levels
 #: Flow methods by name: ``observed_flow(..., method=name)``.
 FLOW_METHODS: dict[str, Callable[..., np.ndarray]] = {
     "dis": _dis,
+    "dis-fine": _dis_fine,
     "deepflow": _deepflow,
     "tvl1": _tvl1,
     "rlof": _rlof,
@@ -148,7 +162,7 @@ def observed_flow(frame_cur: Any, frame_prev: Any, method: str = "dis", **option
 class FlowCache:
     """Observed flows on disk: ``<folder>/flow_<index>_<method>[_<hash>].npz``.
 
-    Each file holds one compressed float32 ``(H, W, 2)`` array, the backward flow
+    Each file holds one (uncompressed) float32 ``(H, W, 2)`` array, the backward flow
     ``F_o(i, i-1)`` of frame ``index``. Files are written to a temporary file in the
     same folder and renamed, so an interrupted run leaves either a complete file or
     none. A file that cannot be read (or has the wrong size) counts as missing.
@@ -215,7 +229,7 @@ class FlowCache:
         fd, tmp = tempfile.mkstemp(prefix=p.stem + ".", suffix=".tmp", dir=self.folder)
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, flow=flow)
+                np.savez(fh, flow=flow)
             os.replace(tmp, p)
         except BaseException:
             if os.path.exists(tmp):
