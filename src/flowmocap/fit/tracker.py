@@ -333,18 +333,13 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     Returns:
         the final ``run.json`` contents.
     """
-    import cv2
-
     cfg = cfg or TrackerConfig()
-    threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
+    threads = torch.get_num_threads()
     torch.set_num_threads(int(cfg.torch_threads))
-    # the observed flow of the next frame runs beside the optimiser on one core of its own
-    cv2.setNumThreads(1)
     try:
         return _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor)
     finally:
         torch.set_num_threads(threads)
-        cv2.setNumThreads(cv_threads)
 
 
 def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor) -> dict:
