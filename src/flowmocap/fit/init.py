@@ -142,16 +142,41 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of final energies.
     """
+    trans = (torch.as_tensor(spec.trans, dtype=torch.float32) if spec.trans is not None
+             else guess_translation(model, camera, spec))
+    return fit_to_joints(model, camera, spec.joints2d, spec.confidence, silhouette, cfg,
+                         torch.as_tensor(spec.pose, dtype=torch.float32), trans,
+                         torch.as_tensor(spec.betas, dtype=torch.float32)[None], fit_shape=True)
+
+
+def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence, silhouette, cfg: TrackerConfig,
+                  pose0: torch.Tensor, trans0: torch.Tensor, betas: torch.Tensor, *, fit_shape: bool,
+                  iterations: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+    """Fit the body to one frame's 2D joints, then also to its silhouette (init steps 1-2).
+
+    Translation alone first, then pose and translation (and the shape when ``fit_shape``)
+    against the robust 2D-joint term with joint limits, interpenetration and a prior
+    towards ``pose0`` (and the mean shape), then the same plus E_c.
+
+    Args:
+        joints2d: ``(24, 2)`` pixels; confidence: ``(24,)`` (0 = missing).
+        silhouette: a :class:`~flowmocap.fit.energies.SilhouetteTarget` or None.
+        pose0: ``(72,)`` start and prior, radians; trans0: ``(3,)`` metres; betas: ``(1, 10)``.
+        fit_shape: optimise the betas (with ``cfg.init_shape_prior_weight``) or keep them.
+        iterations: L-BFGS iterations per step (default ``cfg.init_iterations``).
+
+    Returns:
+        ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
+    """
     from flowmocap.fit.tracker import minimise
 
-    ref_pose = torch.as_tensor(spec.pose, dtype=torch.float32)
+    iterations = iterations or cfg.init_iterations
+    ref_pose = torch.as_tensor(pose0, dtype=torch.float32).detach().clone()
     pose = ref_pose.clone().requires_grad_()
-    trans = (torch.as_tensor(spec.trans, dtype=torch.float32) if spec.trans is not None
-             else guess_translation(model, camera, spec)).clone().requires_grad_()
-    betas = torch.as_tensor(spec.betas, dtype=torch.float32)[None].clone().requires_grad_()
-    j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
-    conf = torch.as_tensor(spec.confidence, dtype=torch.float32)
-
+    trans = torch.as_tensor(trans0, dtype=torch.float32).detach().clone().requires_grad_()
+    betas = torch.as_tensor(betas, dtype=torch.float32).detach().clone().requires_grad_(fit_shape)
+    j2d = torch.as_tensor(np.asarray(joints2d), dtype=torch.float32)
+    conf = torch.as_tensor(np.asarray(confidence), dtype=torch.float32)
     faces = prepare_faces(model.faces_np) if cfg.silhouette_model == "mesh" else None
 
     def energy(with_silhouette: bool, terms: dict | None = None):
@@ -160,9 +185,10 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
         t = {
             "keypoints": cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0],
             "pose_prior": cfg.init_pose_prior_weight * en.pose_prior_energy(pose[None], ref_pose[None])[0],
-            "shape_prior": cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0],
-            "limits": cfg.limit_weight * en.joint_limit_energy(pose[None])[0],
         }
+        if fit_shape:
+            t["shape_prior"] = cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0]
+        t["limits"] = cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:
@@ -178,11 +204,12 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
             terms.update({k: float(v) for k, v in t.items()})
         return sum(t.values())
 
-    # 1a: translation and global orientation only, then 1b: everything
-    minimise([trans], lambda: energy(False), cfg.init_iterations // 3)
-    minimise([trans, pose, betas], lambda: energy(False), cfg.init_iterations)
+    params = [trans, pose] + ([betas] if fit_shape else [])
+    # 1a: translation only, 1b: everything, 2: everything with the silhouette
+    minimise([trans], lambda: energy(False), max(iterations // 3, 1))
+    minimise(params, lambda: energy(False), iterations)
     if silhouette is not None and cfg.silhouette_weight > 0:
-        minimise([trans, pose, betas], lambda: energy(True), cfg.init_iterations)
+        minimise(params, lambda: energy(True), iterations)
     terms: dict = {}
     with torch.no_grad():
         energy(silhouette is not None, terms)

@@ -81,36 +81,12 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final energy (float).
     """
-    from flowmocap.fit.tracker import minimise
+    from flowmocap.fit.init import fit_to_joints
 
-    iterations = iterations or cfg.init_iterations
-    ref = pose0.detach().clone().float()
-    pose = ref.clone().requires_grad_()
-    trans = trans0.detach().clone().float().requires_grad_()
-    jt = torch.as_tensor(j2d, dtype=torch.float32)
-    ct = torch.as_tensor(conf, dtype=torch.float32)
     sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
-
-    def energy(with_silhouette: bool):
-        out = scene.model(betas=scene.betas, pose=pose[None], trans=trans[None])
-        pj = scene.camera.project(out.joints[0])
-        e = cfg.init_keypoint_weight * en.keypoint_energy(pj[None], jt, ct, sigma=cfg.init_keypoint_sigma)[0]
-        e = e + cfg.init_pose_prior_weight * en.pose_prior_energy(pose[None], ref[None])[0]
-        e = e + cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
-        caps = scene.capsules(out)
-        e = e + cfg.penetration_weight * en.interpenetration_energy(caps)[0]
-        if with_silhouette and sil is not None:
-            e = e + cfg.silhouette_weight * en.silhouette_energy(caps, scene.camera, sil, a=cfg.silhouette_a,
-                                                                 grid_step=cfg.capsule_grid_step)[0]
-        return e
-
-    minimise([trans], lambda: energy(False), max(iterations // 3, 1))
-    minimise([trans, pose], lambda: energy(False), iterations)
-    if sil is not None and cfg.silhouette_weight > 0:
-        minimise([trans, pose], lambda: energy(True), iterations)
-    with torch.no_grad():
-        final = float(energy(sil is not None))
-    return pose.detach(), trans.detach(), final
+    pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
+                                          scene.betas, fit_shape=False, iterations=iterations)
+    return pose, trans, float(sum(terms.values()))
 
 
 class ReinitMonitor:
