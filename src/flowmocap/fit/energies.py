@@ -39,6 +39,7 @@ from flowmocap.body.capsules import CAPSULE_BONES, CAPSULE_NAMES, Capsules, body
 from flowmocap.body.files import load_body_model
 from flowmocap.body.skeleton import NUM_JOINTS, PARENTS
 from flowmocap.errors import InputError, NoPersonError
+from flowmocap.fit import rotation_terms as rt
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -87,6 +88,11 @@ def _pose(pose: Any, name: str = "pose") -> torch.Tensor:
     return pose
 
 
+#: Use the compiled kernels of :mod:`flowmocap.fit.rotation_terms` for E_b and E_theta's
+#: root on CPU tensors (False: the torch-op definitions, e.g. to compare the two).
+_COMPILED = True
+
+
 def _like(x: Any, ref: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(x, dtype=ref.dtype, device=ref.device)
 
@@ -131,6 +137,9 @@ def joint_limit_residuals(pose: torch.Tensor, limits: JointLimits | None = None)
     """
     pose = _pose(pose)
     lim = _limits(limits)
+    lock_eps = 100.0 * torch.finfo(pose.dtype).eps
+    if _COMPILED and pose.device.type == "cpu":  # compiled kernel with a closed-form Jacobian; same values
+        return rt.limit_residuals(pose, rt.limit_charts(lim), lock_eps)
     joints = torch.as_tensor(lim.limited, device=pose.device)
     th = joint_angles(pose, lim.charts)[:, joints]  # (B, 23, 3)
     lo = _like(lim.lower[lim.limited], th)
@@ -138,6 +147,25 @@ def joint_limit_residuals(pose: torch.Tensor, limits: JointLimits | None = None)
     # max(exp(x) - 1, 0) == expm1(max(x, 0)); exact and overflow-free inside the limits
     r = torch.expm1(torch.relu(lo - th)) + torch.expm1(torch.relu(th - hi))
     return r.reshape(pose.shape[0], -1)
+
+
+def joint_limit_jacobian(pose: Any, limits: JointLimits | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`joint_limit_residuals` of one pose and their Jacobian, float64.
+
+    Args:
+        pose: ``(72,)`` axis-angle, radians.
+        limits: as for :func:`joint_limit_residuals`.
+
+    Returns:
+        ``r (69,)`` and ``J (69, 72)`` = ``d r / d pose``.
+    """
+    p = np.asarray(pose, np.float64).reshape(1, NUM_POSE)
+    charts = rt.limit_charts(_limits(limits))
+    r, blocks = rt.limit_residuals_jacobian(p, charts, 100.0 * torch.finfo(torch.float64).eps)
+    J = np.zeros((r.shape[1], NUM_POSE))
+    for q, j in enumerate(charts.joints):
+        J[3 * q:3 * q + 3, 3 * j:3 * j + 3] = blocks[0, q]
+    return r[0], J
 
 
 def joint_limit_energy(pose: torch.Tensor, limits: JointLimits | None = None) -> torch.Tensor:
@@ -915,7 +943,9 @@ def temporal_residuals(
     prev = _pose(_like(prev_pose, pose), "prev_pose").expand_as(pose)
     w = torch.sqrt(_pose_weights(weights, pose, 1.0))
     joints = pose[:, 3:] - prev[:, 3:]
-    if include_root:
+    if include_root and _COMPILED and pose.device.type == "cpu":  # compiled, closed-form Jacobian; same values
+        root = rt.root_difference(pose[:, :3], prev[:, :3].contiguous())
+    elif include_root:
         rel = axis_angle_to_matrix(prev[:, :3]).transpose(-1, -2) @ axis_angle_to_matrix(pose[:, :3])
         root = matrix_to_axis_angle(rel)
     else:

@@ -482,12 +482,11 @@ def residual_blocks(scene: Scene, state: FrameState, data: FrameData, cfg: Track
         w = math.sqrt(cfg.silhouette_weight)
         blocks.append(Block("silhouette", w * r, w * J))
     if cfg.limit_weight > 0:
-        p = pose.clone().requires_grad_()
-        r = en.joint_limit_residuals(p.reshape(1, 72))[0]
-        J = np.zeros((r.numel(), NUM_PARAMS))
-        J[:, :72] = _rows_jacobian(r, [p])
+        r, Jp = en.joint_limit_jacobian(pose.numpy())
+        J = np.zeros((r.size, NUM_PARAMS))
+        J[:, :72] = Jp
         w = math.sqrt(cfg.limit_weight)
-        blocks.append(Block("limits", w * r.detach().double().numpy(), w * J))
+        blocks.append(Block("limits", w * r, w * J))
     if cfg.penetration_weight > 0:
         caps = scene.capsules(out)
         s = caps.start.detach().clone().requires_grad_()
