@@ -13,7 +13,7 @@ from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit import lm
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.jacobian import projection_jacobian, skinned_point_jacobian
-from flowmocap.fit.tracker import FrameState, Scene, frame_data, frame_energy, track_frame
+from flowmocap.fit.tracker import FrameState, Scene, frame_data, frame_energy, keypoint_observation, track_frame
 from flowmocap.io.sequence import load_sequence
 from flowmocap.render import flow_residuals, rasterize, render_flow
 from flowmocap.synth import synthesize
@@ -55,7 +55,15 @@ def _frame(seq, scene, i, cfg=CFG):
     r = rasterize(px.double().numpy(), depth.double().numpy(), scene.faces, seq.size[1], seq.size[0],
                   cull_backfaces=True)
     flow, _ = render_flow(r, px.double().numpy(), prev_px.double().numpy(), scene.faces)
-    return frame_data(seq.mask(i), flow, cfg, 1.0), prev, prev_px
+    # detected joints: the true ones with 2 px noise, one far off (the robust tail), two missing
+    with torch.no_grad():
+        out, _, _ = scene.forward(cur.pose, cur.trans)
+        j2d = scene.camera.project(out.joints[0]).double().numpy()
+    j2d += np.random.default_rng(i).normal(scale=2.0, size=j2d.shape)
+    j2d[5] += 40.0
+    conf = np.full(24, 0.9)
+    conf[[10, 11]] = 0.1
+    return frame_data(seq.mask(i), flow, cfg, 1.0, keypoint_observation(j2d, conf)), prev, prev_px
 
 
 def _wild_state(seq, dtype):

@@ -284,3 +284,72 @@ def test_hidden_parts_sees_the_far_arm_hidden_in_a_side_view(model):
     front = hidden_parts(Scene(model, torch.zeros(1, 10), PinholeCamera.from_focal(320, 240, 400.0, R, t)),
                          FrameState(torch.zeros(72), torch.zeros(3)))
     assert front[JOINT_INDEX["right_elbow"]] < 0.3 and front[JOINT_INDEX["left_elbow"]] < 0.3
+
+
+def _true_joints2d(seq, model):
+    from flowmocap.fit.tracker import Scene
+
+    scene = Scene(model, torch.as_tensor(seq.gt["betas"], dtype=torch.float32)[None], seq.camera)
+    with torch.no_grad():
+        return [scene.camera.project(scene.forward(torch.as_tensor(p, dtype=torch.float32),
+                                                   torch.as_tensor(t, dtype=torch.float32))[0].joints[0]).numpy()
+                for p, t in zip(seq.gt["poses"], seq.gt["trans"])]
+
+
+def test_detected_joints_pull_the_body(clip, model, tmp_path):
+    """E_j (detected 2D joints) on its own keeps tracking close where nothing else observes the body."""
+    seq = load_sequence(clip)
+    truth = _true_joints2d(seq, model)
+    rng = np.random.default_rng(0)
+    noisy = [j + rng.normal(scale=1.0, size=j.shape) for j in truth]
+    conf = np.full(24, 0.9)
+    conf[[10, 11, 22, 23]] = 0.0  # joints a detector does not give
+    # the other terms off, and a prediction that drifts: without E_j the body drifts
+    cfg = TrackerConfig(flow_weight=0.0, silhouette_weight=0.0, keypoint_weight=0.05, kalman=False, temporal_weight=0.0)
+    seen, run = _track(seq, tmp_path / "kp", model, cfg, frames="0:6", keypoints=lambda i: (noisy[i], conf))
+    blind, _ = _track(seq, tmp_path / "none", model, cfg, frames="0:6")
+    err = lambda m: float(np.median(np.linalg.norm(m["joints2d"][2:] - np.stack(truth[2:6]), axis=-1)))  # noqa: E731
+    names = list(seen["energy_names"])
+    assert np.isfinite(seen["energies"][2:, names.index("keypoints")]).all()
+    assert np.isnan(blind["energies"][2:, names.index("keypoints")]).all()
+    print("median 2D joint error px with E_j", err(seen), "without", err(blind))
+    assert err(seen) < 3.0 and err(seen) < 0.5 * err(blind), (err(seen), err(blind))
+
+
+def test_keypoint_observation_checks():
+    from flowmocap.fit.tracker import keypoint_observation
+
+    j = np.arange(48, dtype=float).reshape(24, 2)
+    c = np.full(24, 0.9)
+    c[:3] = 0.2
+    j[5] = np.nan
+    kp, conf = keypoint_observation(j, c)
+    assert kp.shape == (24, 2) and conf.shape == (24,)
+    assert (conf[:3] == 0).all() and conf[5] == 0 and torch.isfinite(kp).all() and (conf[6:] > 0).all()
+    c[:] = 0.1
+    c[:3] = 0.9
+    assert keypoint_observation(j, c) is None  # fewer than 4 confident joints: no term
+    with pytest.raises(InputError, match="differ"):
+        keypoint_observation(j, c[:12])
+
+
+def test_a_result_from_an_older_version_resumes_with_its_energy_columns(clip, model, tmp_path):
+    """Runs written before a term existed lack its energy column; resuming maps columns by name."""
+    seq = load_sequence(clip)
+    out = tmp_path / "old"
+    _track(seq, out, model, frames="0:4")
+    with np.load(out / "motion.npz") as z:
+        old = {k: z[k] for k in z.files}
+    names = [str(n) for n in old["energy_names"]]
+    keep = [k for k, n in enumerate(names) if n != "keypoints"]
+    old["energies"] = old["energies"][:, keep]
+    old["energy_names"] = np.array([names[k] for k in keep])
+    motion = {k: old[k] for k in old}
+    motion["poses"], motion["trans"] = motion["poses"][:3], motion["trans"][:3]
+    for k in ("joints3d", "joints2d", "energies", "frame_index"):
+        motion[k] = motion[k][:3]
+    np.savez(out / "motion.npz", **motion)
+    resumed, _ = _track(seq, out, model, frames="0:4", resume=True)
+    assert resumed["energies"].shape == (4, len(names))
+    assert list(resumed["energy_names"]) == names
+    np.testing.assert_allclose(resumed["energies"][:3, keep], old["energies"][:3], equal_nan=True)

@@ -134,8 +134,12 @@ def cmd_track(args) -> int:
         from flowmocap.fit.reinit import ReinitMonitor
 
         monitor = ReinitMonitor(track, cfg, out)
+    detected = None
+    if track is not None:  # the detector's joints also pull the body (E_j, cfg.keypoint_weight)
+        def detected(i: int):
+            return track.smpl_joints(i) if i < len(track) and track.found[i] else None
     run = track_sequence(seq, out, model, camera, spec, cfg=cfg, frames=frames, resume=args.resume,
-                         progress=not args.quiet, monitor=monitor)
+                         progress=not args.quiet, monitor=monitor, keypoints=detected)
     if track is not None:
         a, b = run["frames"]
         notes["gaps"] = [{"frames": r, "why": "no person found: tracked by flow alone, no silhouette term"}

@@ -33,6 +33,9 @@ class TrackerConfig:
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
     iterations: int = 20              # optimiser iterations per stage
     optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe) or "lm" (Levenberg-Marquardt; needs mesh E_c)
+    keypoint_weight: float = 0.05     # lambda_j: detected 2D joints (real video only; an extension of the paper):
+                                      # robust px^2 per confident joint, keeps the body on the person
+    keypoint_sigma: float = 20.0      # Geman-McClure scale of that term, px (a left/right swap saturates)
     capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
     # --- observed flow -----------------------------------------------------------------
@@ -79,6 +82,9 @@ class TrackerConfig:
                              "cheap Jacobian); set both.")
         if not cfg.occlusion_temporal_gain >= 0:
             raise InputError(f"occlusion_temporal_gain must be >= 0; got {cfg.occlusion_temporal_gain!r}.")
+        if not (cfg.keypoint_weight >= 0 and cfg.keypoint_sigma > 0):
+            raise InputError(f"keypoint_weight must be >= 0 and keypoint_sigma > 0; got {cfg.keypoint_weight!r}, "
+                             f"{cfg.keypoint_sigma!r}.")
         if int(cfg.torch_threads) != cfg.torch_threads or cfg.torch_threads < 1:
             raise InputError(f"torch_threads must be a positive integer; got {cfg.torch_threads!r}.")
         if cfg.temporal_reference not in ("previous", "prediction"):

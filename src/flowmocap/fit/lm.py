@@ -20,6 +20,8 @@ penetration    :func:`~flowmocap.fit.energies.interpenetration_ sqrt(penetration
                residuals`
 temporal       :func:`~flowmocap.fit.energies.temporal_         sqrt(temporal_weight)
                residuals`
+keypoints      :func:`~flowmocap.fit.energies.keypoint_         sqrt(keypoint_weight /
+               residuals` (detected joints, when given)       confident joints)
 =============  ==============================================  ==========================
 
 Jacobians ``J_b = d r_b / d x`` come in closed form where the residuals depend on
@@ -511,6 +513,14 @@ def residual_blocks(scene: Scene, state: FrameState, data: FrameData, cfg: Track
         J[:3, :72] = _rows_jacobian(r[:3], [p])
         w = math.sqrt(cfg.temporal_weight)
         blocks.append(Block("temporal", w * r.detach().double().numpy(), w * J))
+    if data.keypoints is not None and cfg.keypoint_weight > 0:
+        j2d, conf = data.keypoints
+        p = pose.clone().requires_grad_()
+        t = trans.clone().requires_grad_()
+        o = scene.model(betas=scene.betas, pose=p.reshape(1, 72), trans=t.reshape(1, 3))
+        r = en.keypoint_residuals(scene.camera.project(o.joints[0])[None], j2d, conf, sigma=cfg.keypoint_sigma)[0]
+        w = math.sqrt(cfg.keypoint_weight / float((conf > 0).sum()))
+        blocks.append(Block("keypoints", w * r.detach().double().numpy(), w * _rows_jacobian(r, [p, t])))
     return blocks
 
 

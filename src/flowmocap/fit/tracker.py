@@ -2,12 +2,14 @@
 
 For each frame i >= 1: the Kalman filters predict pose and translation; then
 
-    min_{pose_i, trans_i}  l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta
+    min_{pose_i, trans_i}  l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j]
 
 is minimised coarse to fine over the flow pyramid (stages of :class:`TrackerConfig`),
 with the shape fixed after initialisation. ``E_f`` compares the observed backward flow
 F_o(i, i-1) with the flow rendered from the model at frame i (the variables) to the model
-at frame i-1 (the previous result, fixed). The optimised pose updates the filters.
+at frame i-1 (the previous result, fixed). The optimised pose updates the filters. ``E_j`` (not in the paper) pulls the model's 2D
+joints towards a detector's where one is given (real video): a robust term that keeps
+the body on the person where flow drifts.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from flowmocap.io.sequence import Sequence
 from flowmocap.render import flow_loss, flow_target, prepare_faces
 from flowmocap.vision import FlowCache
 
-ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal")
+ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints")
 
 
 @dataclass
@@ -85,11 +87,29 @@ class FrameData:
     person_pixels: float
     targets: list = field(default_factory=list)  # one FlowTarget per stage
     temporal_weights: object = None  # (24,) per-joint factors of E_theta, or None (all 1)
+    keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
+
+
+def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
+    """Detected joints for ``E_j``: ``(j2d (24, 2), conf (24,))`` float32 tensors with the
+    confidences below ``min_confidence`` (and non-finite joints) set to 0, or None when
+    fewer than ``min_joints`` joints are left (``j2d``: pixels, SMPL joint order)."""
+    j = np.asarray(j2d, np.float64).reshape(-1, 2)
+    c = np.asarray(conf, np.float64).reshape(-1).copy()
+    if j.shape[0] != c.shape[0]:
+        raise InputError(f"detected joints {j.shape} and confidences {c.shape} differ in count.")
+    ok = np.isfinite(j).all(1) & np.isfinite(c) & (c >= min_confidence)
+    if ok.sum() < min_joints:
+        return None
+    c[~ok] = 0.0
+    j = np.where(ok[:, None], j, 0.0)
+    return torch.as_tensor(j, dtype=torch.float32), torch.as_tensor(c, dtype=torch.float32)
 
 
 def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
-               fallback_pixels: float) -> FrameData:
-    """Prepare the observations of one frame for repeated energy evaluations."""
+               fallback_pixels: float, keypoints: tuple | None = None) -> FrameData:
+    """Prepare the observations of one frame for repeated energy evaluations
+    (``keypoints``: a :func:`keypoint_observation` or None)."""
     target = None
     pixels = fallback_pixels
     if mask is not None:
@@ -104,7 +124,8 @@ def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerCon
         for stage in cfg.stages:
             lw = [float(4 ** l) if l in stage else 0.0 for l in range(cfg.levels)]
             targets.append(flow_target(flow, weight=weight, levels=cfg.levels, level_weights=lw))
-    return FrameData(mask=mask, silhouette=target, person_pixels=max(pixels, 1.0), targets=targets)
+    return FrameData(mask=mask, silhouette=target, person_pixels=max(pixels, 1.0), targets=targets,
+                     keypoints=keypoints)
 
 
 def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, stage: int | None,
@@ -133,8 +154,19 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if prev_pose is not None and cfg.temporal_weight > 0:
         terms["temporal"] = cfg.temporal_weight * en.temporal_energy(
             state.pose.reshape(1, 72), prev_pose.reshape(1, 72), weights=data.temporal_weights)[0]
+    if data.keypoints is not None and cfg.keypoint_weight > 0:
+        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma)
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float) -> torch.Tensor:
+    """``E_j``: robust squared pixel distance (Geman-McClure, scale ``sigma`` px) between the
+    model's projected joints and detected ones, confidence-weighted, per confident joint
+    (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel)."""
+    j2d, conf = keypoints
+    pj = scene.camera.project(out.joints[0])
+    return en.keypoint_energy(pj[None], j2d, conf, sigma=sigma)[0] / float((conf > 0).sum())
 
 
 def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> float:
@@ -286,7 +318,11 @@ class ResultBuffer:
         self.trans = list(motion["trans"])
         self.j3d = list(motion["joints3d"])
         self.j2d = list(motion["joints2d"])
-        self.energies = [list(e) for e in motion["energies"]]
+        # by name: a run written by an older version may lack later terms' columns
+        names = [str(n) for n in motion.get("energy_names", ENERGY_NAMES)]
+        col = {n: k for k, n in enumerate(names)}
+        self.energies = [[float(e[col[n]]) if n in col else float("nan") for n in ENERGY_NAMES]
+                         for e in motion["energies"]]
         self.index = [int(i) for i in motion["frame_index"]]
 
 
@@ -309,7 +345,7 @@ def _frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
 
 def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera: PinholeCamera, init,
                    cfg: TrackerConfig | None = None, frames=None, resume: bool = False,
-                   progress: bool = True, monitor=None) -> dict:
+                   progress: bool = True, monitor=None, keypoints=None) -> dict:
     """Track a sequence and write ``out_dir/motion.npz`` and ``run.json`` frame by frame.
 
     Args:
@@ -329,6 +365,9 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
             the frame is replaced by ``new_state``, the Kalman filters restart from it,
             and ``{"frame": i, "event": "re-initialised", **info}`` is recorded in
             ``run.json``. It must not rely on state of its own that a ``--resume`` loses.
+        keypoints: optional detected 2D joints for ``E_j`` (``cfg.keypoint_weight``), a
+            callable ``keypoints(i) -> (j2d (24, 2) px, conf (24,))`` in SMPL joint order,
+            or None for a frame without a detection.
 
     Returns:
         the final ``run.json`` contents.
@@ -337,12 +376,13 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     threads = torch.get_num_threads()
     torch.set_num_threads(int(cfg.torch_threads))
     try:
-        return _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor)
+        return _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor,
+                               keypoints)
     finally:
         torch.set_num_threads(threads)
 
 
-def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor) -> dict:
+def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor, keypoints) -> dict:
     from tqdm import tqdm
 
     from flowmocap.fit.init import fit_frame0
@@ -393,12 +433,16 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
     def flow_of(i: int) -> np.ndarray:
         return cache.flow(i, seq.frame(i), seq.frame(i - 1))
 
+    def detected(i: int) -> tuple | None:
+        found = keypoints(i) if (keypoints is not None and cfg.keypoint_weight > 0) else None
+        return keypoint_observation(*found) if found is not None else None
+
     def observe(i: int) -> tuple[np.ndarray | None, FrameData]:
         """Mask and prepared observations of frame i (run ahead in a worker thread; the
         person-size fallback for a frame without a mask is filled in by the caller)."""
         mask = seq.mask(i)
         usable = mask if (mask is not None and mask.any()) else None
-        return mask, frame_data(usable, flow_of(i), cfg, float("nan"))
+        return mask, frame_data(usable, flow_of(i), cfg, float("nan"), detected(i))
 
     t_start = time.perf_counter()
     if not done_states and isinstance(init, KnownStart):
@@ -422,7 +466,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
         s0 = FrameState(pose0, trans0)
         m1 = load(a + 1)
-        d1 = frame_data(m1, flow_of(a + 1), cfg, d0.person_pixels)
+        d1 = frame_data(m1, flow_of(a + 1), cfg, d0.person_pixels, detected(a + 1))
         j2d = torch.as_tensor(init.joints2d, dtype=torch.float32)
         conf = torch.as_tensor(init.confidence, dtype=torch.float32)
         s0, s1 = refine_first_pair(scene, s0, FrameState(pose0.clone(), trans0.clone()), d0, d1, cfg, j2d, conf)
