@@ -353,3 +353,34 @@ def test_a_result_from_an_older_version_resumes_with_its_energy_columns(clip, mo
     assert resumed["energies"].shape == (4, len(names))
     assert list(resumed["energy_names"]) == names
     np.testing.assert_allclose(resumed["energies"][:3, keep], old["energies"][:3], equal_nan=True)
+
+
+def test_occlusion_check_drops_inconsistent_flow_pixels_from_e_f(clip, model, tmp_path, monkeypatch):
+    """With ``flow_occlusion_check`` the forward flows are computed and cached, E_f's pixel
+    weights are zero wherever the forward-backward check fails (some person pixels of a
+    walker: the swinging limbs (dis)occlude), and tracking stays accurate."""
+    import flowmocap.fit.tracker as tracker
+
+    seen = []
+    original = tracker.frame_data
+
+    def spy(mask, flow, cfg, fallback, keypoints=None, flow_valid=None):
+        data = original(mask, flow, cfg, fallback, keypoints, flow_valid)
+        if flow is not None:
+            seen.append((mask, flow_valid, data))
+        return data
+
+    monkeypatch.setattr(tracker, "frame_data", spy)
+    seq = load_sequence(clip)
+    motion, run = _track(seq, tmp_path / "occ", model, TrackerConfig(flow_occlusion_check=True))
+    assert run["config"]["flow_occlusion_check"] is True
+    assert len(list((tmp_path / "occ" / "flow_cache_forward").glob("*.npz"))) == FRAMES - 2
+    assert len(seen) == FRAMES - 2
+    dropped = 0
+    for mask, valid, data in seen:
+        assert valid is not None and valid.shape == mask.shape
+        dropped += int((mask & ~valid).sum())
+        for target in data.targets:  # E_f's pixel weights: the mask and the check
+            assert np.array_equal(target.sqrt_weight > 0, mask & valid)
+    assert dropped > 0  # some person pixels fail the check
+    assert evaluate(motion, seq.gt)["local_cm"] < 4.0

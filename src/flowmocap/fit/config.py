@@ -41,6 +41,9 @@ class TrackerConfig:
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"     # observed flow (flowmocap.vision.FLOW_METHODS); DIS refined to full resolution
     flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
+    flow_occlusion_check: bool = False  # E_f only on pixels whose flow passes a forward-backward
+                                        # consistency check (costs a second, forward flow per frame);
+                                        # CMU protocol, 8 seeds: median 7.43/9.11 cm vs 7.17/9.18 without: off
     # --- Kalman filters ----------------------------------------------------------------
     kalman: bool = True
     torch_threads: int = 1            # torch threads while tracking: the per-frame problem is small, so one

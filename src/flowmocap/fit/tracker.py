@@ -36,7 +36,7 @@ from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.results import read_result, write_motion, write_run
 from flowmocap.io.sequence import Sequence
 from flowmocap.render import flow_loss, flow_target, prepare_faces
-from flowmocap.vision import FlowCache
+from flowmocap.vision import FlowCache, flow_consistency
 
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints")
 
@@ -107,9 +107,11 @@ def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int
 
 
 def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
-               fallback_pixels: float, keypoints: tuple | None = None) -> FrameData:
+               fallback_pixels: float, keypoints: tuple | None = None,
+               flow_valid: np.ndarray | None = None) -> FrameData:
     """Prepare the observations of one frame for repeated energy evaluations
-    (``keypoints``: a :func:`keypoint_observation` or None)."""
+    (``keypoints``: a :func:`keypoint_observation` or None; ``flow_valid``: ``(H, W)``
+    bool, the pixels whose observed flow passed the forward-backward check, or None)."""
     target = None
     pixels = fallback_pixels
     if mask is not None:
@@ -121,6 +123,10 @@ def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerCon
         # motion boundary (every dense method blurs it) would otherwise dominate E_f and
         # pull the outline; the silhouette term carries the outline instead.
         weight = mask.astype(np.float32) if (mask is not None and cfg.flow_in_mask) else None
+        if flow_valid is not None:
+            # (dis)occluded pixels have no true correspondence: their observed flow is
+            # whatever the method smeared in from the occluder
+            weight = flow_valid.astype(np.float32) * (weight if weight is not None else 1.0)
         for stage in cfg.stages:
             lw = [float(4 ** l) if l in stage else 0.0 for l in range(cfg.levels)]
             targets.append(flow_target(flow, weight=weight, levels=cfg.levels, level_weights=lw))
@@ -422,6 +428,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
             raise InputError(f"{out_dir} already holds a result; pass --resume to continue it or choose another folder.")
         out_dir.mkdir(parents=True, exist_ok=True)
     cache = FlowCache(out_dir / "flow_cache", method=cfg.flow_method)
+    forward_cache = FlowCache(out_dir / "flow_cache_forward", method=cfg.flow_method) if cfg.flow_occlusion_check else None
 
     def load(i: int):
         mask = seq.mask(i)
@@ -430,8 +437,13 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
             return None
         return mask
 
-    def flow_of(i: int) -> np.ndarray:
-        return cache.flow(i, seq.frame(i), seq.frame(i - 1))
+    def flow_of(i: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Observed backward flow of frame i and, with the occlusion check, its valid pixels."""
+        cur, prev = seq.frame(i), seq.frame(i - 1)
+        flow = cache.flow(i, cur, prev)
+        if forward_cache is None:
+            return flow, None
+        return flow, flow_consistency(flow, forward_cache.flow(i, prev, cur))
 
     def detected(i: int) -> tuple | None:
         found = keypoints(i) if (keypoints is not None and cfg.keypoint_weight > 0) else None
@@ -442,7 +454,8 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         person-size fallback for a frame without a mask is filled in by the caller)."""
         mask = seq.mask(i)
         usable = mask if (mask is not None and mask.any()) else None
-        return mask, frame_data(usable, flow_of(i), cfg, float("nan"), detected(i))
+        flow, valid = flow_of(i)
+        return mask, frame_data(usable, flow, cfg, float("nan"), detected(i), valid)
 
     t_start = time.perf_counter()
     if not done_states and isinstance(init, KnownStart):
@@ -466,7 +479,8 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
         s0 = FrameState(pose0, trans0)
         m1 = load(a + 1)
-        d1 = frame_data(m1, flow_of(a + 1), cfg, d0.person_pixels, detected(a + 1))
+        flow1, valid1 = flow_of(a + 1)
+        d1 = frame_data(m1, flow1, cfg, d0.person_pixels, detected(a + 1), valid1)
         j2d = torch.as_tensor(init.joints2d, dtype=torch.float32)
         conf = torch.as_tensor(init.confidence, dtype=torch.float32)
         s0, s1 = refine_first_pair(scene, s0, FrameState(pose0.clone(), trans0.clone()), d0, d1, cfg, j2d, conf)
