@@ -1,6 +1,7 @@
 """Real videos with no manual input: automatic masks, automatic initialisation, tracking.
 
     .venv/bin/python benchmarks/real_video.py [--work DIR] [--only davis|walk] [--config JSON]
+        [--data DIR] [--out JSON]
 
 * DAVIS dance-twirl (90 frames, 854x480, hand-made masks): mean IoU of the automatic
   masks against the hand-made ones (target >= 0.85), and of the fitted body's silhouette
@@ -27,8 +28,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "video"
-DAVIS = DATA / "davis-dance-twirl"
-WALK = DATA / "sports2d-walk" / "walk.mp4"
 
 
 def track(inp: Path, out: Path, extra: list[str]) -> float:
@@ -60,14 +59,15 @@ def body_ious(out: Path, reference) -> list[float]:
             for p, t, f in zip(motion["poses"], motion["trans"], motion["frame_index"])]
 
 
-def davis(work: Path, extra: list[str]) -> dict:
+def davis(work: Path, extra: list[str], data: Path = DATA) -> dict:
     from flowmocap.io.results import read_result
     from flowmocap.vision.auto import load_detections
     from flowmocap.vision.masks import load_mask
 
+    clip = data / "davis-dance-twirl"
     out = work / "davis-dance-twirl"
-    seconds = track(DAVIS / "JPEGImages", out, extra)
-    gt = [load_mask(p) for p in sorted((DAVIS / "Annotations").glob("*.png"))]
+    seconds = track(clip / "JPEGImages", out, extra)
+    gt = [load_mask(p) for p in sorted((clip / "Annotations").glob("*.png"))]
     det = load_detections(out)
     mask_iou = [float((det.mask(i) & g).sum() / (det.mask(i) | g).sum()) for i, g in enumerate(gt)]
     ious = body_ious(out, lambda f: gt[f])
@@ -84,13 +84,13 @@ def davis(work: Path, extra: list[str]) -> dict:
     }
 
 
-def walk(work: Path, extra: list[str], max_size: int) -> dict:
+def walk(work: Path, extra: list[str], max_size: int, data: Path = DATA) -> dict:
     from flowmocap.fit.reinit import joint_disagreement
     from flowmocap.io.results import read_result
     from flowmocap.vision.auto import load_detections
 
     out = work / "sports2d-walk"
-    seconds = track(WALK, out, ["--max-size", str(max_size), *extra])
+    seconds = track(data / "sports2d-walk" / "walk.mp4", out, ["--max-size", str(max_size), *extra])
     motion, run = read_result(out)
     det = load_detections(out)
     frames = [int(f) for f in motion["frame_index"]]
@@ -119,24 +119,27 @@ def main() -> int:
     p.add_argument("--only", choices=["davis", "walk"])
     p.add_argument("--config", help="tracker settings JSON passed to flowmocap track --config")
     p.add_argument("--max-size", type=int, default=640, help="--max-size for the 1768x994 walk (default 640)")
+    p.add_argument("--data", default=str(DATA), help="folder holding davis-dance-twirl/ and sports2d-walk/")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "real_video.json"))
     args = p.parse_args()
-    if not DATA.exists():
-        print(f"shared data not found at {DATA}; nothing to do")
+    data = Path(args.data)
+    if not data.exists():
+        print(f"shared data not found at {data}; nothing to do")
         return 1
     work = Path(args.work)
     extra = ["--config", args.config] if args.config else []
     results = []
     if args.only in (None, "davis"):
-        results.append(davis(work, extra))
+        results.append(davis(work, extra, data))
     if args.only in (None, "walk"):
-        results.append(walk(work, extra, args.max_size))
+        results.append(walk(work, extra, args.max_size, data))
     print(f"\n{'clip':<20}{'tracked':>10}{'mask IoU':>10}{'body IoU':>10}{'reinits':>9}{'s/frame':>9}")
     for r in results:
         print(f"{r['clip']:<20}{r['tracked_frames']:>10}"
               f"{r.get('auto_mask_iou_mean', float('nan')):>10.3f}"
               f"{r.get('body_iou_mean', r.get('body_iou_vs_auto_mask_mean', float('nan'))):>10.3f}"
               f"{len(r['reinitialisations']):>9}{r['s_per_frame_median'] or float('nan'):>9.2f}")
-    res = ROOT / "benchmarks" / "results" / "real_video.json"
+    res = Path(args.out)
     res.parent.mkdir(parents=True, exist_ok=True)
     res.write_text(json.dumps({"config": args.config, "results": results}, indent=2))
     print(f"wrote {res}")
