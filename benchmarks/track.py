@@ -8,6 +8,11 @@ the median seconds per frame (observed flow included), and writes JSON.
 
 Usage: python benchmarks/track.py [--frames 130] [--size 640x480] [--fps 60] [--motion PATH]
        [--out benchmarks/results/track.json] [--work DIR] [--config cfg.json]
+       [--gt-init] [--true-flow] [--track-frames A:B]
+
+Ablations that separate the tracker's own error from its inputs': ``--gt-init`` starts
+from the true poses of the first two frames (no initialisation), ``--true-flow`` gives the
+tracker the renderer's exact flow instead of the observed (OpenCV) one.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ def main() -> int:
     ap.add_argument("--config", default=None)
     ap.add_argument("--work", default=None, help="folder for the sequence and result (default: temporary)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "track.json"))
+    ap.add_argument("--gt-init", action="store_true", help="start from the true first two frames")
+    ap.add_argument("--true-flow", action="store_true", help="track on the renderer's exact flow")
+    ap.add_argument("--track-frames", default=None, help="A:B, the frames to track (default all)")
     args = ap.parse_args()
     if args.motion == str(CMU) and not CMU.exists():
         print(f"skipped: {CMU} not found (../shared/data is absent)")
@@ -46,22 +54,34 @@ def main() -> int:
     from flowmocap.eval.protocol import evaluate, noisy_init
     from flowmocap.fit.config import TrackerConfig
     from flowmocap.fit.init import parse_init
-    from flowmocap.fit.tracker import track_sequence
+    from flowmocap.fit.tracker import KnownStart, track_sequence
     from flowmocap.io.results import read_result
     from flowmocap.io.sequence import load_sequence
     from flowmocap.synth import synthesize
+    from flowmocap.vision import FlowCache
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="flowmocap_track_"))
     seq_dir, res_dir = work / "sequence", work / "result"
-    if not (seq_dir / "gt.npz").exists():
+    if not (seq_dir / "gt.npz").exists() or (args.true_flow and not (seq_dir / "flow").is_dir()):
         synthesize(args.motion, seq_dir, fps=args.fps, frames=args.frames, size=args.size, betas="random",
-                   seed=args.seed, azimuth=args.azimuth, flow=False)
+                   seed=args.seed, azimuth=args.azimuth, flow=args.true_flow)
     seq = load_sequence(seq_dir)
-    init = parse_init(noisy_init(seq.gt, seed=args.seed), *seq.size)
+    gt = seq.gt
+    start = 0 if args.track_frames is None else int(args.track_frames.split(":")[0] or 0)
+    if args.gt_init:
+        init = KnownStart(poses=gt["poses"][start:start + 2], trans=gt["trans"][start:start + 2], betas=gt["betas"])
+    else:
+        init = parse_init(noisy_init(gt, frame=start, seed=args.seed), *seq.size)
     cfg = TrackerConfig.load(args.config)
+    if args.true_flow:  # the tracker reads its observed flow from this cache
+        cache = FlowCache(res_dir / "flow_cache", method=cfg.flow_method)
+        for f in sorted((seq_dir / "flow").glob("*.npz")):
+            if int(f.stem) not in cache:
+                with np.load(f) as z:
+                    cache.put(int(f.stem), z["flow"])
     model = load_body_model("default")
     t0 = time.perf_counter()
-    run = track_sequence(seq, res_dir, model, seq.camera, init, cfg=cfg,
+    run = track_sequence(seq, res_dir, model, seq.camera, init, cfg=cfg, frames=args.track_frames,
                          resume=(res_dir / "motion.npz").exists(), progress=True)
     wall = time.perf_counter() - t0
     motion, _ = read_result(res_dir)
@@ -70,6 +90,7 @@ def main() -> int:
     result = {
         "benchmark": "track", "commit": commit, "motion": Path(args.motion).name, "frames": args.frames,
         "size": args.size, "fps": args.fps, "azimuth": args.azimuth, "seed": args.seed,
+        "gt_init": args.gt_init, "true_flow": args.true_flow, "track_frames": args.track_frames,
         "config": cfg.to_dict(), "local_cm": scores["local_cm"], "global_cm": scores["global_cm"],
         "mpjpe_cm": scores["mpjpe_cm"], "s_per_frame_median": run["timings"].get("s_per_frame_median"),
         "init_s": run["timings"].get("init_s"), "wall_s": wall, "events": run["events"],

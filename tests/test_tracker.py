@@ -384,3 +384,41 @@ def test_occlusion_check_drops_inconsistent_flow_pixels_from_e_f(clip, model, tm
             assert np.array_equal(target.sqrt_weight > 0, mask & valid)
     assert dropped > 0  # some person pixels fail the check
     assert evaluate(motion, seq.gt)["local_cm"] < 4.0
+
+
+def test_rough_pose_weights_follow_the_joints_the_init_states(clip, model):
+    """An init.json with a rough pose pulls every joint but the root towards it with
+    ``init_rough_pose_weight``, one without (or with the root's alone, as the automatic
+    init) with ``init_pose_prior_weight``; a prior weight far above the other terms keeps
+    a joint at its rough rotation through the fit, a zero one lets the 2D joints move it."""
+    from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.fit import energies as en
+    from flowmocap.fit.init import fit_frame0, rough_pose_weights
+
+    seq = load_sequence(clip)
+    data = noisy_init(seq.gt, frame=0, seed=2)
+    spec = parse_init(data, *seq.size)
+    named = set(data["pose"])
+
+    assert spec.pose_given.sum() == len(named)
+    assert all(spec.pose_given[JOINT_INDEX[n]] for n in named)
+    cfg = TrackerConfig(init_pose_prior_weight=7.0, init_rough_pose_weight=70.0)
+    w = rough_pose_weights(spec, cfg)
+    assert w.shape == (24,) and w[0] == 0.0
+    assert (w[1:] == 70.0).all()
+    assert parse_init({**data, "pose": {}, "pose72": np.zeros(72).tolist()}, *seq.size).pose_given.all()
+    bare = parse_init({"joints2d": data["joints2d"]}, *seq.size)
+    assert not bare.pose_given.any() and (rough_pose_weights(bare, cfg)[1:] == 7.0).all()
+    root_only = parse_init({"joints2d": data["joints2d"], "pose": {"pelvis": [0.0, 3.0, 0.0]}}, *seq.size)
+    assert (rough_pose_weights(root_only, cfg) == np.r_[0.0, np.full(23, 7.0)]).all()
+    with pytest.raises(InputError):
+        TrackerConfig.load(init_rough_pose_weight=-1.0)
+
+    knee = JOINT_INDEX["left_knee"]
+    sil = en.silhouette_target(seq.mask(0))
+    stiff = TrackerConfig(init_rough_pose_weight=1e7, init_iterations=15)
+    pose, _, _, _ = fit_frame0(model, seq.camera, spec, sil, stiff)
+    assert np.allclose(pose.numpy()[3 * knee:3 * knee + 3], spec.pose[3 * knee:3 * knee + 3], atol=1e-3)
+    free = TrackerConfig(init_rough_pose_weight=0.0, init_iterations=15)
+    pose, _, _, _ = fit_frame0(model, seq.camera, spec, sil, free)
+    assert not np.allclose(pose.numpy()[3 * knee:3 * knee + 3], spec.pose[3 * knee:3 * knee + 3], atol=1e-2)

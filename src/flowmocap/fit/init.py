@@ -48,7 +48,8 @@ INIT_JOINTS = (
 @dataclass
 class InitSpec:
     """Parsed init.json: ``joints2d (24, 2)`` pixels, ``confidence (24,)`` (0 = unknown),
-    ``pose (72,)`` rough pose, ``trans (3,)`` or None, ``betas (10,)``."""
+    ``pose (72,)`` rough pose, ``trans (3,)`` or None, ``betas (10,)``, and ``pose_given
+    (24,)`` bool: the joints whose rough rotation the file states (None: none)."""
 
     frame: int
     joints2d: np.ndarray
@@ -56,6 +57,7 @@ class InitSpec:
     pose: np.ndarray
     trans: np.ndarray | None
     betas: np.ndarray
+    pose_given: np.ndarray | None = None
 
 
 def parse_init(data: dict | str | Path, width: int | None = None, height: int | None = None) -> InitSpec:
@@ -94,20 +96,23 @@ def parse_init(data: dict | str | Path, width: int | None = None, height: int | 
     if (conf > 0).sum() < 4:
         raise NoPersonError("init.json gives fewer than 4 joints; mark at least hips and shoulders.")
     pose = np.zeros(72)
+    given = np.zeros(24, bool)
     if "pose72" in data:
         pose = np.asarray(data["pose72"], dtype=np.float64)
         if pose.shape != (72,):
             raise InputError("init.json: 'pose72' must have 72 numbers.")
+        given[:] = True
     for name, aa in (data.get("pose") or {}).items():
         if name not in JOINT_INDEX:
             raise InputError(f"init.json: unknown joint {name!r} in 'pose'.")
         pose[3 * JOINT_INDEX[name] : 3 * JOINT_INDEX[name] + 3] = np.asarray(aa, dtype=np.float64)
+        given[JOINT_INDEX[name]] = True
     trans = np.asarray(data["trans"], dtype=np.float64) if data.get("trans") is not None else None
     betas = np.zeros(10)
     if data.get("betas") is not None:
         b = np.asarray(data["betas"], dtype=np.float64)
         betas[: min(10, b.size)] = b[:10]
-    return InitSpec(int(data.get("frame", 0)), j2d, conf, pose, trans, betas)
+    return InitSpec(int(data.get("frame", 0)), j2d, conf, pose, trans, betas, given)
 
 
 def guess_translation(model: BodyModel, camera: PinholeCamera, spec: InitSpec) -> torch.Tensor:
@@ -146,12 +151,30 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
              else guess_translation(model, camera, spec))
     return fit_to_joints(model, camera, spec.joints2d, spec.confidence, silhouette, cfg,
                          torch.as_tensor(spec.pose, dtype=torch.float32), trans,
-                         torch.as_tensor(spec.betas, dtype=torch.float32)[None], fit_shape=True)
+                         torch.as_tensor(spec.betas, dtype=torch.float32)[None], fit_shape=True,
+                         prior_weights=rough_pose_weights(spec, cfg))
+
+
+def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
+    """Per-joint weights of the initialisation's pose prior, ``(24,)`` per rad^2.
+
+    An init that states a rough pose (a rotation for any joint but the root) describes
+    the whole body, the joints it leaves out being at rest: every joint is then pulled
+    towards it with ``cfg.init_rough_pose_weight``. Without one (2D joints only, or the
+    automatic init, which guesses the root alone) the start pose is only a guess and the
+    weight is ``cfg.init_pose_prior_weight``. The root gets 0: the 2D joints decide it.
+    """
+    given = np.asarray(spec.pose_given, bool) if spec.pose_given is not None else np.zeros(24, bool)
+    weight = cfg.init_rough_pose_weight if given[1:].any() else cfg.init_pose_prior_weight
+    w = np.full(24, float(weight))
+    w[0] = 0.0
+    return w
 
 
 def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence, silhouette, cfg: TrackerConfig,
                   pose0: torch.Tensor, trans0: torch.Tensor, betas: torch.Tensor, *, fit_shape: bool,
-                  iterations: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+                  iterations: int | None = None,
+                  prior_weights=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
     """Fit the body to one frame's 2D joints, then also to its silhouette (init steps 1-2).
 
     Translation alone first, then pose and translation (and the shape when ``fit_shape``)
@@ -164,6 +187,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         pose0: ``(72,)`` start and prior, radians; trans0: ``(3,)`` metres; betas: ``(1, 10)``.
         fit_shape: optimise the betas (with ``cfg.init_shape_prior_weight``) or keep them.
         iterations: L-BFGS iterations per step (default ``cfg.init_iterations``).
+        prior_weights: ``(24,)`` per-joint weights of the prior towards ``pose0``, per
+            rad^2 (see :func:`rough_pose_weights`); default ``cfg.init_pose_prior_weight``
+            for every joint but the root.
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
@@ -178,13 +204,18 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     j2d = torch.as_tensor(np.asarray(joints2d), dtype=torch.float32)
     conf = torch.as_tensor(np.asarray(confidence), dtype=torch.float32)
     faces = prepare_faces(model.faces_np) if cfg.silhouette_model == "mesh" else None
+    if prior_weights is None:
+        prior_weights = np.r_[0.0, np.full(23, float(cfg.init_pose_prior_weight))]
+    prior_w = torch.as_tensor(np.asarray(prior_weights, np.float64), dtype=torch.float32)
+    if prior_w.shape != (24,):
+        raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
     def energy(with_silhouette: bool, terms: dict | None = None):
         out = model(betas=betas, pose=pose[None], trans=trans[None])
         pj = camera.project(out.joints[0])
         t = {
             "keypoints": cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0],
-            "pose_prior": cfg.init_pose_prior_weight * en.pose_prior_energy(pose[None], ref_pose[None])[0],
+            "pose_prior": en.pose_prior_energy(pose[None], ref_pose[None], weights=prior_w)[0],
         }
         if fit_shape:
             t["shape_prior"] = cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0]
