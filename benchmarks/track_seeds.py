@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -34,16 +33,14 @@ def run_one(name: str, config: str | None, seed: int, args, work: Path) -> dict:
            "--frames", str(args.frames), "--work", str(work / f"seq_s{seed}" / name), "--out", str(out)]
     if config:
         cmd += ["--config", config]
-    # the synthetic sequence depends on the seed only: every setting shares it
-    seq = work / f"seq_s{seed}" / "sequence"
-    cmd_env = dict(os.environ)
-    log = (work / f"{name}_s{seed}.log").open("w")
-    if seq.exists():
-        (work / f"seq_s{seed}" / name).mkdir(parents=True, exist_ok=True)
-        link = work / f"seq_s{seed}" / name / "sequence"
-        if not link.exists():
-            link.symlink_to(seq.resolve())
-    p = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=cmd_env)
+    # the synthetic sequence depends on the seed only (made by synth_once): every setting links to it
+    link = work / f"seq_s{seed}" / name / "sequence"
+    link.parent.mkdir(parents=True, exist_ok=True)
+    if not link.exists():
+        link.symlink_to((work / f"seq_s{seed}" / "sequence").resolve())
+    log = work / f"{name}_s{seed}.log"
+    with log.open("w") as fh:
+        p = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT)
     if p.returncode != 0 or not out.exists():
         return {"setting": name, "seed": seed, "error": f"exit {p.returncode}, see {log.name}"}
     r = json.loads(out.read_text())
