@@ -94,7 +94,7 @@ def main() -> int:
         "config": cfg.to_dict(), "local_cm": scores["local_cm"], "global_cm": scores["global_cm"],
         "mpjpe_cm": scores["mpjpe_cm"], "s_per_frame_median": run["timings"].get("s_per_frame_median"),
         "init_s": run["timings"].get("init_s"), "wall_s": wall, "events": run["events"],
-        "local_cm_per_frame": scores["local_cm_per_frame"],
+        "local_cm_per_frame": scores["local_cm_per_frame"], "joints": scores.get("joints"),
         "targets": {"local_cm": 5.5, "global_cm": 7.6, "s_per_frame": 1.0},
     }
     print(f"{'metric':<28}{'ours':>10}{'target':>10}")
@@ -102,6 +102,9 @@ def main() -> int:
     print(f"{'global (per-sequence PA) cm':<28}{scores['global_cm']:>10.2f}{7.6:>10.1f}")
     print(f"{'MPJPE (root-relative) cm':<28}{scores['mpjpe_cm']:>10.2f}{'':>10}")
     print(f"{'s per frame (median)':<28}{result['s_per_frame_median']:>10.2f}{1.0:>10.1f}")
+    print("\nroot-relative error per joint, cm: across the view / along it (depth) / depth bias (< 0: nearer)")
+    for name, e in (scores.get("joints") or {}).items():
+        print(f"  {name:<16}{e['plane_cm']:>8.1f}{e['depth_cm']:>8.1f}{e['depth_bias_cm']:>8.1f}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out} (work folder {work})")

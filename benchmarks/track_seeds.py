@@ -46,7 +46,18 @@ def run_one(name: str, config: str | None, seed: int, args, work: Path) -> dict:
     r = json.loads(out.read_text())
     return {"setting": name, "seed": seed, "local_cm": r["local_cm"], "global_cm": r["global_cm"],
             "s_per_frame": r["s_per_frame_median"], "events": len(r["events"]),
-            "local_cm_per_frame": r["local_cm_per_frame"]}
+            "local_cm_per_frame": r["local_cm_per_frame"], "joints": r.get("joints")}
+
+
+def split_means(rows: list[dict]) -> dict:
+    """Mean over seeds and the 13 joints of the image-plane and depth errors (cm), and the
+    per-joint means (``joints``), from the runs' ``joints`` tables; {} when they lack them."""
+    tables = [r["joints"] for r in rows if r.get("joints")]
+    if not tables:
+        return {}
+    per_joint = {j: {k: float(np.mean([t[j][k] for t in tables])) for k in tables[0][j]} for j in tables[0]}
+    return {"plane_cm": float(np.mean([e["plane_cm"] for e in per_joint.values()])),
+            "depth_cm": float(np.mean([e["depth_cm"] for e in per_joint.values()])), "joints": per_joint}
 
 
 def synth_once(seed: int, args, work: Path) -> None:
@@ -102,9 +113,12 @@ def main() -> int:
         if ok:
             med = {k: float(np.median([r[k] for r in ok])) for k in ("local_cm", "global_cm", "s_per_frame")}
             met = sum(r["local_cm"] <= TARGETS["local_cm"] and r["global_cm"] <= TARGETS["global_cm"] for r in ok)
-            summary[name] = {**med, "seeds_meeting_targets": met, "seeds": len(ok)}
+            summary[name] = {**med, "seeds_meeting_targets": met, "seeds": len(ok), **split_means(ok)}
             print(f"{name:<24}{'med':>5}{med['local_cm']:>10.2f}{med['global_cm']:>11.2f}{med['s_per_frame']:>9.2f}"
                   f"   {met}/{len(ok)} seeds meet {TARGETS['local_cm']}/{TARGETS['global_cm']} cm")
+            if "plane_cm" in summary[name]:
+                print(f"{'':<29}root-relative error, mean over joints and seeds: {summary[name]['plane_cm']:.1f} cm "
+                      f"across the view, {summary[name]['depth_cm']:.1f} cm along it (depth)")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"benchmark": "track_seeds", "jobs": args.jobs, "seeds": seeds,
                                           "settings": dict(settings), "summary": summary, "runs": rows},

@@ -10,6 +10,7 @@ from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.errors import InputError
 from flowmocap.eval.metrics import (
     acceleration_error,
+    depth_split_error,
     global_procrustes_error,
     joint2d_error,
     local_procrustes_error,
@@ -56,6 +57,26 @@ def test_constant_acceleration_gives_the_known_error():
     assert np.allclose(acceleration_error(gt + 0.3 + 0.05 * t, gt), 0, atol=1e-12)
     with pytest.raises(InputError):
         acceleration_error(gt[:2], gt[:2])
+
+
+def test_depth_split_error_separates_image_plane_and_depth():
+    """A joint moved along the camera's viewing axis shows as depth error only, one moved
+    across it as image-plane error only; moving the whole body (the root too) is no error."""
+    gt = _skeleton()
+    R = Rotation.from_rotvec([0.2, 1.1, -0.3]).as_matrix()  # world -> camera
+    view, across = R.T @ np.array([0.0, 0.0, 1.0]), R.T @ np.array([0.6, 0.8, 0.0])
+    pred = gt + np.array([0.4, -1.0, 2.0])  # a global shift: no root-relative error
+    pred[:, 5] += 0.07 * view  # 7 cm further from the camera
+    pred[:, 9] -= 0.03 * across  # 3 cm across the view
+    pred[:3, 11] -= 0.05 * view  # nearer, in 3 of the 5 frames
+    plane, depth, bias = depth_split_error(pred, gt, R)
+    expected = np.zeros((3, 24))
+    expected[1, 5] = expected[2, 5] = 0.07
+    expected[0, 9] = 0.03
+    expected[1, 11], expected[2, 11] = 0.03, -0.03
+    np.testing.assert_allclose(np.stack([plane, depth, bias]), expected, atol=1e-12)
+    with pytest.raises(InputError):
+        depth_split_error(pred, gt, np.eye(2))
 
 
 def test_joint2d_error():

@@ -6,6 +6,8 @@ metric                       definition                              unit
 local_procrustes_error       similarity Procrustes per frame          m (per frame)
 global_procrustes_error      one similarity Procrustes per sequence   m (per frame)
 mpjpe                        root-relative, no alignment              m (per frame)
+depth_split_error            root-relative, split into the image      m (per joint)
+                             plane and the camera's depth axis
 acceleration_error           |second difference pred - gt|, world     m/frame^2
 joint2d_error                Euclidean 2D distance                    px (per frame)
 silhouette_iou               intersection / union of masks            -- (per frame)
@@ -67,6 +69,31 @@ def mpjpe(pred, gt, joints=EVAL_JOINTS, root: int = 0) -> np.ndarray:
     p = pred[:, list(joints)] - pred[:, root : root + 1]
     g = gt[:, list(joints)] - gt[:, root : root + 1]
     return np.linalg.norm(p - g, axis=-1).mean(-1)
+
+
+def depth_split_error(pred, gt, camera_rotation, root: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where a monocular error lies: root-relative joint error in camera coordinates,
+    split into its image-plane part (camera x, y) and its depth part (camera z).
+
+    A single camera sees the image-plane part directly and the depth part worst (a
+    limb swung towards or away from the camera projects alike).
+
+    Args:
+        pred, gt: ``(T, J, 3)`` joints in metres, world frame.
+        camera_rotation: ``(3, 3)`` world-to-camera rotation (camera z = viewing direction).
+        root: the joint both are made relative to (default the pelvis).
+
+    Returns:
+        ``(J,)`` arrays in metres, means over frames: ``plane``, the image-plane error;
+        ``depth``, the absolute depth error; ``bias``, the signed depth error (< 0: the
+        joint sits nearer the camera than the truth).
+    """
+    pred, gt = _check(pred, gt)
+    R = np.asarray(camera_rotation, np.float64)
+    if R.shape != (3, 3):
+        raise InputError(f"camera_rotation must be a (3, 3) matrix; got {R.shape}.")
+    d = ((pred - pred[:, root : root + 1]) - (gt - gt[:, root : root + 1])) @ R.T
+    return np.linalg.norm(d[..., :2], axis=-1).mean(0), np.abs(d[..., 2]).mean(0), d[..., 2].mean(0)
 
 
 def acceleration_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:

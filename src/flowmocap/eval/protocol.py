@@ -52,19 +52,33 @@ def evaluate(motion: dict, gt: dict) -> dict:
     """Paper metrics of a result against ground truth (frames matched by ``frame_index``).
 
     Returns:
-        dict with ``local_cm``, ``global_cm``, ``mpjpe_cm`` (means over frames), and the
-        per-frame ``local_cm_per_frame``.
+        dict with ``local_cm``, ``global_cm``, ``mpjpe_cm`` (means over frames), the
+        per-frame ``local_cm_per_frame`` and, when ``motion`` holds its ``camera``,
+        ``joints``: for each of the paper's 13 joints, ``plane_cm`` / ``depth_cm`` /
+        ``depth_bias_cm``, its root-relative error across and along the camera's view
+        (:func:`~flowmocap.eval.metrics.depth_split_error`).
     """
-    from flowmocap.eval.metrics import global_procrustes_error, local_procrustes_error, mpjpe
+    import json
+
+    from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_NAMES
+    from flowmocap.eval.metrics import depth_split_error, global_procrustes_error, local_procrustes_error, mpjpe
 
     idx = np.asarray(motion["frame_index"], int)
     pred = np.asarray(motion["joints3d"], np.float64)
     ref = np.asarray(gt["joints3d"], np.float64)[idx]
     local = local_procrustes_error(pred, ref)
-    return {
+    scores = {
         "frames": int(len(idx)),
         "local_cm": float(100 * local.mean()),
         "global_cm": float(100 * global_procrustes_error(pred, ref).mean()),
         "mpjpe_cm": float(100 * mpjpe(pred, ref).mean()),
         "local_cm_per_frame": (100 * local).round(2).tolist(),
     }
+    if "camera" in motion:
+        rotation = json.loads(str(motion["camera"]))["R"]
+        plane, depth, bias = depth_split_error(pred, ref, rotation)
+        scores["joints"] = {JOINT_NAMES[j]: {"plane_cm": round(100 * float(plane[j]), 2),
+                                             "depth_cm": round(100 * float(depth[j]), 2),
+                                             "depth_bias_cm": round(100 * float(bias[j]), 2)}
+                            for j in EVAL_JOINTS}
+    return scores
