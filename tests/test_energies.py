@@ -127,11 +127,13 @@ def test_joint_angles_of_single_axis_rotations():
 def test_joint_limit_energy_zero_inside_positive_outside(body, walk):
     assert joint_limit_energy(torch.zeros(1, 72)).item() == 0.0
     assert joint_limit_energy(walk).max().item() == 0.0
+    assert joint_limit_energy(_pose(("left_knee", 1, 8), ("right_knee", 1, -8))).item() == 0.0  # a little tibial rotation
     natural = _pose(("left_knee", 0, 120), ("left_hip", 0, -90), ("left_elbow", 1, -120), ("right_elbow", 1, 90),
                     ("left_shoulder", 2, -80), ("left_ankle", 0, 30), ("spine2", 0, 20), ("neck", 1, 30))
     assert joint_limit_energy(natural).item() == 0.0
     for bad in [("left_knee", 0, -30), ("right_knee", 0, -30), ("left_elbow", 1, 40), ("right_elbow", 1, -40),
-                ("left_hip", 2, -60), ("left_wrist", 2, 110), ("head", 0, 80)]:
+                ("left_hip", 2, -60), ("left_wrist", 2, 110), ("head", 0, 80), ("left_knee", 1, 30),
+                ("right_knee", 1, -30)]:
         assert joint_limit_energy(_pose(bad)).item() > 0.05, bad
     # a knee bent backwards costs more the further it goes
     e = [joint_limit_energy(_pose(("left_knee", 0, -d))).item() for d in (6, 10, 20, 40)]

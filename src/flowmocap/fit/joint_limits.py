@@ -53,11 +53,15 @@ joint            x           y            z           source
 hip              -120..30    -45..45      -30..45     AAOS: flexion 120, extension 30, abduction
                                                       45, adduction 30, internal/external
                                                       rotation 45; Roaas & Andersson: flexion 120
-knee             -5..145     -35..35      -10..10     flexion 135 (AAOS), 143 (Roaas &
+knee             -5..145     -10..10      -10..10     flexion 135 (AAOS), 143 (Roaas &
                                                       Andersson), ~140 (Soucie); a few degrees of
                                                       hyperextension are normal (Soucie); tibial
-                                                      rotation of the flexed knee, varus/valgus
-                                                      laxity
+                                                      (y) rotation needs a flexed knee (~30-40
+                                                      passively at 90 deg, ~0 extended: the
+                                                      screw-home lock; Kapandji), so the soft box
+                                                      keeps 10 (35 let the tracker twist shins
+                                                      25-35 deg to explain flow errors);
+                                                      varus/valgus laxity
 ankle            -20..50     -30..30      -25..35     AAOS: dorsiflexion 20, plantar flexion 50,
                                                       inversion 35, eversion 15; y, z widened by
                                                       10 (SMPL's ankle also takes the hindfoot
@@ -139,7 +143,7 @@ for _name in ("spine1", "spine2", "spine3", "neck", "head"):
 _LEFT_DEG: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
     # joint: ((x lo, x hi), (y lo, y hi), (z lo, z hi)) in degrees, body's left side
     "hip": ((-120.0, 30.0), (-45.0, 45.0), (-30.0, 45.0)),
-    "knee": ((-5.0, 145.0), (-35.0, 35.0), (-10.0, 10.0)),
+    "knee": ((-5.0, 145.0), (-10.0, 10.0), (-10.0, 10.0)),
     "ankle": ((-20.0, 50.0), (-30.0, 30.0), (-25.0, 35.0)),
     "foot": ((-70.0, 45.0), (-20.0, 20.0), (-20.0, 20.0)),
     "collar": ((-30.0, 30.0), (-25.0, 25.0), (-10.0, 35.0)),
