@@ -428,3 +428,19 @@ def test_rough_pose_weights_follow_the_joints_the_init_states(clip, model):
     free = TrackerConfig(init_rough_pose_weight=0.0, init_iterations=15)
     pose, _, _, _ = fit_frame0(model, seq.camera, spec, sil, free)
     assert not np.allclose(pose.numpy()[3 * knee:3 * knee + 3], spec.pose[3 * knee:3 * knee + 3], atol=1e-2)
+
+
+def test_kalman_process_noise_comes_from_the_config():
+    """``kalman_rot_accel_noise`` reaches every joint filter (and survives a resume's state
+    round trip); a non-positive value is refused."""
+    from flowmocap.fit.kalman import PoseFilter
+    from flowmocap.fit.tracker import new_filter
+
+    kf = new_filter(np.zeros(72), np.zeros(3), TrackerConfig(kalman_rot_accel_noise=0.005))
+    assert all(j.accel_noise == pytest.approx(0.005) for j in kf.joints)
+    again = PoseFilter.from_state_dict(json.loads(json.dumps(kf.state_dict())))
+    assert all(j.accel_noise == pytest.approx(0.005) for j in again.joints)
+    for bad in (0.0, -0.01):
+        with pytest.raises(InputError):
+            TrackerConfig.load(kalman_rot_accel_noise=bad)
+

@@ -46,6 +46,8 @@ class TrackerConfig:
                                         # CMU protocol, 8 seeds: median 7.43/9.11 cm vs 7.17/9.18 without: off
     # --- Kalman filters ----------------------------------------------------------------
     kalman: bool = True
+    kalman_rot_accel_noise: float = 0.02  # rad/frame^2, the joint filters' white angular acceleration; with their
+                                          # 0.02 rad measurement noise it sets how much the prediction smooths
     torch_threads: int = 1            # torch threads while tracking: the per-frame problem is small, so one
                                       # thread is as fast, leaves a core to the flow of the next frame, and
                                       # keeps results independent of the machine's core count
@@ -87,6 +89,8 @@ class TrackerConfig:
         if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
             raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
                              "cheap Jacobian); set both.")
+        if not cfg.kalman_rot_accel_noise > 0:
+            raise InputError(f"kalman_rot_accel_noise must be > 0; got {cfg.kalman_rot_accel_noise!r}.")
         if not cfg.occlusion_temporal_gain >= 0:
             raise InputError(f"occlusion_temporal_gain must be >= 0; got {cfg.occlusion_temporal_gain!r}.")
         if not (cfg.init_pose_prior_weight >= 0 and cfg.init_rough_pose_weight >= 0):

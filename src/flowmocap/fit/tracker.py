@@ -481,7 +481,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         done_states = [FrameState(f(init.poses[k]), f(init.trans[k])) for k in (0, 1)]
         buf.add(a, done_states[0], {})
         buf.add(a + 1, done_states[1], {})
-        kf = PoseFilter(init.poses[0].astype(np.float64), init.trans[0].astype(np.float64)) if cfg.kalman else None
+        kf = new_filter(init.poses[0], init.trans[0], cfg) if cfg.kalman else None
         if kf is not None:
             kf.update(init.poses[1].astype(np.float64), init.trans[1].astype(np.float64))
             run["kalman"] = kf.state_dict()
@@ -506,7 +506,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         buf.add(a + 1, s1, terms1)
         done_states = [s0, s1]
         run["timings"]["init_s"] = time.perf_counter() - t0
-        kf = PoseFilter(s0.pose.numpy().astype(np.float64), s0.trans.numpy().astype(np.float64)) if cfg.kalman else None
+        kf = new_filter(s0.pose.numpy(), s0.trans.numpy(), cfg) if cfg.kalman else None
         if kf is not None:
             kf.update(s1.pose.numpy().astype(np.float64), s1.trans.numpy().astype(np.float64))
             run["kalman"] = kf.state_dict()
@@ -564,7 +564,7 @@ def _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, 
         state, info = reinit
         run["events"].append({"frame": i, "event": "re-initialised", **info})
         if kf is not None:
-            kf = PoseFilter(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+            kf = new_filter(state.pose.numpy(), state.trans.numpy(), cfg)
     elif kf is not None:
         kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
     if kf is not None:
@@ -577,6 +577,13 @@ def _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, 
     buf.flush()
     bar.set_postfix({k[:4]: f"{v:.3g}" for k, v in terms.items()})
     return kf
+
+
+def new_filter(pose, trans, cfg: TrackerConfig) -> PoseFilter:
+    """Kalman filters started at ``pose (72,)`` radians and ``trans (3,)`` metres, with the
+    configured joint-rotation process noise."""
+    return PoseFilter(np.asarray(pose, np.float64), np.asarray(trans, np.float64),
+                      rot_accel_noise=cfg.kalman_rot_accel_noise)
 
 
 def buf_pixels(states: list[FrameState], scene: Scene) -> float:
