@@ -42,8 +42,9 @@ def _known_start(seq):
     return KnownStart(poses=gt["poses"][:2], trans=gt["trans"][:2], betas=gt["betas"])
 
 
-def _track(seq, out, model, cfg=None, **kw):
-    track_sequence(seq, out, model, seq.camera, _known_start(seq), cfg=cfg or TrackerConfig(), progress=False, **kw)
+def _track(seq, out, model, cfg=None, init=None, **kw):
+    track_sequence(seq, out, model, seq.camera, init or _known_start(seq), cfg=cfg or TrackerConfig(),
+                   progress=False, **kw)
     motion, run = read_result(out)
     return motion, run
 
@@ -444,3 +445,45 @@ def test_kalman_process_noise_comes_from_the_config():
         with pytest.raises(InputError):
             TrackerConfig.load(kalman_rot_accel_noise=bad)
 
+
+
+def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp_path):
+    """``E_a`` is ``anchor_weight`` times the squared distance of every joint's rotation but
+    the root's from the track's first frame (closed form); the first frame is the first
+    tracked one or the last re-initialised one; tracking with it stays accurate."""
+    from flowmocap.fit.tracker import FrameData, FrameState, Scene, _anchor_state, frame_energy
+
+    seq = load_sequence(clip)
+    gt = seq.gt
+    scene = Scene(model, torch.as_tensor(gt["betas"], dtype=torch.float32)[None], seq.camera)
+    anchor = torch.as_tensor(gt["poses"][0], dtype=torch.float32)
+    delta = torch.zeros(72)
+    delta[:3] = 0.7  # the root is free
+    delta[3 * 4:3 * 4 + 3] = torch.tensor([0.2, -0.1, 0.05])
+    state = FrameState(anchor + delta, torch.as_tensor(gt["trans"][0], dtype=torch.float32))
+    cfg = TrackerConfig(anchor_weight=3.0, flow_weight=0.0, silhouette_weight=0.0, limit_weight=0.0,
+                        penetration_weight=0.0, temporal_weight=0.0)
+    _, terms = frame_energy(scene, state, FrameData(None, None, 1.0, anchor=anchor), cfg, None, None, None)
+    assert terms["anchor"] == pytest.approx(3.0 * (0.04 + 0.01 + 0.0025), rel=1e-5)
+
+    states = [FrameState(torch.full((72,), float(f)), torch.zeros(3)) for f in range(5, 12)]  # frames 5..11
+    run = {"frames": [5, 30], "anchored": True, "events": [{"frame": 7, "event": "non-finite energy"}]}
+    assert float(_anchor_state(states, run).pose[0]) == 5.0
+    assert _anchor_state(states, {**run, "anchored": False}) is None  # an automatic init
+    run["events"].append({"frame": 9, "event": "re-initialised"})
+    assert _anchor_state(states, run) is None
+
+    motion, run = _track(seq, tmp_path / "anchor", model, TrackerConfig(anchor_weight=0.5))  # a known start
+    assert run["anchored"] is True
+    col = list(motion["energy_names"]).index("anchor")
+    assert np.isfinite(motion["energies"][2:, col]).all()
+    assert evaluate(motion, seq.gt)["local_cm"] < 4.0
+    spec = parse_init({"joints2d": noisy_init(gt, frame=0, seed=1)["joints2d"]}, *seq.size)  # no rough pose
+    motion, run = _track(seq, tmp_path / "bare", model, TrackerConfig(anchor_weight=0.5, init_iterations=10,
+                                                                      init_flow_iterations=5), frames="0:4",
+                         init=spec)
+    assert run["anchored"] is False
+    assert np.isnan(motion["energies"][:, col]).all()
+    for bad in ({"anchor_weight": -1.0}, {"anchor_weight": 1.0, "optimizer": "lm", "silhouette_model": "mesh"}):
+        with pytest.raises(InputError):
+            TrackerConfig.load(**bad)

@@ -28,6 +28,11 @@ class TrackerConfig:
     temporal_weight: float = 0.5      # lambda_theta: E_theta, rad^2, to the previous pose
     occlusion_temporal_gain: float = 0.0  # E_theta of joint j times (1 + gain * hidden share of its part); 20 gave
                                           # 5.42/6.83 cm on the CMU protocol (seed 0) but 9.90/13.61 on seed 1: off
+    anchor_weight: float = 0.5        # lambda_a: E_a, rad^2, every joint but the root towards its rotation in
+                                      # the first frame, when the init states a rough pose (not for the
+                                      # automatic init, not after a re-initialisation); an extension of the
+                                      # paper against drift: CMU protocol, 8 seeds, median 6.09/8.50 ->
+                                      # 5.79/7.72 cm; DAVIS (automatic init) lost 0.014 IoU with it, hence off there
     temporal_reference: str = "prediction"  # E_theta towards the Kalman "prediction" (default) or the "previous" pose (paper)
     levels: int = 3                   # Gaussian pyramid levels of E_f
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
@@ -89,6 +94,10 @@ class TrackerConfig:
         if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
             raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
                              "cheap Jacobian); set both.")
+        if not cfg.anchor_weight >= 0:
+            raise InputError(f"anchor_weight must be >= 0; got {cfg.anchor_weight!r}.")
+        if cfg.anchor_weight > 0 and cfg.optimizer == "lm":
+            raise InputError("anchor_weight works with optimizer 'lbfgs' only; set it 0 for 'lm'.")
         if not cfg.kalman_rot_accel_noise > 0:
             raise InputError(f"kalman_rot_accel_noise must be > 0; got {cfg.kalman_rot_accel_noise!r}.")
         if not cfg.occlusion_temporal_gain >= 0:

@@ -38,7 +38,7 @@ from flowmocap.io.sequence import Sequence
 from flowmocap.render import flow_loss, flow_target, prepare_faces
 from flowmocap.vision import FlowCache, flow_consistency
 
-ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints")
+ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor")
 
 
 @dataclass
@@ -88,6 +88,7 @@ class FrameData:
     targets: list = field(default_factory=list)  # one FlowTarget per stage
     temporal_weights: object = None  # (24,) per-joint factors of E_theta, or None (all 1)
     keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
+    anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a (cfg.anchor_weight)
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
@@ -162,6 +163,9 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
             state.pose.reshape(1, 72), prev_pose.reshape(1, 72), weights=data.temporal_weights)[0]
     if data.keypoints is not None and cfg.keypoint_weight > 0:
         terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma)
+    if data.anchor is not None and cfg.anchor_weight > 0:
+        terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
+                                                                   data.anchor.reshape(1, 72))[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
@@ -443,6 +447,9 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         if out_dir.exists() and (out_dir / "motion.npz").exists() and not resume:
             raise InputError(f"{out_dir} already holds a result; pass --resume to continue it or choose another folder.")
         out_dir.mkdir(parents=True, exist_ok=True)
+    # E_a (cfg.anchor_weight) holds the track to a start someone vouched for (see _anchor_state)
+    run["anchored"] = isinstance(init, KnownStart) or bool(
+        getattr(init, "pose_given", None) is not None and np.asarray(init.pose_given)[1:].any())
     cache = FlowCache(out_dir / "flow_cache", method=cfg.flow_method)
     forward_cache = FlowCache(out_dir / "flow_cache_forward", method=cfg.flow_method) if cfg.flow_occlusion_check else None
 
@@ -544,6 +551,9 @@ def _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, 
     else:
         pred = FrameState(prev.pose.clone(), prev.trans.clone())
     mask, data = observed
+    if cfg.anchor_weight > 0:
+        start = _anchor_state(done_states, run)
+        data.anchor = start.pose if start is not None else None
     if mask is not None and not mask.any():
         run["events"].append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
         mask = None
@@ -577,6 +587,19 @@ def _track_one(i, t0, observed, done_states, kf, scene, cfg, run, monitor, buf, 
     buf.flush()
     bar.set_postfix({k[:4]: f"{v:.3g}" for k, v in terms.items()})
     return kf
+
+
+def _anchor_state(done_states: list[FrameState], run: dict) -> FrameState | None:
+    """The fitted first frame ``E_a`` pulls towards, or None for no ``E_a``.
+
+    Only a start someone vouched for anchors the track: an init.json that states a rough
+    pose, or a known start (``run["anchored"]``). The automatic init of real video (a
+    guess from one frame's detections) does not, and neither does a re-initialisation:
+    after one there is no anchor. ``done_states`` holds the frames from ``run["frames"][0]`` on.
+    """
+    if not run.get("anchored") or any(e.get("event") == "re-initialised" for e in run["events"]):
+        return None
+    return done_states[0]
 
 
 def new_filter(pose, trans, cfg: TrackerConfig) -> PoseFilter:
