@@ -2,14 +2,17 @@
 
 For each frame i >= 1: the Kalman filters predict pose and translation; then
 
-    min_{pose_i, trans_i}  l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j]
+    min_{pose_i, trans_i}  l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j] [+ l_a E_a]
 
 is minimised coarse to fine over the flow pyramid (stages of :class:`TrackerConfig`),
 with the shape fixed after initialisation. ``E_f`` compares the observed backward flow
 F_o(i, i-1) with the flow rendered from the model at frame i (the variables) to the model
-at frame i-1 (the previous result, fixed). The optimised pose updates the filters. ``E_j`` (not in the paper) pulls the model's 2D
-joints towards a detector's where one is given (real video): a robust term that keeps
-the body on the person where flow drifts.
+at frame i-1 (the previous result, fixed). The optimised pose updates the filters.
+``E_j`` (not in the paper) pulls the model's 2D joints towards a detector's where one is
+given (real video): a robust term that keeps the body on the person where flow drifts.
+``E_a`` (not in the paper either) pulls every joint but the root towards its rotation in
+the first frame when the init states a rough pose: a limb that is hidden or seen end-on
+otherwise drifts in depth with nothing observed to stop it.
 """
 
 from __future__ import annotations
@@ -184,8 +187,9 @@ def minimise(params: list[torch.Tensor], closure_energy, iterations: int) -> flo
 
     A trial point of the line search where the energy cannot be evaluated (an
     :class:`~flowmocap.errors.InputError`, e.g. a step so long that part of the body
-    ends up behind the camera) counts as a very high energy with zero gradient, so the
-    line search backs off towards the last good point instead of giving up the frame.
+    ends up behind the camera) counts as an energy above every accepted one, with zero
+    gradient, so the line search backs off towards the last good point instead of giving
+    up the frame.
     Only a start that cannot be evaluated raises.
 
     Returns the last energy L-BFGS evaluated (the parameters hold the result; callers
