@@ -59,6 +59,12 @@ class InitSpec:
     betas: np.ndarray
     pose_given: np.ndarray | None = None
 
+    @property
+    def states_rough_pose(self) -> bool:
+        """Whether the init states a rough rotation for any joint but the root (the
+        automatic init guesses the root alone)."""
+        return self.pose_given is not None and bool(np.asarray(self.pose_given, bool)[1:].any())
+
 
 def parse_init(data: dict | str | Path, width: int | None = None, height: int | None = None) -> InitSpec:
     """Read and check an init.json (path or dict); see the module docstring for the schema.
@@ -164,8 +170,7 @@ def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
     automatic init, which guesses the root alone) the start pose is only a guess and the
     weight is ``cfg.init_pose_prior_weight``. The root gets 0: the 2D joints decide it.
     """
-    given = np.asarray(spec.pose_given, bool) if spec.pose_given is not None else np.zeros(24, bool)
-    weight = cfg.init_rough_pose_weight if given[1:].any() else cfg.init_pose_prior_weight
+    weight = cfg.init_rough_pose_weight if spec.states_rough_pose else cfg.init_pose_prior_weight
     w = np.full(24, float(weight))
     w[0] = 0.0
     return w

@@ -452,8 +452,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
             raise InputError(f"{out_dir} already holds a result; pass --resume to continue it or choose another folder.")
         out_dir.mkdir(parents=True, exist_ok=True)
     # E_a (cfg.anchor_weight) holds the track to a start someone vouched for (see _anchor_state)
-    run["anchored"] = isinstance(init, KnownStart) or bool(
-        getattr(init, "pose_given", None) is not None and np.asarray(init.pose_given)[1:].any())
+    run["anchored"] = isinstance(init, KnownStart) or init.states_rough_pose
     cache = FlowCache(out_dir / "flow_cache", method=cfg.flow_method)
     forward_cache = FlowCache(out_dir / "flow_cache_forward", method=cfg.flow_method) if cfg.flow_occlusion_check else None
 
