@@ -487,3 +487,22 @@ def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp
     for bad in ({"anchor_weight": -1.0}, {"anchor_weight": 1.0, "optimizer": "lm", "silhouette_model": "mesh"}):
         with pytest.raises(InputError):
             TrackerConfig.load(**bad)
+
+
+def test_the_flow_step_of_the_init_keeps_frame_0_to_its_rough_pose(clip, model, tmp_path):
+    """Init step 3 (the flow step on frame 1 while frame 0 may still move) keeps frame 0's
+    prior towards the init's rough pose: with that prior far above the other terms, frame
+    0 leaves the tracker at the rough pose; with it off, the flow and silhouettes move it."""
+    seq = load_sequence(clip)
+    spec = parse_init(noisy_init(seq.gt, frame=0, seed=4), *seq.size)
+    stated = np.repeat(spec.pose_given, 3)
+    stated[:3] = False  # the root has no prior: the 2D joints place it
+    moved = {}
+    for name, weight in (("stiff", 1e7), ("free", 0.0)):
+        cfg = TrackerConfig(init_rough_pose_weight=weight, init_iterations=15, init_flow_iterations=10,
+                            anchor_weight=0.0)
+        track_sequence(seq, tmp_path / name, model, seq.camera, spec, cfg=cfg, frames="0:2", progress=False)
+        motion, _ = read_result(tmp_path / name)
+        moved[name] = np.abs(motion["poses"][0][stated] - spec.pose[stated]).max()
+    assert moved["stiff"] < 2e-3
+    assert moved["free"] > 0.05
