@@ -31,8 +31,8 @@ class TrackerConfig:
     anchor_weight: float = 0.5        # lambda_a: E_a, rad^2, every joint but the root towards its rotation in
                                       # the first frame, when the init states a rough pose (not for the
                                       # automatic init, not after a re-initialisation); an extension of the
-                                      # paper against drift: CMU protocol, 8 seeds, median 6.09/8.50 ->
-                                      # 5.79/7.72 cm; DAVIS (automatic init) lost 0.014 IoU with it, hence off there
+                                      # paper against drift: CMU protocol, 8 seeds, median 6.34/8.07 cm without,
+                                      # 4.62/6.75 with; DAVIS (automatic init) lost 0.014 IoU with it, hence off there
     temporal_reference: str = "prediction"  # E_theta towards the Kalman "prediction" (default) or the "previous" pose (paper)
     levels: int = 3                   # Gaussian pyramid levels of E_f
     stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
