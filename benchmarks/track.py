@@ -4,7 +4,8 @@ CMU 35_01 (../shared/data) retargeted onto a random (non-mean) body, rendered at
 130 frames, 640x480 by `flowmocap synth`; the tracker starts from the mean shape, the
 ground-truth 2D joints of frame 0 with 3 px noise and a rough pose with 15 degrees of noise
 on the main joints. Prints the paper's local / global Procrustes errors on 13 joints and
-the median seconds per frame (observed flow included), and writes JSON.
+the median seconds per frame (observed flow included) and the detector's time for the 3D
+joints of E_d (run once over the clip before tracking), and writes JSON.
 
 Usage: python benchmarks/track.py [--frames 130] [--size 640x480] [--fps 60] [--motion PATH]
        [--out benchmarks/results/track.json] [--work DIR] [--config cfg.json]
@@ -59,6 +60,7 @@ def main() -> int:
     from flowmocap.io.sequence import load_sequence
     from flowmocap.synth import synthesize
     from flowmocap.vision import FlowCache
+    from flowmocap.vision.auto import detect_joints3d
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="flowmocap_track_"))
     seq_dir, res_dir = work / "sequence", work / "result"
@@ -81,8 +83,12 @@ def main() -> int:
                     cache.put(int(f.stem), z["flow"])
     model = load_body_model("default")
     t0 = time.perf_counter()
+    joints3d, detect_note = None, "E_d off"
+    if cfg.limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
+        joints3d, detect_note = detect_joints3d(seq, res_dir, progress=False)
+    detect_s = time.perf_counter() - t0
     run = track_sequence(seq, res_dir, model, seq.camera, init, cfg=cfg, frames=args.track_frames,
-                         resume=(res_dir / "motion.npz").exists(), progress=True)
+                         resume=(res_dir / "motion.npz").exists(), progress=True, joints3d=joints3d)
     wall = time.perf_counter() - t0
     motion, _ = read_result(res_dir)
     scores = evaluate(motion, seq.gt)
@@ -93,7 +99,8 @@ def main() -> int:
         "gt_init": args.gt_init, "true_flow": args.true_flow, "track_frames": args.track_frames,
         "config": cfg.to_dict(), "local_cm": scores["local_cm"], "global_cm": scores["global_cm"],
         "mpjpe_cm": scores["mpjpe_cm"], "s_per_frame_median": run["timings"].get("s_per_frame_median"),
-        "init_s": run["timings"].get("init_s"), "wall_s": wall, "events": run["events"],
+        "init_s": run["timings"].get("init_s"), "detect_s": detect_s, "joints3d": detect_note, "wall_s": wall,
+        "events": run["events"],
         "local_cm_per_frame": scores["local_cm_per_frame"], "joints": scores.get("joints"),
         "targets": {"local_cm": 5.5, "global_cm": 7.6, "s_per_frame": 1.0},
     }
@@ -102,6 +109,7 @@ def main() -> int:
     print(f"{'global (per-sequence PA) cm':<28}{scores['global_cm']:>10.2f}{7.6:>10.1f}")
     print(f"{'MPJPE (root-relative) cm':<28}{scores['mpjpe_cm']:>10.2f}{'':>10}")
     print(f"{'s per frame (median)':<28}{result['s_per_frame_median']:>10.2f}{1.0:>10.1f}")
+    print(f"{'3D joint detection, s/frame':<28}{detect_s / max(len(seq), 1):>10.2f}{'':>10}  ({detect_note})")
     print("\nroot-relative error per joint, cm: across the view / along it (depth) / depth bias (< 0: nearer)")
     for name, e in (scores.get("joints") or {}).items():
         print(f"  {name:<16}{e['plane_cm']:>8.1f}{e['depth_cm']:>8.1f}{e['depth_bias_cm']:>8.1f}")

@@ -184,3 +184,49 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     assert any(e.get("frame") == 4 and "empty mask" in e["event"] for e in run["events"])
     assert (out / "init_auto.json").exists() and (out / "detections" / "masks" / "000004.png").exists()
     assert np.isfinite(motion["poses"]).all()
+
+
+class WorldDetector(GroundTruthDetector):
+    """Ground-truth keypoints plus their 3D positions in the camera's axes about the hips."""
+
+    def detect(self, image):
+        i = self.i
+        det = super().detect(image)
+        if det is None:
+            return None
+        j3d = np.asarray(self.seq.gt["joints3d"][i], np.float64) @ np.asarray(self.seq.camera.R).T
+        j3d -= 0.5 * (j3d[JOINT_INDEX["left_hip"]] + j3d[JOINT_INDEX["right_hip"]])
+        det.world = np.array([j3d[JOINT_INDEX[n]] if n in JOINT_INDEX else np.zeros(3) for n in KEYPOINT_NAMES])
+        return det
+
+
+def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monkeypatch):
+    import flowmocap.vision.detect as detect
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.vision.auto import detect_joints3d
+
+    seq = load_sequence(small_clip)
+    track = detect_sequence(seq, tmp_path / "a", detector=WorldDetector(seq, absent={3}), searcher=None,
+                            progress=False)
+    j3d, conf = track.smpl_joints3d(2)
+    truth = np.asarray(seq.gt["joints3d"][2], np.float64) @ np.asarray(seq.camera.R).T
+    ok = conf > 0
+    assert ok.sum() == 12
+    rel = truth[ok] - truth[ok][0]
+    np.testing.assert_allclose(j3d[ok] - j3d[ok][0], rel, atol=1e-5)
+    assert track.smpl_joints3d(3) is None  # nobody found there
+    stored = load_detections(tmp_path / "a")
+    np.testing.assert_allclose(stored.smpl_joints3d(2)[0], j3d)
+    # detections stored before the 3D joints existed load without them
+    with np.load(tmp_path / "a" / "detections" / "keypoints.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "world"}
+    np.savez(tmp_path / "a" / "detections" / "keypoints.npz", **arrays)
+    old = load_detections(tmp_path / "a")
+    assert old.world is None and old.smpl_joints3d(2) is None
+    # the tracker's source of them for an input with its own masks and init.json
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
+    joints3d, note = detect_joints3d(seq, tmp_path / "b", progress=False)
+    assert joints3d is not None and joints3d(2) is not None and "3D joints" in note
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: Nobody())
+    joints3d, note = detect_joints3d(seq, tmp_path / "c", progress=False)
+    assert joints3d is None and "no 3D joints" in note

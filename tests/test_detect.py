@@ -101,6 +101,12 @@ def test_mediapipe_on_a_real_frame():
     assert ok.sum() >= 10
     xy = det.keypoints[:12][ok].astype(int)
     assert gt[xy[:, 1].clip(0, 479), xy[:, 0].clip(0, 853)].mean() > 0.7  # joints lie on the person
+    # 3D joints in metres about the hips, camera axes: the hips ~0.2 m apart, the head above them
+    assert det.world is not None and det.world.shape == (len(KEYPOINT_NAMES), 3)
+    names = list(KEYPOINT_NAMES)
+    hips = det.world[[names.index("left_hip"), names.index("right_hip")]]
+    assert np.allclose(hips.mean(0), 0.0, atol=0.05) and 0.1 < np.linalg.norm(hips[0] - hips[1]) < 0.4
+    assert det.world[names.index("nose"), 1] < -0.4  # y points down
 
 
 def test_mediapipe_finds_nobody_in_an_empty_image():

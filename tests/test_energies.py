@@ -421,6 +421,48 @@ def test_keypoint_gradient_matches_finite_differences():
         keypoint_residuals(pred, obs[:5], conf)
 
 
+def test_limb_depth_residuals_closed_form():
+    """E_d compares the depth component of each limb's unit direction, whatever the
+    detector's scale or origin; a limb mirrored in depth saturates at c sigma^2."""
+    from flowmocap.fit.energies import DEPTH_LIMBS, limb_depth_energy, limb_depth_residuals
+
+    g = torch.Generator().manual_seed(11)
+    model = torch.randn(1, 24, 3, generator=g, dtype=torch.float64)
+    obs = 0.7 * model[0].clone() + torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)  # scaled, moved
+    conf = torch.ones(24, dtype=torch.float64)
+    torch.testing.assert_close(limb_depth_residuals(model, obs, conf), torch.zeros(1, len(DEPTH_LIMBS), dtype=torch.float64))
+    pa, ch = DEPTH_LIMBS[6]  # left knee -> ankle
+    mirrored = obs.clone()
+    mirrored[ch, 2] = 2 * obs[pa, 2] - obs[ch, 2]  # the shin mirrored in depth
+    conf[ch] = 0.5
+    sigma = 0.3
+    r = limb_depth_residuals(model, mirrored, conf, sigma)
+    v = model[0, ch] - model[0, pa]
+    x = 2 * v[2] / v.norm()
+    torch.testing.assert_close(r[0, 6] ** 2, 0.5 * sigma ** 2 * x ** 2 / (sigma ** 2 + x ** 2))
+    assert torch.sign(r[0, 6]) == torch.sign(x)
+    others = [k for k, (a, b) in enumerate(DEPTH_LIMBS) if ch not in (a, b)]
+    assert torch.allclose(r[0, others], torch.zeros(len(others), dtype=torch.float64))
+    torch.testing.assert_close(limb_depth_energy(model, mirrored, conf, sigma), (r ** 2).sum(1))
+    missing = conf.clone()
+    missing[ch] = 0.0
+    assert limb_depth_residuals(model, mirrored, missing, sigma)[0, 6] == 0.0
+    with pytest.raises(InputError):
+        limb_depth_residuals(model, obs[:12], conf)
+    with pytest.raises(InputError):
+        limb_depth_residuals(model, obs, conf, sigma=0.0)
+
+
+def test_limb_depth_gradient_matches_finite_differences():
+    from flowmocap.fit.energies import limb_depth_residuals
+
+    g = torch.Generator().manual_seed(12)
+    joints = torch.randn(2, 24, 3, generator=g, dtype=torch.float64).requires_grad_()
+    obs = torch.randn(24, 3, generator=g, dtype=torch.float64)
+    conf = torch.rand(24, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda j: limb_depth_residuals(j, obs, conf, 0.3), (joints,))
+
+
 def test_pose_and_shape_priors_closed_form():
     g = torch.Generator().manual_seed(7)
     pose = torch.randn(2, 72, generator=g, dtype=torch.float64)

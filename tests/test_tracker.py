@@ -506,3 +506,43 @@ def test_the_flow_step_of_the_init_keeps_frame_0_to_its_rough_pose(clip, model, 
         moved[name] = np.abs(motion["poses"][0][stated] - spec.pose[stated]).max()
     assert moved["stiff"] < 2e-3
     assert moved["free"] > 0.05
+
+
+def _camera_joints3d(seq, i):
+    """Ground-truth joints of frame ``i`` in the camera's axes (as a 3D detector gives them)."""
+    return np.asarray(seq.gt["joints3d"][i], np.float64) @ np.asarray(seq.camera.R).T, np.full(24, 0.9)
+
+
+def test_limb_depth_term_in_the_frame_energy(clip, model, tmp_path):
+    """E_d in the per-frame objective: zero at the true pose when the detector's 3D joints
+    are the truth in the camera's axes, positive with a shin bent out of place; the tracker
+    takes them per frame and records the term."""
+    from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.fit.tracker import FrameData, FrameState, Scene, frame_energy
+
+    seq = load_sequence(clip)
+    gt = seq.gt
+    scene = Scene(model, torch.as_tensor(gt["betas"], dtype=torch.float32)[None], seq.camera)
+    cfg = TrackerConfig(limb_depth_weight=2.0, silhouette_weight=0.0, limit_weight=0.0, penetration_weight=0.0)
+    data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_camera_joints3d(seq, 2))
+    pose = torch.as_tensor(gt["poses"][2], dtype=torch.float32)
+    trans = torch.as_tensor(gt["trans"][2], dtype=torch.float32)
+    _, terms = frame_energy(scene, FrameState(pose, trans), data, cfg, None, None, None)
+    assert terms["limb_depth"] < 1e-6
+    bent = pose.clone()
+    bent[3 * JOINT_INDEX["left_knee"]] += 0.8
+    _, terms = frame_energy(scene, FrameState(bent, trans), data, cfg, None, None, None)
+    assert terms["limb_depth"] > 1e-3
+
+    asked = []
+
+    def joints3d(i):
+        asked.append(i)
+        return _camera_joints3d(seq, i)
+
+    motion, run = _track(seq, tmp_path / "ed", model, TrackerConfig(limb_depth_weight=2.0), frames="0:4",
+                         joints3d=joints3d)
+    assert sorted(asked) == [2, 3]
+    col = [str(n) for n in motion["energy_names"]].index("limb_depth")
+    assert np.isfinite(motion["energies"][2:, col]).all()  # frames 2 and 3 have the term
+    assert np.isnan(motion["energies"][:2, col]).all()  # the known start has none

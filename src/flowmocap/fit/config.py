@@ -41,6 +41,10 @@ class TrackerConfig:
     keypoint_weight: float = 0.05     # lambda_j: detected 2D joints (real video only; an extension of the paper):
                                       # robust px^2 per confident joint, keeps the body on the person
     keypoint_sigma: float = 20.0      # Geman-McClure scale of that term, px (a left/right swap saturates)
+    limb_depth_weight: float = 2.0    # lambda_d: E_d, each limb's direction in depth towards the detector's 3D
+                                      # joints (MediaPipe's world landmarks; an extension of the paper), when
+                                      # they are given (video input, or --joints3d auto)
+    limb_depth_sigma: float = 0.3     # Geman-McClure scale of E_d (a difference of sines)
     capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
     # --- observed flow -----------------------------------------------------------------
@@ -96,8 +100,9 @@ class TrackerConfig:
                              "cheap Jacobian); set both.")
         if not cfg.anchor_weight >= 0:
             raise InputError(f"anchor_weight must be >= 0; got {cfg.anchor_weight!r}.")
-        if cfg.anchor_weight > 0 and cfg.optimizer == "lm":
-            raise InputError("anchor_weight works with optimizer 'lbfgs' only; set it 0 for 'lm'.")
+        if cfg.optimizer == "lm" and (cfg.anchor_weight > 0 or cfg.limb_depth_weight > 0):
+            raise InputError("anchor_weight and limb_depth_weight work with optimizer 'lbfgs' only; set both 0 "
+                             "for 'lm'.")
         if not cfg.kalman_rot_accel_noise > 0:
             raise InputError(f"kalman_rot_accel_noise must be > 0; got {cfg.kalman_rot_accel_noise!r}.")
         if not cfg.occlusion_temporal_gain >= 0:
@@ -105,6 +110,9 @@ class TrackerConfig:
         if not (cfg.init_pose_prior_weight >= 0 and cfg.init_rough_pose_weight >= 0):
             raise InputError(f"init_pose_prior_weight and init_rough_pose_weight must be >= 0; got "
                              f"{cfg.init_pose_prior_weight!r}, {cfg.init_rough_pose_weight!r}.")
+        if not (cfg.limb_depth_weight >= 0 and cfg.limb_depth_sigma > 0):
+            raise InputError(f"limb_depth_weight must be >= 0 and limb_depth_sigma > 0; got "
+                             f"{cfg.limb_depth_weight!r}, {cfg.limb_depth_sigma!r}.")
         if not (cfg.keypoint_weight >= 0 and cfg.keypoint_sigma > 0):
             raise InputError(f"keypoint_weight must be >= 0 and keypoint_sigma > 0; got {cfg.keypoint_weight!r}, "
                              f"{cfg.keypoint_sigma!r}.")

@@ -62,6 +62,9 @@ __all__ = [
     "mesh_silhouette_energy",
     "keypoint_residuals",
     "keypoint_energy",
+    "DEPTH_LIMBS",
+    "limb_depth_residuals",
+    "limb_depth_energy",
     "pose_prior_residuals",
     "pose_prior_energy",
     "shape_prior_residuals",
@@ -830,6 +833,67 @@ def keypoint_energy(
 ) -> torch.Tensor:
     """Robust 2D joint energy, ``(B,)`` in px^2: sum of squared :func:`keypoint_residuals`."""
     return _sum_sq(keypoint_residuals(joints2d_pred, joints2d_obs, confidence, sigma))
+
+
+# ------------------------------------------------------------- 3D limb directions
+
+#: ``(parent, child)`` SMPL joint indices of the limbs whose direction in depth a
+#: detector's 3D joints inform: upper arms, forearms, thighs, shins (left, right).
+DEPTH_LIMBS: tuple[tuple[int, int], ...] = ((16, 18), (17, 19), (18, 20), (19, 21), (1, 4), (2, 5), (4, 7), (5, 8))
+
+
+def limb_depth_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any, sigma: float = 0.3) -> torch.Tensor:
+    """Robust residuals between the depth components of the model's and a detector's
+    limb directions (``E_d``, an extension of the paper).
+
+    For each limb of :data:`DEPTH_LIMBS`, ``x = u_z - o_z`` with ``u`` and ``o`` the unit
+    vectors from the limb's parent joint to its child joint, of the model
+    (``joints_cam``) and of the detector (``joints3d_obs``), both in the camera's axes
+    (z away from the camera). ``u_z`` is the sine of the limb's angle out of the image
+    plane, so ``x`` is free of the detector's scale and body proportions and says only
+    whether the limb points nearer or further, the one thing flow and silhouettes cannot
+    tell. The cost of ``x`` is Geman-McClure's, ``c sigma^2 x^2 / (sigma^2 + x^2)``
+    (``c``: the lower confidence of the limb's two joints); the returned residual is its
+    signed square root.
+
+    Args:
+        joints_cam: ``(B, 24, 3)`` model joints in camera coordinates (metres; any
+            translation, only differences are used).
+        joints3d_obs: ``(24, 3)`` detected joints in the camera's axes (any origin and scale).
+        confidence: ``(24,)`` per joint in ``[0, 1]`` (0: not detected).
+        sigma: scale of the robust cost (unitless, a sine; a limb the detector sees
+            mirrored in depth, ``|x|`` up to 2, saturates).
+
+    Returns:
+        ``(B, L)`` residuals, ``L = len(DEPTH_LIMBS)``.
+    """
+    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
+        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
+    obs = torch.as_tensor(np.asarray(joints3d_obs, np.float64) if not isinstance(joints3d_obs, torch.Tensor)
+                          else joints3d_obs, dtype=joints_cam.dtype)
+    conf = torch.as_tensor(np.asarray(confidence, np.float64) if not isinstance(confidence, torch.Tensor)
+                           else confidence, dtype=joints_cam.dtype)
+    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
+        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {tuple(obs.shape)}, "
+                         f"{tuple(conf.shape)}")
+    if not sigma > 0:
+        raise InputError(f"sigma must be > 0; got {sigma!r}")
+    pa = [p for p, _ in DEPTH_LIMBS]
+    ch = [c for _, c in DEPTH_LIMBS]
+    o = obs[ch] - obs[pa]
+    on = o.norm(dim=-1)
+    ok = (on > 1e-6) & torch.isfinite(on)
+    c = torch.where(ok, torch.minimum(conf[ch], conf[pa]).clamp(0.0, 1.0), torch.zeros_like(on))
+    oz = torch.where(ok, o[:, 2] / on.clamp_min(1e-6), torch.zeros_like(on))
+    v = joints_cam[:, ch] - joints_cam[:, pa]
+    uz = v[..., 2] / v.norm(dim=-1).clamp_min(1e-9)
+    x = uz - oz
+    return torch.sqrt(c) * sigma * x / torch.sqrt(sigma * sigma + x * x)
+
+
+def limb_depth_energy(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any, sigma: float = 0.3) -> torch.Tensor:
+    """``E_d``: sum of squared :func:`limb_depth_residuals`, ``(B,)`` (unitless)."""
+    return _sum_sq(limb_depth_residuals(joints_cam, joints3d_obs, confidence, sigma))
 
 
 # ---------------------------------------------------------------------------- priors

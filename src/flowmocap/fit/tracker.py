@@ -41,7 +41,8 @@ from flowmocap.io.sequence import Sequence
 from flowmocap.render import flow_loss, flow_target, prepare_faces
 from flowmocap.vision import FlowCache, flow_consistency
 
-ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor")
+ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
+                "limb_depth")
 
 
 @dataclass
@@ -92,6 +93,7 @@ class FrameData:
     temporal_weights: object = None  # (24,) per-joint factors of E_theta, or None (all 1)
     keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
     anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a (cfg.anchor_weight)
+    joints3d: tuple | None = None  # detected 3D joints for E_d: (j3d (24, 3) m in camera axes, conf (24,)), or None
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
@@ -169,6 +171,10 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.anchor is not None and cfg.anchor_weight > 0:
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
+    if data.joints3d is not None and cfg.limb_depth_weight > 0:
+        rot = torch.tensor(np.asarray(scene.camera.R), dtype=out.joints.dtype)
+        terms["limb_depth"] = cfg.limb_depth_weight * en.limb_depth_energy(
+            out.joints @ rot.T, *data.joints3d, sigma=cfg.limb_depth_sigma)[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
@@ -387,7 +393,7 @@ def _frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
 
 def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera: PinholeCamera, init,
                    cfg: TrackerConfig | None = None, frames=None, resume: bool = False,
-                   progress: bool = True, monitor=None, keypoints=None) -> dict:
+                   progress: bool = True, monitor=None, keypoints=None, joints3d=None) -> dict:
     """Track a sequence and write ``out_dir/motion.npz`` and ``run.json`` frame by frame.
 
     Args:
@@ -410,6 +416,10 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
         keypoints: optional detected 2D joints for ``E_j`` (``cfg.keypoint_weight``), a
             callable ``keypoints(i) -> (j2d (24, 2) px, conf (24,))`` in SMPL joint order,
             or None for a frame without a detection.
+        joints3d: optional detected 3D joints for ``E_d`` (``cfg.limb_depth_weight``), a
+            callable ``joints3d(i) -> (j3d (24, 3) metres in the camera's axes, conf (24,))``
+            in SMPL joint order (:meth:`~flowmocap.vision.auto.PersonTrack.smpl_joints3d`),
+            or None for a frame without them.
 
     Returns:
         the final ``run.json`` contents.
@@ -419,12 +429,13 @@ def track_sequence(seq: Sequence, out_dir: str | Path, model: BodyModel, camera:
     torch.set_num_threads(int(cfg.torch_threads))
     try:
         return _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor,
-                               keypoints)
+                               keypoints, joints3d)
     finally:
         torch.set_num_threads(threads)
 
 
-def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor, keypoints) -> dict:
+def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, progress, monitor, keypoints,
+                    joints3d) -> dict:
     from tqdm import tqdm
 
     from flowmocap.fit.init import fit_frame0, rough_pose_weights
@@ -493,7 +504,10 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         mask = seq.mask(i)
         usable = mask if (mask is not None and mask.any()) else None
         flow, valid = flow_of(i)
-        return mask, frame_data(usable, flow, cfg, float("nan"), detected(i), valid)
+        data = frame_data(usable, flow, cfg, float("nan"), detected(i), valid)
+        if joints3d is not None and cfg.limb_depth_weight > 0:
+            data.joints3d = joints3d(i)
+        return mask, data
 
     t_start = time.perf_counter()
     if not done_states and isinstance(init, KnownStart):

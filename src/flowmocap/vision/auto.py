@@ -5,7 +5,8 @@ frame, keeps one person, cleans the masks and writes::
 
     OUT/detections/masks/000000.png ...   the person's mask per frame (0 / 255; all 0 = no person)
     OUT/detections/keypoints.npz          keypoints (T, K, 2) px, confidence (T, K), found (T,),
-                                          names (K,), box (T, 4) px
+                                          names (K,), box (T, 4) px, world (T, K, 3) m (the
+                                          detector's 3D guess, NaN where it gives none)
     OUT/detections/detections.json        detector, size, frames with no person, people ignored
 
 A rerun (or ``--resume``) with the same detector and frames reuses them. :func:`auto_init`
@@ -34,8 +35,8 @@ from flowmocap.errors import NoPersonError
 from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetector
 from flowmocap.vision.person import clean_mask, person_box, same_person
 
-__all__ = ["PersonTrack", "detect_sequence", "load_detections", "auto_init", "first_person_frame",
-           "facing_rotvec", "MIN_INIT_JOINTS"]
+__all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "load_detections", "auto_init",
+           "first_person_frame", "facing_rotvec", "MIN_INIT_JOINTS"]
 
 #: Confident SMPL keypoints a frame needs to initialise the body on it.
 MIN_INIT_JOINTS = 8
@@ -53,6 +54,9 @@ class PersonTrack:
         found: ``(T,)`` bool, the person is in the frame.
         mask_paths: the ``T`` mask PNGs (an all-zero mask where the person is not found).
         info: the contents of ``detections.json``.
+        world: ``(T, K, 3)`` metres, the detector's 3D keypoints
+            (:attr:`~flowmocap.vision.detect.Detection.world`), NaN where it gave none;
+            None for detections stored without them.
     """
 
     keypoints: np.ndarray
@@ -60,6 +64,7 @@ class PersonTrack:
     found: np.ndarray
     mask_paths: list[Path]
     info: dict = field(default_factory=dict)
+    world: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.found)
@@ -82,6 +87,22 @@ class PersonTrack:
             j2d[j] = self.keypoints[i, k]
             conf[j] = self.confidence[i, k]
         return j2d, conf
+
+    def smpl_joints3d(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The detector's 3D joints of frame ``i`` in SMPL joint order: ``(24, 3)`` metres
+        (camera axes, relative to the middle of the hips) and ``(24,)`` confidences (0 for
+        the joints it does not give), or None when the frame has none."""
+        if self.world is None or i >= len(self) or not self.found[i] or not np.isfinite(self.world[i]).all():
+            return None
+        from flowmocap.body.skeleton import JOINT_NAMES
+
+        j3d = np.zeros((24, 3))
+        conf = np.zeros(24)
+        for k, name in enumerate(SMPL_KEYPOINTS):
+            j = JOINT_NAMES.index(name)
+            j3d[j] = self.world[i, k]
+            conf[j] = self.confidence[i, k]
+        return j3d, conf
 
 
 def _mask_dir(out_dir: Path) -> Path:
@@ -107,7 +128,8 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
     paths = [_mask_dir(out_dir) / f"{i:06d}.png" for i in range(len(arrays["found"]))]
     if not all(p.exists() for p in paths):
         return None
-    return PersonTrack(arrays["keypoints"], arrays["confidence"], arrays["found"].astype(bool), paths, info)
+    return PersonTrack(arrays["keypoints"], arrays["confidence"], arrays["found"].astype(bool), paths, info,
+                       arrays.get("world"))
 
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
@@ -153,7 +175,7 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     detector.reset()
     if searcher is not None:
         searcher.reset()
-    cands: list[list[tuple]] = [[] for _ in range(T)]  # per frame: (box, keypoints, confidence, mask)
+    cands: list[list[tuple]] = [[] for _ in range(T)]  # per frame: (box, keypoints, confidence, mask, world)
     for i in tqdm(range(T), disable=not progress, unit="frame", desc="finding the person"):
         img = seq.frame(i)
         det = _usable(detector.detect(img))
@@ -169,6 +191,7 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     K = len(KEYPOINT_NAMES)
     kp = np.zeros((T, K, 2))
     conf = np.zeros((T, K))
+    world = np.full((T, K, 3), np.nan)
     boxes: list = [None] * T
     masks: list = [None] * T
     ignored = []
@@ -178,7 +201,9 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         score = [sum((cands[i][c][0][3] - cands[i][c][0][1]) * cands[i][c][0][3] / H for i, c in t) for t in tracks]
         main = int(np.argmax(score))
         for i, c in tracks[main]:
-            boxes[i], kp[i], conf[i], masks[i] = cands[i][c]
+            boxes[i], kp[i], conf[i], masks[i], w = cands[i][c]
+            if w is not None:
+                world[i] = w
         for k, t in enumerate(tracks):
             if k != main and len(t) > 2:
                 ignored.append({"frames": [t[0][0], t[-1][0]], "why": "another person (smaller or seen for less time)"})
@@ -202,23 +227,44 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     box_arr = np.array([b if b is not None else (np.nan,) * 4 for b in boxes], np.float64).reshape(T, 4)
     d = out_dir / "detections"
     np.savez(d / "keypoints.npz", keypoints=kp.astype(np.float32), confidence=conf.astype(np.float32),
-             found=found, names=np.array(KEYPOINT_NAMES), box=box_arr)
+             found=found, names=np.array(KEYPOINT_NAMES), box=box_arr, world=world.astype(np.float32))
     (d / "detections.json").write_text(json.dumps(info, indent=2))
     if not found.any():
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
                             "check that a whole person is visible, or give --init init.json and --masks FOLDER.")
-    return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info)
+    return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32))
+
+
+def detect_joints3d(seq, out_dir: str | Path, progress: bool = True) -> tuple:
+    """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
+    with its own masks and init.json): MediaPipe without the mask augmentation (about
+    0.03 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
+
+    Returns:
+        ``(joints3d, note)``: the callable ``joints3d(i) -> (j3d (24, 3), conf (24,)) |
+        None`` the tracker takes (:meth:`PersonTrack.smpl_joints3d`), or None when no
+        detector is installed or it finds no person; and a sentence for ``input.json``.
+    """
+    from flowmocap.errors import InputError
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    try:
+        track = detect_sequence(seq, out_dir, detector=MediaPipePoseDetector(augment=False), progress=progress)
+    except (InputError, NoPersonError) as e:
+        return None, f"no 3D joints for E_d: {e}"
+    return track.smpl_joints3d, f"3D joints for E_d: {track.info['detector']}, {track.info['frames_with_person']} frames"
 
 
 def _usable(det) -> tuple | None:
-    """``(box, keypoints, confidence, cleaned mask)`` of a detection, or None if it shows
-    no person (empty cleaned mask or fewer than 2 confident joints)."""
+    """``(box, keypoints, confidence, cleaned mask, world keypoints or None)`` of a
+    detection, or None if it shows no person (empty cleaned mask or fewer than 2
+    confident joints)."""
     if det is None:
         return None
     m = clean_mask(det.mask, det.keypoints, det.confidence)
     if not m.any() or (det.confidence[: len(SMPL_KEYPOINTS)] >= CONFIDENT).sum() < 2:
         return None
-    return person_box(det.keypoints, det.confidence, m), det.keypoints, det.confidence, m
+    return person_box(det.keypoints, det.confidence, m), det.keypoints, det.confidence, m, getattr(det, "world", None)
 
 
 def _blank(img: np.ndarray, box, grow: float = 0.1) -> np.ndarray:

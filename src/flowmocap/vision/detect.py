@@ -51,12 +51,18 @@ class Detection:
         confidence: ``(K,)`` in ``[0, 1]``; 0 for a keypoint outside the image or unknown.
         mask: ``(H, W)`` bool, True on the person.
         soft_mask: ``(H, W)`` float32 person probability, or None.
+        world: ``(K, 3)`` metres, the keypoints in 3D relative to the middle of the hips,
+            in the camera's axes (x right, y down, z away from the camera), as a detector
+            that lifts its joints to 3D (MediaPipe's ``pose_world_landmarks``) guesses
+            them; None when the detector gives no 3D. Its depth says which way a limb
+            points, nearer or further, which flow and silhouettes cannot tell.
     """
 
     keypoints: np.ndarray
     confidence: np.ndarray
     mask: np.ndarray
     soft_mask: np.ndarray | None = None
+    world: np.ndarray | None = None
 
     def box(self, min_confidence: float = 0.3) -> tuple[float, float, float, float] | None:
         """``(x0, y0, x1, y1)`` pixels around the confident keypoints, or None."""
@@ -116,7 +122,7 @@ class MediaPipePoseDetector:
         self.augment = bool(augment)
         self.min_confidence = float(min_confidence)
         self.threshold = float(threshold)
-        self.name = (f"mediapipe-pose-{mp.__version__}-full"
+        self.name = (f"mediapipe-pose-{mp.__version__}-full-3d"
                      f"{'-tta4' if self.augment else ''}-c{self.min_confidence:g}-t{self.threshold:g}")
         self._runs: dict = {}
         self.reset()
@@ -165,7 +171,12 @@ class MediaPipePoseDetector:
             soft = self._augmented(img, soft)
         soft = cv2.ximgproc.guidedFilter(img, soft, 4, 1e-3 * 255.0 ** 2) if hasattr(cv2, "ximgproc") else soft
         soft = np.clip(soft, 0.0, 1.0)
-        return Detection(keypoints=kp, confidence=conf, mask=soft > self.threshold, soft_mask=soft)
+        world = None
+        if res.pose_world_landmarks is not None:
+            wl = res.pose_world_landmarks.landmark
+            world = np.array([[wl[MEDIAPIPE_LANDMARKS[n]].x, wl[MEDIAPIPE_LANDMARKS[n]].y, wl[MEDIAPIPE_LANDMARKS[n]].z]
+                              for n in KEYPOINT_NAMES])
+        return Detection(keypoints=kp, confidence=conf, mask=soft > self.threshold, soft_mask=soft, world=world)
 
     def _augmented(self, img: np.ndarray, soft: np.ndarray) -> np.ndarray:
         import cv2
