@@ -85,7 +85,7 @@ def main() -> int:
     t0 = time.perf_counter()
     joints3d, detect_note = None, "E_d off"
     if cfg.limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
-        joints3d, detect_note = detect_joints3d(seq, res_dir, progress=False)
+        joints3d, detect_note = detect_joints3d(seq, res_dir, seq.camera, progress=False)
     detect_s = time.perf_counter() - t0
     run = track_sequence(seq, res_dir, model, seq.camera, init, cfg=cfg, frames=args.track_frames,
                          resume=(res_dir / "motion.npz").exists(), progress=True, joints3d=joints3d)

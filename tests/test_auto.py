@@ -215,6 +215,10 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     rel = truth[ok] - truth[ok][0]
     np.testing.assert_allclose(j3d[ok] - j3d[ok][0], rel, atol=1e-5)
     assert track.smpl_joints3d(3) is None  # nobody found there
+    # with the camera: turned from the axes of the ray through the hips into the camera's
+    hips = track.keypoints[2, [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]].mean(0)
+    turned, _ = track.smpl_joints3d(2, seq.camera)
+    np.testing.assert_allclose(turned, j3d @ seq.camera.ray_rotation(*hips).T, atol=1e-9)
     stored = load_detections(tmp_path / "a")
     np.testing.assert_allclose(stored.smpl_joints3d(2)[0], j3d)
     # detections stored before the 3D joints existed load without them

@@ -592,3 +592,17 @@ def test_procrustes_bad_input_raises():
         similarity_procrustes(a, a, weights=np.ones(4))
     with pytest.raises(InputError):
         similarity_procrustes([[0, 0, 0]], a)
+
+
+def test_ray_rotation_takes_the_optical_axis_to_the_pixel_ray():
+    cam = PinholeCamera.from_focal(854, 480, 768.6)
+    assert np.allclose(cam.ray_rotation(cam.cx, cam.cy), np.eye(3))
+    for u, v in ((100.0, 50.0), (800.0, 400.0), (427.0, 10.0)):
+        R = cam.ray_rotation(u, v)
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        ray = R @ np.array([0.0, 0.0, 1.0])
+        assert np.allclose(ray[:2] / ray[2], [(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy])
+        # the smallest rotation: its axis lies in the image plane
+        w, vecs = np.linalg.eig(R)
+        axis = np.real(vecs[:, np.argmin(np.abs(w - 1.0))])
+        assert abs(axis[2]) < 1e-9

@@ -138,12 +138,13 @@ def cmd_track(args) -> int:
     if track is not None:  # the detector's joints also pull the body (E_j, cfg.keypoint_weight)
         def detected(i: int):
             return track.smpl_joints(i) if i < len(track) and track.found[i] else None
-        joints3d = track.smpl_joints3d
+        def joints3d(i: int):
+            return track.smpl_joints3d(i, camera)
     elif args.joints3d == "auto" and cfg.limb_depth_weight > 0:
         from flowmocap.vision.auto import detect_joints3d
 
         print(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
-        joints3d, notes["joints3d"] = detect_joints3d(seq, out, progress=not args.quiet)
+        joints3d, notes["joints3d"] = detect_joints3d(seq, out, camera, progress=not args.quiet)
         (out / "input.json").write_text(json.dumps(notes, indent=2))
     run = track_sequence(seq, out, model, camera, spec, cfg=cfg, frames=frames, resume=args.resume,
                          progress=not args.quiet, monitor=monitor, keypoints=detected, joints3d=joints3d)

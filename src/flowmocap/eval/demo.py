@@ -46,7 +46,7 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "64
     t1 = time.perf_counter()
     joints3d = None
     if (config or TrackerConfig()).limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
-        joints3d, _ = detect_joints3d(seq, res_dir, progress=False)
+        joints3d, _ = detect_joints3d(seq, res_dir, seq.camera, progress=False)
     detect_s = time.perf_counter() - t1
     run = track_sequence(seq, res_dir, model, seq.camera, spec, cfg=config, resume=resume, progress=progress,
                          joints3d=joints3d)

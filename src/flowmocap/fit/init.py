@@ -147,8 +147,10 @@ def guess_translation(model: BodyModel, camera: PinholeCamera, spec: InitSpec) -
     return torch.as_tensor(centre_world - p3.mean(0), dtype=torch.float32)
 
 
-def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouette, cfg: TrackerConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-    """Steps 1 and 2 of the initialisation.
+def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouette, cfg: TrackerConfig,
+               joints3d: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+    """Steps 1 and 2 of the initialisation (``joints3d``: the frame's detected 3D joints
+    for ``E_d``, as :func:`fit_to_joints` takes them, or None).
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of final energies.
@@ -158,7 +160,7 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
     return fit_to_joints(model, camera, spec.joints2d, spec.confidence, silhouette, cfg,
                          torch.as_tensor(spec.pose, dtype=torch.float32), trans,
                          torch.as_tensor(spec.betas, dtype=torch.float32)[None], fit_shape=True,
-                         prior_weights=rough_pose_weights(spec, cfg))
+                         prior_weights=rough_pose_weights(spec, cfg), joints3d=joints3d)
 
 
 def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
@@ -178,8 +180,8 @@ def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
 
 def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence, silhouette, cfg: TrackerConfig,
                   pose0: torch.Tensor, trans0: torch.Tensor, betas: torch.Tensor, *, fit_shape: bool,
-                  iterations: int | None = None,
-                  prior_weights=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+                  iterations: int | None = None, prior_weights=None,
+                  joints3d: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
     """Fit the body to one frame's 2D joints, then also to its silhouette (init steps 1-2).
 
     Translation alone first, then pose and translation (and the shape when ``fit_shape``)
@@ -195,6 +197,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         prior_weights: ``(24,)`` per-joint weights of the prior towards ``pose0``, per
             rad^2 (see :func:`rough_pose_weights`); default ``cfg.init_pose_prior_weight``
             for every joint but the root.
+        joints3d: the detector's 3D joints of the frame, ``(j3d (24, 3) metres in the
+            camera's axes, conf (24,))``, for ``E_d`` (``cfg.limb_depth_weight``) in every
+            step after the translation alone; None for none.
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
@@ -212,6 +217,7 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     if prior_weights is None:
         prior_weights = np.r_[0.0, np.full(23, float(cfg.init_pose_prior_weight))]
     prior_w = torch.as_tensor(np.asarray(prior_weights, np.float64), dtype=torch.float32)
+    rot = torch.tensor(np.asarray(camera.R), dtype=torch.float32)
     if prior_w.shape != (24,):
         raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
@@ -225,6 +231,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         if fit_shape:
             t["shape_prior"] = cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0]
         t["limits"] = cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
+        if joints3d is not None and cfg.limb_depth_weight > 0:
+            t["limb_depth"] = cfg.limb_depth_weight * en.limb_depth_energy(out.joints @ rot.T, *joints3d,
+                                                                           sigma=cfg.limb_depth_sigma)[0]
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:

@@ -64,7 +64,8 @@ def joint_disagreement(joints2d: np.ndarray, j2d: np.ndarray, conf: np.ndarray,
 
 
 def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarray, mask: np.ndarray | None,
-                     pose0: torch.Tensor, trans0: torch.Tensor, iterations: int | None = None) -> tuple:
+                     pose0: torch.Tensor, trans0: torch.Tensor, iterations: int | None = None,
+                     joints3d: tuple | None = None) -> tuple:
     """Fit pose and translation (shape fixed) to one frame's 2D joints and mask.
 
     Steps 1 and 2 of the initialisation (:func:`flowmocap.fit.init.fit_frame0`) with the
@@ -77,6 +78,8 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
         scene: the tracker's :class:`~flowmocap.fit.tracker.Scene`.
         j2d: ``(24, 2)`` pixels; conf: ``(24,)``; mask: ``(H, W)`` bool or None.
         pose0: ``(72,)`` start and prior; trans0: ``(3,)`` metres.
+        joints3d: the detector's 3D joints of the frame for ``E_d`` (see
+            :func:`~flowmocap.fit.init.fit_to_joints`), or None.
 
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final energy (float).
@@ -85,7 +88,7 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
 
     sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
     pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
-                                          scene.betas, fit_shape=False, iterations=iterations)
+                                          scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d)
     return pose, trans, float(sum(terms.values()))
 
 
@@ -182,7 +185,8 @@ class ReinitMonitor:
         best = None
         for pose0, trans0 in starts:
             try:
-                pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0)
+                pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0,
+                                                  joints3d=self.track.smpl_joints3d(i, scene.camera))
             except OptimizationError:
                 continue
             if math.isfinite(e) and (best is None or e < best[2]):

@@ -498,6 +498,9 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         found = keypoints(i) if (keypoints is not None and cfg.keypoint_weight > 0) else None
         return keypoint_observation(*found) if found is not None else None
 
+    def detected3d(i: int) -> tuple | None:
+        return joints3d(i) if (joints3d is not None and cfg.limb_depth_weight > 0) else None
+
     def observe(i: int) -> tuple[np.ndarray | None, FrameData]:
         """Mask and prepared observations of frame i (run ahead in a worker thread; the
         person-size fallback for a frame without a mask is filled in by the caller)."""
@@ -505,8 +508,7 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         usable = mask if (mask is not None and mask.any()) else None
         flow, valid = flow_of(i)
         data = frame_data(usable, flow, cfg, float("nan"), detected(i), valid)
-        if joints3d is not None and cfg.limb_depth_weight > 0:
-            data.joints3d = joints3d(i)
+        data.joints3d = detected3d(i)
         return mask, data
 
     t_start = time.perf_counter()
@@ -526,13 +528,15 @@ def _track_sequence(seq, out_dir, model, camera, init, cfg, frames, resume, prog
         t0 = time.perf_counter()
         m0 = load(a)
         d0 = frame_data(m0, None, cfg, 1.0)
-        pose0, trans0, betas, init_terms = fit_frame0(model, camera, init, d0.silhouette, cfg)
+        d0.joints3d = detected3d(a)
+        pose0, trans0, betas, init_terms = fit_frame0(model, camera, init, d0.silhouette, cfg, d0.joints3d)
         scene = Scene(model, betas, camera)
         buf = ResultBuffer(out_dir, scene, seq.meta.get("fps", 30.0), run)
         s0 = FrameState(pose0, trans0)
         m1 = load(a + 1)
         flow1, valid1 = flow_of(a + 1)
         d1 = frame_data(m1, flow1, cfg, d0.person_pixels, detected(a + 1), valid1)
+        d1.joints3d = detected3d(a + 1)
         j2d = torch.as_tensor(init.joints2d, dtype=torch.float32)
         conf = torch.as_tensor(init.confidence, dtype=torch.float32)
         # a rough pose the init states holds frame 0 through step 3 too; the automatic init's start

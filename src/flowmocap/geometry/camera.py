@@ -274,6 +274,25 @@ class PinholeCamera:
         """``(3,)`` camera centre in world coordinates, metres (``-R^T t``)."""
         return -self.R.T @ self.t
 
+    def ray_rotation(self, u: float, v: float) -> np.ndarray:
+        """``(3, 3)`` rotation taking the optical axis ``(0, 0, 1)`` to the viewing ray through
+        pixel ``(u, v)``, the smallest such (about an axis in the image plane).
+
+        A detector that lifts a person to 3D from a crop around them (MediaPipe's world
+        landmarks) gives depth along the ray through the crop, not along the optical
+        axis; ``ray_rotation(u, v) @ X`` turns such a point into the camera's axes. For a
+        person 200 px from the centre of an 854 px wide video the two differ by ~15 degrees.
+        """
+        d = np.array([(u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0])
+        d /= np.linalg.norm(d)
+        axis = np.cross([0.0, 0.0, 1.0], d)
+        s, c = np.linalg.norm(axis), d[2]
+        if s < 1e-12:
+            return np.eye(3)
+        k = axis / s
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+
     # ---------------------------------------------------------------------- projection
 
     def to_camera(self, points):

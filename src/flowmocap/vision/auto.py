@@ -88,10 +88,17 @@ class PersonTrack:
             conf[j] = self.confidence[i, k]
         return j2d, conf
 
-    def smpl_joints3d(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+    def smpl_joints3d(self, i: int, camera=None) -> tuple[np.ndarray, np.ndarray] | None:
         """The detector's 3D joints of frame ``i`` in SMPL joint order: ``(24, 3)`` metres
-        (camera axes, relative to the middle of the hips) and ``(24,)`` confidences (0 for
-        the joints it does not give), or None when the frame has none."""
+        relative to the middle of the hips and ``(24,)`` confidences (0 for the joints it
+        does not give), or None when the frame has none.
+
+        The detector's axes are those of the ray through the person (x right, y down, z
+        along the ray); with the ``camera`` (a
+        :class:`~flowmocap.geometry.camera.PinholeCamera`) they are turned into the
+        camera's own axes (:meth:`~flowmocap.geometry.camera.PinholeCamera.ray_rotation`
+        through the middle of the detected hips, or of the confident keypoints).
+        """
         if self.world is None or i >= len(self) or not self.found[i] or not np.isfinite(self.world[i]).all():
             return None
         from flowmocap.body.skeleton import JOINT_NAMES
@@ -102,6 +109,12 @@ class PersonTrack:
             j = JOINT_NAMES.index(name)
             j3d[j] = self.world[i, k]
             conf[j] = self.confidence[i, k]
+        if camera is not None:
+            hips = [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]
+            use = hips if (self.confidence[i, hips] > 0).all() else np.nonzero(self.confidence[i] > 0)[0]
+            if len(use):
+                u, v = self.keypoints[i, use].mean(0)
+                j3d = j3d @ camera.ray_rotation(float(u), float(v)).T
         return j3d, conf
 
 
@@ -235,15 +248,16 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32))
 
 
-def detect_joints3d(seq, out_dir: str | Path, progress: bool = True) -> tuple:
+def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True) -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
     0.03 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
 
     Returns:
         ``(joints3d, note)``: the callable ``joints3d(i) -> (j3d (24, 3), conf (24,)) |
-        None`` the tracker takes (:meth:`PersonTrack.smpl_joints3d`), or None when no
-        detector is installed or it finds no person; and a sentence for ``input.json``.
+        None`` the tracker takes (:meth:`PersonTrack.smpl_joints3d`, in the axes of the
+        ``camera`` when given), or None when no detector is installed or it finds no
+        person; and a sentence for ``input.json``.
     """
     from flowmocap.errors import InputError
     from flowmocap.vision.detect import MediaPipePoseDetector
@@ -252,7 +266,8 @@ def detect_joints3d(seq, out_dir: str | Path, progress: bool = True) -> tuple:
         track = detect_sequence(seq, out_dir, detector=MediaPipePoseDetector(augment=False), progress=progress)
     except (InputError, NoPersonError) as e:
         return None, f"no 3D joints for E_d: {e}"
-    return track.smpl_joints3d, f"3D joints for E_d: {track.info['detector']}, {track.info['frames_with_person']} frames"
+    return (lambda i: track.smpl_joints3d(i, camera)), (f"3D joints for E_d: {track.info['detector']}, "
+                                                        f"{track.info['frames_with_person']} frames")
 
 
 def _usable(det) -> tuple | None:
