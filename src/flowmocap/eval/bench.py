@@ -13,7 +13,7 @@ Protocol on a synthetic sequence (one folder ``DIR/NAME/`` per sequence):
    joints; the tracker starts from the mean shape.
 3. ``flowmocap/``: :func:`flowmocap.fit.tracker.track_sequence` with the default
    :class:`~flowmocap.fit.config.TrackerConfig` from that init (keypoints on frame 0
-   only, as in the paper).
+   only, as in the paper) and, for ``E_d``, MediaPipe's 3D joints of every frame.
 4. ``baseline/``: :func:`flowmocap.eval.baseline.run_baseline` on detector-like
    keypoints of every frame (ground truth + 3 px noise + 5 % outliers of 20-60 px),
    its shape fitted on frame 0 from the same init.
@@ -167,7 +167,13 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
         from flowmocap.fit.tracker import track_sequence
 
         cfg = TrackerConfig.load(None, **(tracker_config or {}))
-        track_sequence(seq, res, model, seq.camera, spec, cfg=cfg, resume=resume, progress=progress)
+        joints3d = None
+        if cfg.limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
+            from flowmocap.vision.auto import detect_joints3d
+
+            joints3d, _ = detect_joints3d(seq, res, seq.camera, progress=progress)
+        track_sequence(seq, res, model, seq.camera, spec, cfg=cfg, resume=resume, progress=progress,
+                       joints3d=joints3d)
     elif method == "baseline":
         from flowmocap.eval.baseline import BaselineConfig, detector_keypoints, run_baseline
 
@@ -289,7 +295,7 @@ def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print) ->
     Our method: ``flowmocap.vision.auto.detect_sequence`` (automatic masks and keypoints,
     stored in the result folder), ``auto_init`` on the first frame with the person, the
     default camera of :func:`flowmocap.io.video.default_camera`, tracking with the
-    automatic masks. The baseline fits the detector's keypoints of every frame (frames
+    automatic masks and the detector's 3D joints (``E_d``). The baseline fits the detector's keypoints of every frame (frames
     with fewer than 4 confident joints make it ``None``). Joint metrics are ``None``
     (no ground truth).
     """
@@ -326,7 +332,8 @@ def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print) ->
     if not _finished(res):
         log(f"[{spec.name}] running flowmocap from frame {first} ...")
         track_sequence(auto, res, model, camera, parse_init(init, w, h), frames=(first, len(auto)),
-                       resume=(res / "motion.npz").exists(), progress=progress)
+                       resume=(res / "motion.npz").exists(), progress=progress,
+                       joints3d=lambda i: track.smpl_joints3d(i, camera))
     scores = score_result(res, hand, model=model)
     entry["flowmocap"] = {k: scores.get(k) for k in METRICS}
     names = getattr(importlib.import_module("flowmocap.vision.detect"), "SMPL_KEYPOINTS", ())
