@@ -259,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "tracking fails (re-initialisation runs when the detector is used, i.e. with automatic init or masks)")
     t.add_argument("--joints3d", default="auto", choices=["auto", "off"], help="'auto' (default): the detector's "
                    "3D joints tell each limb's direction in depth (E_d); with your own init.json and masks the "
-                   "detector then runs for them alone (MediaPipe, about 0.03 s per frame). 'off': no E_d")
+                   "detector then runs for them alone (MediaPipe, about 0.05 s per frame). 'off': no E_d")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"])
     t.add_argument("--flow", default=None, help="observed flow: dis, dis-fine, deepflow, tvl1, rlof, farneback (default: the config's flow_method)")

@@ -65,6 +65,7 @@ __all__ = [
     "DEPTH_LIMBS",
     "limb_depth_residuals",
     "limb_depth_energy",
+    "world_limb_depth_energy",
     "pose_prior_residuals",
     "pose_prior_energy",
     "shape_prior_residuals",
@@ -894,6 +895,15 @@ def limb_depth_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confidence
 def limb_depth_energy(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any, sigma: float = 0.3) -> torch.Tensor:
     """``E_d``: sum of squared :func:`limb_depth_residuals`, ``(B,)`` (unitless)."""
     return _sum_sq(limb_depth_residuals(joints_cam, joints3d_obs, confidence, sigma))
+
+
+def world_limb_depth_energy(joints_world: torch.Tensor, camera: PinholeCamera, joints3d: tuple,
+                            sigma: float = 0.3) -> torch.Tensor:
+    """:func:`limb_depth_energy` of world joints ``(B, 24, 3)`` turned into the camera's
+    axes (its rotation; directions need no translation), against ``joints3d = (j3d (24,
+    3), conf (24,))`` in the camera's axes; ``(B,)``."""
+    rot = torch.tensor(np.asarray(camera.R), dtype=joints_world.dtype, device=joints_world.device)
+    return limb_depth_energy(joints_world @ rot.T, *joints3d, sigma=sigma)
 
 
 # ---------------------------------------------------------------------------- priors

@@ -217,7 +217,6 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     if prior_weights is None:
         prior_weights = np.r_[0.0, np.full(23, float(cfg.init_pose_prior_weight))]
     prior_w = torch.as_tensor(np.asarray(prior_weights, np.float64), dtype=torch.float32)
-    rot = torch.tensor(np.asarray(camera.R), dtype=torch.float32)
     if prior_w.shape != (24,):
         raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
@@ -232,8 +231,8 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
             t["shape_prior"] = cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0]
         t["limits"] = cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
         if joints3d is not None and cfg.limb_depth_weight > 0:
-            t["limb_depth"] = cfg.limb_depth_weight * en.limb_depth_energy(out.joints @ rot.T, *joints3d,
-                                                                           sigma=cfg.limb_depth_sigma)[0]
+            t["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(out.joints, camera, joints3d,
+                                                                                 cfg.limb_depth_sigma)[0]
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:

@@ -172,9 +172,8 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
     if data.joints3d is not None and cfg.limb_depth_weight > 0:
-        rot = torch.tensor(np.asarray(scene.camera.R), dtype=out.joints.dtype)
-        terms["limb_depth"] = cfg.limb_depth_weight * en.limb_depth_energy(
-            out.joints @ rot.T, *data.joints3d, sigma=cfg.limb_depth_sigma)[0]
+        terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
+            out.joints, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 

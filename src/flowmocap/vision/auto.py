@@ -251,7 +251,7 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
 def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True) -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
-    0.03 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
+    0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
 
     Returns:
         ``(joints3d, note)``: the callable ``joints3d(i) -> (j3d (24, 3), conf (24,)) |
