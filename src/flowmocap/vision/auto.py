@@ -75,18 +75,23 @@ class PersonTrack:
 
         return cv2.imread(str(self.mask_paths[i]), cv2.IMREAD_GRAYSCALE) > 0
 
-    def smpl_joints(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(24, 2)`` pixels and ``(24,)`` confidences of frame ``i`` in SMPL joint order
-        (0 for the joints the detector does not give)."""
+    def _in_smpl_order(self, values: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``i``'s per-keypoint ``values (K, d)`` and confidences as ``(24, d)`` and
+        ``(24,)`` in SMPL joint order (0 for the joints the detector does not give)."""
         from flowmocap.body.skeleton import JOINT_NAMES
 
-        j2d = np.zeros((24, 2))
+        out = np.zeros((24, values.shape[-1]))
         conf = np.zeros(24)
         for k, name in enumerate(SMPL_KEYPOINTS):
             j = JOINT_NAMES.index(name)
-            j2d[j] = self.keypoints[i, k]
+            out[j] = values[k]
             conf[j] = self.confidence[i, k]
-        return j2d, conf
+        return out, conf
+
+    def smpl_joints(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(24, 2)`` pixels and ``(24,)`` confidences of frame ``i`` in SMPL joint order
+        (0 for the joints the detector does not give)."""
+        return self._in_smpl_order(self.keypoints[i], i)
 
     def smpl_joints3d(self, i: int, camera=None) -> tuple[np.ndarray, np.ndarray] | None:
         """The detector's 3D joints of frame ``i`` in SMPL joint order: ``(24, 3)`` metres
@@ -101,14 +106,7 @@ class PersonTrack:
         """
         if self.world is None or i >= len(self) or not self.found[i] or not np.isfinite(self.world[i]).all():
             return None
-        from flowmocap.body.skeleton import JOINT_NAMES
-
-        j3d = np.zeros((24, 3))
-        conf = np.zeros(24)
-        for k, name in enumerate(SMPL_KEYPOINTS):
-            j = JOINT_NAMES.index(name)
-            j3d[j] = self.world[i, k]
-            conf[j] = self.confidence[i, k]
+        j3d, conf = self._in_smpl_order(self.world[i], i)
         if camera is not None:
             hips = [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]
             use = hips if (self.confidence[i, hips] > 0).all() else np.nonzero(self.confidence[i] > 0)[0]
