@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from flowmocap.errors import InputError
+
 from flowmocap.fit.config import TrackerConfig
-from flowmocap.fit.reinit import ReinitMonitor, joint_disagreement
+from flowmocap.fit.reinit import ReinitMonitor, _better, joint_disagreement
 from flowmocap.vision.auto import detect_sequence
 
 from test_auto import GroundTruthDetector
@@ -75,3 +77,29 @@ def test_verdicts_survive_a_resume(setup, tmp_path):
     assert mon(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is not None
     fresh = ReinitMonitor(track, TrackerConfig(init_iterations=15), patience=3)  # no stored result
     assert fresh(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is None
+
+
+def test_thresholds_come_from_the_config(setup):
+    seq, track, scene = setup
+    cfg = TrackerConfig(reinit_min_iou=0.7, reinit_max_joint_error=0.05, reinit_patience=1, init_iterations=15)
+    mon = ReinitMonitor(track, cfg)
+    assert (mon.min_iou, mon.max_joint_error, mon.patience) == (0.7, 0.05, 1)
+    # patience 1: a single bad frame is re-fitted at once
+    res = mon(2, _state(seq, 2, (0.5, 0.0, 0.0)), scene, seq.mask(2))
+    assert res is not None and res[1]["after"]["iou"] > res[1]["before"]["iou"]
+    assert ReinitMonitor(track, cfg, min_iou=0.3).min_iou == 0.3  # an argument overrides the config
+    for bad in ({"reinit_min_iou": 1.5}, {"reinit_max_joint_error": 0.0}, {"reinit_patience": 0}):
+        with pytest.raises(InputError):
+            TrackerConfig.load(None, **bad)
+
+
+def test_a_refit_must_not_lose_the_silhouette_for_the_joints():
+    """Closer joints at a much lower IoU (a detector glitch) are refused; a small IoU loss
+    or an IoU gain is accepted; without masks the joints decide."""
+    before = {"iou": 0.78, "joint_error": 0.29}
+    assert not _better(before, {"iou": 0.58, "joint_error": 0.01})
+    assert _better(before, {"iou": 0.77, "joint_error": 0.01})
+    assert _better(before, {"iou": 0.80, "joint_error": 0.35})
+    assert not _better(before, {"iou": 0.77, "joint_error": 0.30})
+    assert _better({"iou": None, "joint_error": 0.2}, {"iou": None, "joint_error": 0.1})
+    assert not _better({"iou": None, "joint_error": 0.1}, {"iou": None, "joint_error": 0.2})

@@ -8,7 +8,9 @@ height in the image). After ``patience`` bad frames in a row, the frame is fitte
 to the detector's 2D joints and the mask, with the body shape fixed (the scene's betas),
 from two starts -- the tracked pose and an upright body facing the way the keypoints
 say -- and the better fit replaces the tracked one if it agrees better with the
-detections. Frames without the person (no mask, too few confident joints) are neither
+detections: a higher silhouette IoU, or closer 2D joints at an IoU no more than 0.02 lower
+(joints alone are misled by a detector's glitch). The thresholds are the config's
+``reinit_*`` settings. Frames without the person (no mask, too few confident joints) are neither
 good nor bad: they end a run of bad frames.
 
 Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
@@ -100,20 +102,20 @@ class ReinitMonitor:
         track: the detector's keypoints per frame (:class:`~flowmocap.vision.auto.PersonTrack`).
         cfg: the tracker settings (the fit uses its ``init_*`` weights).
         out_dir: the result folder, to re-judge earlier frames after a resume.
-        min_iou: silhouette IoU below which a frame is bad.
+        min_iou: silhouette IoU below which a frame is bad (default ``cfg.reinit_min_iou``).
         max_joint_error: median joint distance (fraction of the person's height) above which
-            a frame is bad.
-        patience: bad frames in a row before re-initialising.
+            a frame is bad (default ``cfg.reinit_max_joint_error``).
+        patience: bad frames in a row before re-initialising (default ``cfg.reinit_patience``).
     """
 
     def __init__(self, track: PersonTrack, cfg: TrackerConfig, out_dir: str | Path | None = None,
-                 min_iou: float = 0.5, max_joint_error: float = 0.15, patience: int = 3):
+                 min_iou: float | None = None, max_joint_error: float | None = None, patience: int | None = None):
         self.track = track
         self.cfg = cfg
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self.min_iou = min_iou
-        self.max_joint_error = max_joint_error
-        self.patience = max(int(patience), 1)
+        self.min_iou = cfg.reinit_min_iou if min_iou is None else min_iou
+        self.max_joint_error = cfg.reinit_max_joint_error if max_joint_error is None else max_joint_error
+        self.patience = max(int(cfg.reinit_patience if patience is None else patience), 1)
         self.verdicts: dict[int, bool | None] = {}  # frame -> bad (None: cannot tell)
         self.scores: dict[int, dict] = {}
         self._stored: dict | None = None
@@ -194,10 +196,7 @@ class ReinitMonitor:
         if best is None:
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
-        better = (after["joint_error"] is not None and before["joint_error"] is not None
-                  and after["joint_error"] < before["joint_error"]) or (
-                  after["iou"] is not None and before["iou"] is not None and after["iou"] > before["iou"])
-        if not better:
+        if not _better(before, after):
             return None
         self.verdicts[i] = after["bad"]
         self.scores[i] = after
@@ -205,6 +204,24 @@ class ReinitMonitor:
                        f"{self.max_joint_error} of the person's height)",
                 "before": _rounded(before), "after": _rounded(after)}
         return FrameState(best[0], best[1]), info
+
+
+#: A re-initialisation may cost this much silhouette IoU if it brings the 2D joints closer.
+IOU_TOLERANCE = 0.02
+
+
+def _better(before: dict, after: dict) -> bool:
+    """Whether a re-initialised frame (``after``) beats the tracked one (``before``).
+
+    With a mask on both: a higher silhouette IoU, or closer 2D joints at an IoU at most
+    :data:`IOU_TOLERANCE` lower (a detector's glitch, such as swapped or misplaced joints,
+    makes the joints alone mislead: the fit to them would leave the person's silhouette).
+    Without: closer 2D joints."""
+    joints = (after["joint_error"] is not None and before["joint_error"] is not None
+              and after["joint_error"] < before["joint_error"])
+    if after["iou"] is not None and before["iou"] is not None:
+        return after["iou"] > before["iou"] or (joints and after["iou"] >= before["iou"] - IOU_TOLERANCE)
+    return joints
 
 
 def _rounded(s: dict) -> dict:
