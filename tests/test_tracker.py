@@ -211,6 +211,12 @@ def test_config_file(tmp_path):
         p.write_text(json.dumps(bad))
         with pytest.raises(InputError, match=next(iter(bad))):
             TrackerConfig.load(p)
+    # a base (the real-video settings) goes under the file, keyword overrides over both
+    p.write_text(json.dumps({"silhouette_weight": 7.0}))
+    base = {"silhouette_weight": 20.0, "silhouette_a": 0.4}
+    cfg = TrackerConfig.load(p, base=base, flow_weight=3.0, levels=None)
+    assert (cfg.silhouette_weight, cfg.silhouette_a, cfg.flow_weight, cfg.levels) == (7.0, 0.4, 3.0, 3)
+    assert TrackerConfig.load(None, base=base).silhouette_weight == 20.0
 
 
 def test_all_weights_zero_keeps_the_prediction(clip, model):

@@ -60,7 +60,7 @@ def cmd_demo(args) -> int:
 
 def cmd_track(args) -> int:
     from flowmocap.body import load_body_model
-    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.config import REAL_VIDEO, TrackerConfig
     from flowmocap.fit.init import parse_init
     from flowmocap.fit.tracker import track_sequence
     from flowmocap.geometry.camera import PinholeCamera
@@ -101,7 +101,7 @@ def cmd_track(args) -> int:
         camera, camera_source = seq.camera, f"{src / 'camera.json'}"
     else:
         camera, camera_source = default_camera(seq.size[0], seq.size[1], seq.meta.get("focal_35mm"))
-    cfg = TrackerConfig.load(args.config, flow_method=args.flow)
+    cfg = TrackerConfig.load(args.config, base=REAL_VIDEO if auto_masks else None, flow_method=args.flow)
     model = load_body_model(args.model, gender=args.gender)
 
     track = None
@@ -114,7 +114,9 @@ def cmd_track(args) -> int:
             seq.masks = list(track.mask_paths)
     frames = args.frames
     notes: dict = {"camera_source": camera_source, "masks": "automatic" if auto_masks else str(user_masks or "input"),
-                   "init": "automatic" if auto_init else str(args.init)}
+                   "init": "automatic" if auto_init else str(args.init),
+                   "config_base": ("flowmocap.fit.config.REAL_VIDEO (automatic masks), then --config" if auto_masks
+                                   else "the defaults, then --config")}
     if auto_init:
         spec, frames, range_note = _auto_start(track, frames, len(seq), out, seq.size)
         notes["frame_range"] = range_note
