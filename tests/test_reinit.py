@@ -79,16 +79,23 @@ def test_verdicts_survive_a_resume(setup, tmp_path):
     assert fresh(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is None
 
 
-def test_thresholds_come_from_the_config(setup):
+def test_thresholds_come_from_the_config(setup, monkeypatch):
+    import flowmocap.fit.reinit as reinit
+
     seq, track, scene = setup
-    cfg = TrackerConfig(reinit_min_iou=0.7, reinit_max_joint_error=0.05, reinit_patience=1, init_iterations=15)
+    cfg = TrackerConfig(reinit_min_iou=0.7, reinit_max_joint_error=0.05, reinit_patience=1, reinit_iterations=15)
+    calls = []
+    fit = reinit.fit_to_detection
+    monkeypatch.setattr(reinit, "fit_to_detection", lambda *a, **k: calls.append(k["iterations"]) or fit(*a, **k))
     mon = ReinitMonitor(track, cfg)
     assert (mon.min_iou, mon.max_joint_error, mon.patience) == (0.7, 0.05, 1)
     # patience 1: a single bad frame is re-fitted at once
     res = mon(2, _state(seq, 2, (0.5, 0.0, 0.0)), scene, seq.mask(2))
     assert res is not None and res[1]["after"]["iou"] > res[1]["before"]["iou"]
+    assert calls and set(calls) == {15}
     assert ReinitMonitor(track, cfg, min_iou=0.3).min_iou == 0.3  # an argument overrides the config
-    for bad in ({"reinit_min_iou": 1.5}, {"reinit_max_joint_error": 0.0}, {"reinit_patience": 0}):
+    for bad in ({"reinit_min_iou": 1.5}, {"reinit_max_joint_error": 0.0}, {"reinit_patience": 0},
+                {"reinit_iterations": 0}):
         with pytest.raises(InputError):
             TrackerConfig.load(None, **bad)
 

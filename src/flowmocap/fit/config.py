@@ -67,6 +67,7 @@ class TrackerConfig:
     reinit_min_iou: float = 0.5       # a frame is bad below this silhouette IoU with the person's mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance, a fraction of the person's height
     reinit_patience: int = 3          # bad frames in a row before the frame is re-initialised from the detector
+    reinit_iterations: int = 60       # L-BFGS iterations per step of that fit (flowmocap.fit.reinit.fit_to_detection)
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"     # observed flow (flowmocap.vision.FLOW_METHODS); DIS refined to full resolution
     flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
@@ -138,10 +139,11 @@ class TrackerConfig:
         if not (cfg.keypoint_weight >= 0 and cfg.keypoint_sigma > 0):
             raise InputError(f"keypoint_weight must be >= 0 and keypoint_sigma > 0; got {cfg.keypoint_weight!r}, "
                              f"{cfg.keypoint_sigma!r}.")
-        if not (0 <= cfg.reinit_min_iou <= 1 and cfg.reinit_max_joint_error > 0 and int(cfg.reinit_patience) >= 1):
-            raise InputError(f"reinit_min_iou must be in [0, 1], reinit_max_joint_error > 0 and reinit_patience a "
-                             f"positive integer; got {cfg.reinit_min_iou!r}, {cfg.reinit_max_joint_error!r}, "
-                             f"{cfg.reinit_patience!r}.")
+        if not (0 <= cfg.reinit_min_iou <= 1 and cfg.reinit_max_joint_error > 0 and int(cfg.reinit_patience) >= 1
+                and int(cfg.reinit_iterations) >= 1):
+            raise InputError(f"reinit_min_iou must be in [0, 1], reinit_max_joint_error > 0, reinit_patience and "
+                             f"reinit_iterations positive integers; got {cfg.reinit_min_iou!r}, "
+                             f"{cfg.reinit_max_joint_error!r}, {cfg.reinit_patience!r}, {cfg.reinit_iterations!r}.")
         if int(cfg.torch_threads) != cfg.torch_threads or cfg.torch_threads < 1:
             raise InputError(f"torch_threads must be a positive integer; got {cfg.torch_threads!r}.")
         if cfg.temporal_reference not in ("previous", "prediction"):

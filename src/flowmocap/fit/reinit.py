@@ -188,6 +188,7 @@ class ReinitMonitor:
         for pose0, trans0 in starts:
             try:
                 pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0,
+                                                  iterations=self.cfg.reinit_iterations,
                                                   joints3d=self.track.smpl_joints3d(i, scene.camera))
             except OptimizationError:
                 continue
