@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from flowmocap.errors import InputError
-
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.reinit import ReinitMonitor, _better, joint_disagreement
 from flowmocap.vision.auto import detect_sequence
@@ -48,7 +47,7 @@ def test_good_frames_pass(setup):
 
 def test_a_run_of_bad_frames_is_reinitialised(setup):
     seq, track, scene = setup
-    cfg = TrackerConfig(init_iterations=15)
+    cfg = TrackerConfig(reinit_iterations=15)
     mon = ReinitMonitor(track, cfg, patience=3)
     off = (0.5, 0.0, 0.0)  # half a metre to the side: the body misses the person
     assert mon(2, _state(seq, 2, off), scene, seq.mask(2)) is None
@@ -73,9 +72,9 @@ def test_verdicts_survive_a_resume(setup, tmp_path):
             out, _, _ = scene.forward(*(lambda s: (s.pose, s.trans))(_state(seq, i, (0.5, 0.0, 0.0))))
             j2d.append(scene.camera.project(out.joints[0]).numpy())
     np.savez(tmp_path / "motion.npz", joints2d=np.array(j2d), frame_index=np.arange(4))
-    mon = ReinitMonitor(track, TrackerConfig(init_iterations=15), out_dir=tmp_path, patience=3)
+    mon = ReinitMonitor(track, TrackerConfig(reinit_iterations=15), out_dir=tmp_path, patience=3)
     assert mon(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is not None
-    fresh = ReinitMonitor(track, TrackerConfig(init_iterations=15), patience=3)  # no stored result
+    fresh = ReinitMonitor(track, TrackerConfig(reinit_iterations=15), patience=3)  # no stored result
     assert fresh(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is None
 
 
