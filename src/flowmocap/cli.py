@@ -265,7 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"])
     t.add_argument("--flow", default=None, help="observed flow: dis, dis-fine, deepflow, tvl1, rlof, farneback (default: the config's flow_method)")
-    t.add_argument("--config", help="JSON file overriding tracker settings (flowmocap.fit.config)")
+    t.add_argument("--config", help="JSON file overriding tracker settings (flowmocap.fit.config; with automatic "
+                                    "masks it overrides the real-video settings REAL_VIDEO, which override the "
+                                    "defaults)")
     t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
