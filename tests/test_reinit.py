@@ -91,7 +91,11 @@ def test_thresholds_come_from_the_config(setup, monkeypatch):
     # patience 1: a single bad frame is re-fitted at once
     res = mon(2, _state(seq, 2, (0.5, 0.0, 0.0)), scene, seq.mask(2))
     assert res is not None and res[1]["after"]["iou"] > res[1]["before"]["iou"]
-    assert calls and set(calls) == {15}
+    assert calls == [15, 15]  # lost (half a metre off): from the tracked pose and from an upright body
+    calls.clear()
+    mild = ReinitMonitor(track, TrackerConfig(reinit_min_iou=0.999, reinit_patience=1, reinit_iterations=15))
+    mild(3, _state(seq, 3, (0.01, 0.0, 0.0)), scene, seq.mask(3))
+    assert calls == [15]  # drifted, not lost: from the tracked pose only
     assert ReinitMonitor(track, cfg, min_iou=0.3).min_iou == 0.3  # an argument overrides the config
     for bad in ({"reinit_min_iou": 1.5}, {"reinit_max_joint_error": 0.0}, {"reinit_patience": 0},
                 {"reinit_iterations": 0}):

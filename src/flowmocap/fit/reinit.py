@@ -6,9 +6,10 @@ A tracked frame is *bad* when the rendered body covers the person's mask poorly
 (median distance over the confident joints above ``max_joint_error`` times the person's
 height in the image). After ``patience`` bad frames in a row, the frame is fitted afresh
 to the detector's 2D joints and the mask, with the body shape fixed (the scene's betas),
-from two starts -- the tracked pose and an upright body facing the way the keypoints
-say -- and the better fit replaces the tracked one if it agrees better with the
-detections: a higher silhouette IoU, or closer 2D joints at an IoU no more than 0.02 lower
+from the tracked pose and, when the body has lost the person (IoU below 0.5, joints too
+far, or no mask), also from an upright body facing the way the keypoints say (the fit
+with the lower energy wins; a drifted frame needs only the first, at about half the
+time); the fit replaces the tracked one if it agrees better with the detections: a higher silhouette IoU, or closer 2D joints at an IoU no more than 0.02 lower
 (joints alone are misled by a detector's glitch). The thresholds are the config's
 ``reinit_*`` settings. Frames without the person (no mask, too few confident joints) are neither
 good nor bad: they end a run of bad frames.
@@ -182,8 +183,9 @@ class ReinitMonitor:
         fresh = np.zeros(72)
         fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
         spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
-        starts = [(state.pose, state.trans),
-                  (torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec))]
+        starts = [(state.pose, state.trans)]
+        if _lost(before, self.max_joint_error):
+            starts.append((torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec)))
         best = None
         for pose0, trans0 in starts:
             try:
@@ -209,6 +211,15 @@ class ReinitMonitor:
 
 #: A re-initialisation may cost this much silhouette IoU if it brings the 2D joints closer.
 IOU_TOLERANCE = 0.02
+#: Below this silhouette IoU the body has lost the person: the refit also starts upright.
+LOST_IOU = 0.5
+
+
+def _lost(s: dict, max_joint_error: float) -> bool:
+    """Whether a frame's scores say the body has lost the person (not merely drifted):
+    IoU below :data:`LOST_IOU`, joints further than ``max_joint_error``, or no mask."""
+    return s["iou"] is None or s["iou"] < LOST_IOU or (s["joint_error"] is not None
+                                                        and s["joint_error"] > max_joint_error)
 
 
 def _better(before: dict, after: dict) -> bool:
