@@ -24,9 +24,9 @@ from flowmocap.errors import InputError
 #: weight, weighing the uncovered mask more (``a`` 0.4); a second hypothesis for every frame
 #: whose silhouette IoU with the mask falls below 0.8: a fit to the detections
 #: (flowmocap.fit.reinit), kept when it is better; the 2D joints at weight 0.3 instead of 1
-#: in the init and these fits. DAVIS dance-twirl body IoU 0.708 (the defaults) -> 0.764;
-#: Sports2D walk 0.701 -> 0.785, joints 5.2 % -> 2.9 % of the height apart; about twice the
-#: time per frame. On the synthetic CMU protocol (exact body masks, no per-frame detections)
+#: in the init and these fits. DAVIS dance-twirl body IoU 0.708 (the defaults) -> 0.762;
+#: Sports2D walk 0.701 -> 0.784, joints 5.2 % -> 2.8 % of the height apart; about 1.5 times
+#: the time per frame. On the synthetic CMU protocol (exact body masks, no per-frame detections)
 #: the same E_c settings were worse on 5 of the 6 seeds run (median local error 4.69 cm
 #: against 3.42), so they are not the defaults.
 REAL_VIDEO = {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
