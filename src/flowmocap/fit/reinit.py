@@ -9,10 +9,11 @@ to the detector's 2D joints and the mask, with the body shape fixed (the scene's
 from the tracked pose and, when the body has lost the person (IoU below 0.5, joints too
 far, or no mask), also from an upright body facing the way the keypoints say (the fit
 with the lower energy wins; a drifted frame needs only the first, at about half the
-time); the fit replaces the tracked one if it agrees better with the detections: a higher silhouette IoU, or closer 2D joints at an IoU no more than 0.02 lower
-(joints alone are misled by a detector's glitch). The thresholds are the config's
-``reinit_*`` settings. Frames without the person (no mask, too few confident joints) are neither
-good nor bad: they end a run of bad frames.
+time). The fit replaces the tracked one if it agrees better with the detections: a
+higher silhouette IoU, or closer 2D joints at an IoU no more than 0.02 lower (joints
+alone are misled by a detector's glitch). The thresholds are the config's ``reinit_*``
+settings. Frames without the person (no mask, too few confident joints) are neither good
+nor bad: they end a run of bad frames.
 
 Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
 a ``--resume`` it re-judges the frames before the resumed one by their stored 2D joints
@@ -180,18 +181,18 @@ class ReinitMonitor:
         from flowmocap.fit.tracker import FrameState
 
         j2d, conf = self.track.smpl_joints(i)
-        fresh = np.zeros(72)
-        fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
-        spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
+        joints3d = self.track.smpl_joints3d(i, scene.camera)
         starts = [(state.pose, state.trans)]
-        if _lost(before, self.max_joint_error):
+        if _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
+            fresh = np.zeros(72)
+            fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
+            spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
             starts.append((torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec)))
         best = None
         for pose0, trans0 in starts:
             try:
                 pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0,
-                                                  iterations=self.cfg.reinit_iterations,
-                                                  joints3d=self.track.smpl_joints3d(i, scene.camera))
+                                                  iterations=self.cfg.reinit_iterations, joints3d=joints3d)
             except OptimizationError:
                 continue
             if math.isfinite(e) and (best is None or e < best[2]):
