@@ -196,7 +196,7 @@ def test_glb_vertices_are_the_fitted_body(posed_result, tmp_path):
 
 
 def test_amass_npz_round_trips_through_our_loader(posed_result, camera_frame_result, tmp_path):
-    from flowmocap.export.amass import read_amass_npz
+    from flowmocap.io.amass import read_amass_npz
 
     for k, (folder, truth) in enumerate((posed_result, camera_frame_result)):
         path = export_result(folder, "npz", tmp_path / f"amass{k}.npz")

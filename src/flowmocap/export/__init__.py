@@ -121,7 +121,7 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         return out
     if fmt == "json":
         return write_json(out, motion)
-    from flowmocap.export.amass import write_amass_npz
+    from flowmocap.io.amass import write_amass_npz
 
     if frame != "up":
         raise InputError("the AMASS layout is always z up; use the default frame ('up') for --format npz.")

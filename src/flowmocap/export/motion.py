@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from flowmocap.errors import DataError, InputError
+from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "up_rotation", "rotate_motion", "FRAMES"]
 
@@ -102,33 +103,6 @@ def up_rotation(camera) -> np.ndarray:
     if np.allclose(camera.R, np.eye(3), atol=1e-9):
         return CAMERA_TO_Y_UP.copy()
     return np.eye(3)
-
-
-def rotate_motion(poses: np.ndarray, trans: np.ndarray, rest_pelvis: np.ndarray,
-                  rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Turn a whole SMPL motion rigidly about the world origin.
-
-    SMPL rotates the body about its rest pelvis ``J0``: ``x = R0 (x_rest - J0) + J0 + trans``.
-    Turning everything by ``W`` gives ``R0' = W R0`` and ``trans' = W (J0 + trans) - J0``.
-
-    Args:
-        poses: ``(T, 72)`` axis-angle in radians (only the first 3, the root, change).
-        trans: ``(T, 3)`` metres.
-        rest_pelvis: ``(3,)`` pelvis of the shaped rest pose, metres.
-        rotation: ``(3, 3)`` rotation ``W``.
-
-    Returns:
-        ``poses (T, 72)``, ``trans (T, 3)``, float64.
-    """
-    from scipy.spatial.transform import Rotation
-
-    W = np.asarray(rotation, np.float64)
-    poses = np.array(poses, np.float64).reshape(-1, 72)
-    trans = np.asarray(trans, np.float64).reshape(-1, 3)
-    J0 = np.asarray(rest_pelvis, np.float64).reshape(3)
-    root = Rotation.from_matrix(W @ Rotation.from_rotvec(poses[:, :3]).as_matrix())
-    poses[:, :3] = root.as_rotvec()
-    return poses, (trans + J0) @ W.T - J0
 
 
 def _model_for(run: dict, gender: str, model):

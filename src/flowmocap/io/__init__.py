@@ -9,9 +9,12 @@ Public API:
 - :class:`SmplMotion` (poses ``(T, 72)``, trans ``(T, 3)``, betas, gender, fps),
   :func:`retarget`, :func:`resolve_joint_map`, :data:`RIGS`, :func:`body_yaw`.
 - :func:`builtin_walk`, :func:`walk_poses` -- ``builtin:walk``.
+- :func:`read_amass_npz`, :func:`write_amass_npz`, :data:`Y_UP_TO_Z_UP` -- AMASS-layout
+  ``.npz`` (z up); :func:`rotate_motion` turns a SMPL motion rigidly.
 - :func:`load_motion` -- any of the above by name or path.
 """
 
+from flowmocap.io.amass import Y_UP_TO_Z_UP, read_amass_npz, write_amass_npz
 from flowmocap.io.builtin_walk import builtin_walk, walk_poses
 from flowmocap.io.mocap import (
     MocapClip,
@@ -25,7 +28,7 @@ from flowmocap.io.mocap import (
 )
 from flowmocap.io.motion_source import load_motion
 from flowmocap.io.retarget import REST_RELATIVE, RIGS, body_yaw, resolve_joint_map, retarget
-from flowmocap.io.smpl_motion import SmplMotion
+from flowmocap.io.smpl_motion import SmplMotion, rotate_motion
 
 __all__ = [
     "MocapClip",
@@ -45,4 +48,8 @@ __all__ = [
     "builtin_walk",
     "walk_poses",
     "load_motion",
+    "read_amass_npz",
+    "write_amass_npz",
+    "Y_UP_TO_Z_UP",
+    "rotate_motion",
 ]

@@ -1,10 +1,12 @@
-"""One entry point for body motions: a mocap file (retargeted) or a built-in motion."""
+"""One entry point for body motions: a mocap file (retargeted), an AMASS ``.npz`` or a
+built-in motion."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from flowmocap.errors import InputError
+from flowmocap.io.amass import read_amass_npz
 from flowmocap.io.builtin_walk import BUILTIN_MOTIONS, builtin_walk
 from flowmocap.io.mocap import read_mocap
 from flowmocap.io.retarget import retarget
@@ -57,8 +59,6 @@ def load_motion(
         rate = 30.0 if fps is None else float(fps)
         return builtin_walk(model, betas=betas, fps=rate, frames=frames, facing=facing)
     if Path(text).suffix.lower() == ".npz":
-        from flowmocap.export.amass import read_amass_npz
-
         motion = read_amass_npz(text, model)
         if fps is not None and abs(float(fps) - motion.fps) > 1e-6:
             raise InputError(f"{text} holds SMPL parameters at {motion.fps:g} fps and is not resampled; "

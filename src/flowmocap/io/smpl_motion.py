@@ -1,4 +1,5 @@
-"""A body motion in SMPL parameters: poses, translations, shape, gender, frame rate."""
+"""A body motion in SMPL parameters (poses, translations, shape, gender, frame rate), and
+turning one rigidly about the world origin."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 
 from flowmocap.errors import InputError
 
-__all__ = ["SmplMotion"]
+__all__ = ["SmplMotion", "rotate_motion"]
 
 
 @dataclass
@@ -76,3 +77,30 @@ def betas_tensor(model, betas) -> "torch.Tensor":
         raise InputError(f"betas must be at most {nb} finite numbers, got {b.shape[0]}")
     b = np.pad(b, (0, nb - b.shape[0]))
     return torch.as_tensor(b[None], dtype=model.v_template.dtype)
+
+
+def rotate_motion(poses: np.ndarray, trans: np.ndarray, rest_pelvis: np.ndarray,
+                  rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Turn a whole SMPL motion rigidly about the world origin.
+
+    SMPL rotates the body about its rest pelvis ``J0``: ``x = R0 (x_rest - J0) + J0 + trans``.
+    Turning everything by ``W`` gives ``R0' = W R0`` and ``trans' = W (J0 + trans) - J0``.
+
+    Args:
+        poses: ``(T, 72)`` axis-angle in radians (only the first 3, the root, change).
+        trans: ``(T, 3)`` metres.
+        rest_pelvis: ``(3,)`` pelvis of the shaped rest pose, metres.
+        rotation: ``(3, 3)`` rotation ``W``.
+
+    Returns:
+        ``poses (T, 72)``, ``trans (T, 3)``, float64.
+    """
+    from scipy.spatial.transform import Rotation
+
+    W = np.asarray(rotation, np.float64)
+    poses = np.array(poses, np.float64).reshape(-1, 72)
+    trans = np.asarray(trans, np.float64).reshape(-1, 3)
+    J0 = np.asarray(rest_pelvis, np.float64).reshape(3)
+    root = Rotation.from_matrix(W @ Rotation.from_rotvec(poses[:, :3]).as_matrix())
+    poses[:, :3] = root.as_rotvec()
+    return poses, (trans + J0) @ W.T - J0

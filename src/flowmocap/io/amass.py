@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from flowmocap.errors import DataError
+from flowmocap.io.smpl_motion import SmplMotion, rotate_motion
 
 __all__ = ["Y_UP_TO_Z_UP", "write_amass_npz", "read_amass_npz"]
 
@@ -38,14 +39,12 @@ def write_amass_npz(path: str | Path, poses: np.ndarray, trans: np.ndarray, beta
         gender: ``"neutral"``, ``"male"`` or ``"female"``.
         fps: frames per second (Hz).
         rest_pelvis: ``(3,)`` pelvis of the shaped rest pose in metres (needed to turn
-            the motion, see :func:`flowmocap.export.motion.rotate_motion`).
+            the motion, see :func:`flowmocap.io.smpl_motion.rotate_motion`).
         **extra: more arrays to store (e.g. ``frame_index``).
 
     Returns:
         The path written.
     """
-    from flowmocap.export.motion import rotate_motion
-
     p, t = rotate_motion(poses, trans, rest_pelvis, Y_UP_TO_Z_UP)
     T = p.shape[0]
     smplh = np.zeros((T, 156), np.float64)
@@ -81,8 +80,6 @@ def read_amass_npz(path: str | Path, model=None):
     import torch
 
     from flowmocap.body import load_body_model
-    from flowmocap.export.motion import rotate_motion
-    from flowmocap.io.smpl_motion import SmplMotion
 
     path = Path(path)
     try:
