@@ -1,8 +1,16 @@
-"""All tracker weights and settings in one place, with defaults; ``--config`` overrides.
+"""All tracker weights and settings in one place, with defaults, named profiles and checks.
 
 A config file is JSON with any subset of the fields of :class:`TrackerConfig`, e.g.
 
     {"flow_weight": 1.0, "levels": 3, "iterations": 25}
+
+:meth:`TrackerConfig.load` layers, lowest first: the defaults, a named profile from
+:data:`PROFILES` (``"synthetic"``: the defaults; ``"video"``: real video with automatic
+masks), ``base``, the config file, keyword overrides. Every value is checked when a
+:class:`TrackerConfig` is constructed, however it was made; a mistake is an
+:class:`~flowmocap.errors.InputError` that names the setting, the value and what is
+expected. What each setting does, its unit and how its value was measured:
+``docs/settings.md``.
 
 Energies are normalised so that the defaults need no retuning across image sizes:
 ``E_f`` and ``E_c`` are divided by the number of person pixels (mask or model).
@@ -11,151 +19,216 @@ Energies are normalised so that the defaults need no retuning across image sizes
 from __future__ import annotations
 
 import json
+import math
+import numbers
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from flowmocap.errors import InputError
+from flowmocap.vision import FLOW_METHODS
+
+#: Named settings profiles, each a partial config over the defaults (``docs/settings.md``
+#: says what each changes and how that was measured).
+PROFILES: dict[str, dict[str, Any]] = {
+    # exact body masks, no per-frame detections: the defaults
+    "synthetic": {},
+    # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
+    # stronger, and a refit from the detections wherever the silhouette IoU drops
+    "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
+              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3},
+}
+
+#: The ``"video"`` profile under its old name (kept for existing callers; prefer
+#: ``PROFILES["video"]``).
+REAL_VIDEO = PROFILES["video"]
+
+#: Settings that no longer exist, with what happens now; a config naming one is refused.
+REMOVED_SETTINGS: dict[str, str] = {
+    "occlusion_temporal_gain": "E_theta weighs every joint alike (temporal_weight), hidden or not",
+    "flow_occlusion_check": "E_f uses every person pixel (flow_in_mask) without a forward-backward "
+                            "flow consistency check",
+    "temporal_reference": "E_theta always pulls towards the Kalman prediction, never the previous pose",
+    "optimizer": "every frame is optimised with L-BFGS (the Levenberg-Marquardt solver is gone); "
+                 "'iterations' sets its iterations per stage",
+}
 
 
-#: Settings ``flowmocap track`` starts from when the masks come from the person detector
-#: (real video; a config file still overrides them). Such a mask is the dressed person (a
-#: skirt, hair) and the detector gives 2D joints on every frame. E_c from the mesh itself
-#: (unbiased, where the capsules leave gaps at the joints, head and feet) at four times the
-#: weight, weighing the uncovered mask more (``a`` 0.4); a second hypothesis for every frame
-#: whose silhouette IoU with the mask falls below 0.8: a fit to the detections
-#: (flowmocap.fit.reinit), kept when it is better; the 2D joints at weight 0.3 instead of 1
-#: in the init and these fits. DAVIS dance-twirl body IoU 0.708 (the defaults) -> 0.762;
-#: Sports2D walk 0.701 -> 0.784, joints 5.2 % -> 2.8 % of the height apart; about 1.5 times
-#: the time per frame. On the synthetic CMU protocol (exact body masks, no per-frame detections)
-#: the same E_c settings were worse on 5 of the 6 seeds run (median local error 4.69 cm
-#: against 3.42), so they are not the defaults.
-REAL_VIDEO = {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
-              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3}
+def profile_names() -> list[str]:
+    """The names :meth:`TrackerConfig.load` accepts as ``profile``."""
+    return list(PROFILES)
+
+
+# What each number setting must satisfy (checked in TrackerConfig.__post_init__).
+_AT_LEAST_0, _ABOVE_0, _UNIT, _AT_LEAST_1 = ">= 0", "> 0", "in [0, 1]", ">= 1"
+_RANGE_OK = {
+    _AT_LEAST_0: lambda v: v >= 0,
+    _ABOVE_0: lambda v: v > 0,
+    _UNIT: lambda v: 0 <= v <= 1,
+    _AT_LEAST_1: lambda v: v >= 1,
+}
+_RANGES: dict[str, str] = {
+    "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
+    "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
+    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1,
+    "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
+    "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
+    "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
+    "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
+    "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
+    "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
+    "init_shape_prior_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
+    "init_flow_iterations": _AT_LEAST_1,
+}
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "silhouette_model": ("capsules", "mesh"),
+    "flow_method": tuple(FLOW_METHODS),
+}
+
+
+def _bad(name: str, value: Any, expected: str) -> InputError:
+    return InputError(f"config setting {name!r} must be {expected}; got {value!r}"
+                      f"{'' if value is None else f' ({type(value).__name__})'}.")
 
 
 @dataclass
 class TrackerConfig:
     # --- per-frame objective (paper Eq. 4) --------------------------------------------
-    flow_weight: float = 1.0          # lambda_f: E_f, px^2 per person pixel
-    silhouette_weight: float = 5.0     # lambda_c: E_c, px^2 per person pixel
-    silhouette_a: float = 0.6         # a in E_c: weight of S_M * C_I (model inside the mask)
-    limit_weight: float = 10.0        # lambda_b: E_b joint limits
-    penetration_weight: float = 10.0  # lambda_sp: E_sp capsule interpenetration (m^2)
-    temporal_weight: float = 0.5      # lambda_theta: E_theta, rad^2, to the previous pose
-    occlusion_temporal_gain: float = 0.0  # E_theta of joint j times (1 + gain * hidden share of its part); 20 gave
-                                          # 5.42/6.83 cm on the CMU protocol (seed 0) but 9.90/13.61 on seed 1: off
-    anchor_weight: float = 0.5        # lambda_a: E_a, rad^2, every joint but the root towards its rotation in
-                                      # the first frame, when the init states a rough pose (not for the
-                                      # automatic init, not after a re-initialisation); an extension of the
-                                      # paper against drift: CMU protocol, 8 seeds, median 6.34/8.07 cm without,
-                                      # 4.62/6.75 with; DAVIS (automatic init) lost 0.014 IoU with it, hence off there
-    temporal_reference: str = "prediction"  # E_theta towards the Kalman "prediction" (default) or the "previous" pose (paper)
-    levels: int = 3                   # Gaussian pyramid levels of E_f
-    stages: tuple = ((2,), (0, 1, 2))  # coarse to fine: which pyramid levels each stage uses
-    iterations: int = 20              # optimiser iterations per stage
-    optimizer: str = "lbfgs"          # "lbfgs" (torch L-BFGS, strong Wolfe) or "lm" (Levenberg-Marquardt; needs mesh E_c)
-    keypoint_weight: float = 0.05     # lambda_j: detected 2D joints (real video only; an extension of the paper):
-                                      # robust px^2 per confident joint, keeps the body on the person
-    keypoint_sigma: float = 20.0      # Geman-McClure scale of that term, px (a left/right swap saturates)
-    limb_depth_weight: float = 2.0    # lambda_d: E_d, each limb's direction in depth towards the detector's 3D
-                                      # joints (MediaPipe's world landmarks; an extension of the paper), when
-                                      # they are given (video input, or --joints3d auto)
-    limb_depth_sigma: float = 0.3     # Geman-McClure scale of E_d (a difference of sines)
-    capsule_grid_step: int = 8        # grid step (px) of the capsule distance map C_M
-    silhouette_model: str = "capsules"  # S_M/C_M of E_c from "capsules" (paper) or the "mesh"
+    flow_weight: float = 1.0           # lambda_f, E_f: the rendered flow must match the observed flow
+    silhouette_weight: float = 5.0     # lambda_c, E_c: keeps the body inside the person's mask
+    silhouette_a: float = 0.6          # a in E_c: > 0.5 tolerates masks wider than the body (clothes)
+    limit_weight: float = 10.0         # lambda_b, E_b: soft joint limits rule out impossible poses
+    penetration_weight: float = 10.0   # lambda_sp, E_sp: limbs must not pass through each other
+    temporal_weight: float = 0.5       # lambda_theta, E_theta: towards the Kalman prediction, smooths
+    anchor_weight: float = 0.5         # lambda_a, E_a: towards the stated first pose, against drift
+    levels: int = 3                    # Gaussian pyramid levels of E_f, for motions beyond a few px
+    stages: tuple[tuple[int, ...], ...] = ((2,), (0, 1, 2))  # coarse to fine: levels used per stage
+    iterations: int = 20               # L-BFGS iterations per stage
+    keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
+    keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
+    limb_depth_weight: float = 2.0     # lambda_d, E_d: the detector's 3D joints resolve depth flips
+    limb_depth_sigma: float = 0.3      # its Geman-McClure scale (a difference of sines)
+    capsule_grid_step: int = 8         # px between exact samples of the capsule distance map C_M
+    silhouette_model: str = "capsules"  # S_M/C_M of E_c: "capsules" (paper) or the "mesh" itself
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
-    reinit_min_iou: float = 0.5       # a frame is bad below this silhouette IoU with the person's mask
-    reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance, a fraction of the person's height
-    reinit_patience: int = 3          # bad frames in a row before the frame is re-initialised from the detector
-    reinit_iterations: int = 60       # L-BFGS iterations per step of that fit (flowmocap.fit.reinit.fit_to_detection)
+    reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
+    reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
+    reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
+    reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
     # --- observed flow -----------------------------------------------------------------
-    flow_method: str = "dis-fine"     # observed flow (flowmocap.vision.FLOW_METHODS); DIS refined to full resolution
-    flow_in_mask: bool = True         # E_f only on mask pixels when a mask is given
-    flow_occlusion_check: bool = False  # E_f only on pixels whose flow passes a forward-backward
-                                        # consistency check (costs a second, forward flow per frame);
-                                        # CMU protocol, 8 seeds: median 7.43/9.11 cm vs 7.17/9.18 without: off
+    flow_method: str = "dis-fine"      # flowmocap.vision.FLOW_METHODS; DIS refined to full resolution
+    flow_in_mask: bool = True          # E_f only on mask pixels: the background's flow is not the body's
     # --- Kalman filters ----------------------------------------------------------------
-    kalman: bool = True
-    kalman_rot_accel_noise: float = 0.02  # rad/frame^2, the joint filters' white angular acceleration; with their
-                                          # 0.02 rad measurement noise it sets how much the prediction smooths
-    torch_threads: int = 1            # torch threads while tracking: the per-frame problem is small, so one
-                                      # thread is as fast, leaves a core to the flow of the next frame, and
-                                      # keeps results independent of the machine's core count
+    kalman: bool = True                # predict each frame's start and E_theta's target
+    kalman_rot_accel_noise: float = 0.02  # rad/frame^2: how much the joint filters' prediction smooths
+    torch_threads: int = 1             # the per-frame problem is small; keeps a core for the next flow
     # --- initialisation ----------------------------------------------------------------
-    init_keypoint_weight: float = 1.0     # robust 2D joints (px^2 scale)
-    init_keypoint_sigma: float = 50.0     # Geman-McClure scale, px
-    init_pose_prior_weight: float = 200.0  # towards the start pose, per rad^2, when the init states no rough pose
-                                           # (automatic init: 1000 here took DAVIS body IoU from 0.714 to 0.657)
-    init_rough_pose_weight: float = 1000.0  # the same when it does (joints it leaves out count as at rest): with
-                                            # 15 deg of noise (CMU protocol, 8 seeds) frame 0 is 3.53 cm off at 1000,
-                                            # 4.00 at 200, 4.76 at 50; tracked: median 6.35/8.57 cm vs 7.17/9.18 at 200
-    init_shape_prior_weight: float = 5.0  # towards the mean shape
-    init_iterations: int = 60
-    init_flow_iterations: int = 30
+    init_keypoint_weight: float = 1.0     # robust 2D joints of frame 0 (px^2 scale)
+    init_keypoint_sigma: float = 50.0     # their Geman-McClure scale, px
+    init_pose_prior_weight: float = 200.0  # towards the start pose when the init states no pose
+    init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
+    init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
+    init_iterations: int = 60          # L-BFGS iterations per init step
+    init_flow_iterations: int = 30     # L-BFGS iterations of the init's flow step (frames 0 and 1)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            name, value, kind = f.name, getattr(self, f.name), f.type
+            if name == "stages":
+                value = self._check_stages(value)
+            elif kind == "bool":
+                if not isinstance(value, bool):
+                    raise _bad(name, value, "true or false")
+            elif kind == "int":
+                if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                    raise _bad(name, value, f"an integer {_RANGES[name]}")
+                value = int(value)
+            elif kind == "float":
+                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                    raise _bad(name, value, f"a finite number {_RANGES[name]}")
+                value = float(value)
+            elif kind == "str":
+                if not isinstance(value, str) or value not in _CHOICES[name]:
+                    raise _bad(name, value, "one of " + ", ".join(repr(c) for c in _CHOICES[name]))
+            else:  # a new field needs a check here
+                raise AssertionError(f"no check for setting {name!r} of type {kind}")
+            if name in _RANGES and not _RANGE_OK[_RANGES[name]](value):
+                raise _bad(name, value, f"{'an integer' if kind == 'int' else 'a number'} {_RANGES[name]}")
+            setattr(self, name, value)
+        for stage in self.stages:
+            if any(level >= self.levels for level in stage):
+                raise _bad("stages", self.to_dict()["stages"],
+                           f"lists of pyramid levels 0..{self.levels - 1} (levels is {self.levels})")
+
+    @staticmethod
+    def _check_stages(value: Any) -> tuple[tuple[int, ...], ...]:
+        expected = "a non-empty list of non-empty lists of pyramid levels (integers >= 0), e.g. [[2], [0, 1, 2]]"
+        seq = lambda x: isinstance(x, Sequence) and not isinstance(x, (str, bytes))  # noqa: E731
+        if not seq(value) or not value or not all(seq(s) and s for s in value):
+            raise _bad("stages", value, expected)
+        if not all(not isinstance(l, bool) and isinstance(l, numbers.Integral) and l >= 0 for s in value for l in s):
+            raise _bad("stages", value, expected)
+        return tuple(tuple(int(l) for l in s) for s in value)
 
     @classmethod
-    def load(cls, path: str | Path | None = None, base: dict | None = None, **overrides) -> "TrackerConfig":
-        """Defaults, updated from ``base`` (e.g. :data:`REAL_VIDEO`), then from a JSON file,
-        then from keyword overrides (None values are ignored)."""
-        values = {}
-        if path is not None:
+    def from_dict(cls, values: Mapping[str, Any], source: str = "config") -> "TrackerConfig":
+        """A config from a dict of settings over the defaults; a removed or unknown setting
+        is an :class:`InputError` (``source`` says where the dict came from)."""
+        check_setting_names(values, source)
+        return cls(**values)
+
+    @classmethod
+    def load(cls, path: str | Path | Mapping[str, Any] | None = None, profile: str | None = "synthetic",
+             base: Mapping[str, Any] | None = None, **overrides: Any) -> "TrackerConfig":
+        """The defaults, updated from the named ``profile`` (a key of :data:`PROFILES`; None
+        counts as ``"synthetic"``), then from ``base``, then from the JSON file at ``path``
+        (or a dict in its place), then from keyword overrides (None values are ignored)."""
+        profile = "synthetic" if profile is None else profile
+        if not isinstance(profile, str) or profile not in PROFILES:
+            raise InputError(f"unknown settings profile {profile!r}; known: {', '.join(PROFILES)}.")
+        if isinstance(path, Mapping):
+            values, where = dict(path), "config"
+        elif path is None:
+            values, where = {}, "config"
+        elif isinstance(path, (str, Path)):
+            where = f"config file {path}"
             try:
                 values = json.loads(Path(path).read_text())
             except FileNotFoundError:
                 raise InputError(f"config file {path} does not exist.") from None
-            except json.JSONDecodeError as e:
+            except IsADirectoryError:
+                raise InputError(f"config file {path} is a folder, not a JSON file.") from None
+            except (json.JSONDecodeError, UnicodeDecodeError) as e:
                 raise InputError(f"config file {path} is not valid JSON: {e}") from None
             if not isinstance(values, dict):
                 raise InputError(f"config file {path} must hold a JSON object of settings.")
-        values = {**(base or {}), **values}
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise InputError(f"unknown config settings {unknown}; known: {sorted(names)}.")
-        if "stages" in values:
-            values["stages"] = tuple(tuple(int(l) for l in s) for s in values["stages"])
-        cfg = cls(**values)
-        if cfg.optimizer not in ("lbfgs", "lm"):
-            raise InputError(f"optimizer must be 'lbfgs' or 'lm'; got {cfg.optimizer!r}.")
-        if cfg.optimizer == "lm" and cfg.silhouette_model != "mesh":
-            raise InputError("optimizer 'lm' needs silhouette_model 'mesh' (the capsule silhouette has no "
-                             "cheap Jacobian); set both.")
-        if not cfg.anchor_weight >= 0:
-            raise InputError(f"anchor_weight must be >= 0; got {cfg.anchor_weight!r}.")
-        if cfg.optimizer == "lm" and (cfg.anchor_weight > 0 or cfg.limb_depth_weight > 0):
-            raise InputError("anchor_weight and limb_depth_weight work with optimizer 'lbfgs' only; set both 0 "
-                             "for 'lm'.")
-        if not cfg.kalman_rot_accel_noise > 0:
-            raise InputError(f"kalman_rot_accel_noise must be > 0; got {cfg.kalman_rot_accel_noise!r}.")
-        if not cfg.occlusion_temporal_gain >= 0:
-            raise InputError(f"occlusion_temporal_gain must be >= 0; got {cfg.occlusion_temporal_gain!r}.")
-        if not (cfg.init_pose_prior_weight >= 0 and cfg.init_rough_pose_weight >= 0):
-            raise InputError(f"init_pose_prior_weight and init_rough_pose_weight must be >= 0; got "
-                             f"{cfg.init_pose_prior_weight!r}, {cfg.init_rough_pose_weight!r}.")
-        if not (cfg.limb_depth_weight >= 0 and cfg.limb_depth_sigma > 0):
-            raise InputError(f"limb_depth_weight must be >= 0 and limb_depth_sigma > 0; got "
-                             f"{cfg.limb_depth_weight!r}, {cfg.limb_depth_sigma!r}.")
-        if not (cfg.keypoint_weight >= 0 and cfg.keypoint_sigma > 0):
-            raise InputError(f"keypoint_weight must be >= 0 and keypoint_sigma > 0; got {cfg.keypoint_weight!r}, "
-                             f"{cfg.keypoint_sigma!r}.")
-        if not (0 <= cfg.reinit_min_iou <= 1 and cfg.reinit_max_joint_error > 0 and int(cfg.reinit_patience) >= 1
-                and int(cfg.reinit_iterations) >= 1):
-            raise InputError(f"reinit_min_iou must be in [0, 1], reinit_max_joint_error > 0, reinit_patience and "
-                             f"reinit_iterations positive integers; got {cfg.reinit_min_iou!r}, "
-                             f"{cfg.reinit_max_joint_error!r}, {cfg.reinit_patience!r}, {cfg.reinit_iterations!r}.")
-        if int(cfg.torch_threads) != cfg.torch_threads or cfg.torch_threads < 1:
-            raise InputError(f"torch_threads must be a positive integer; got {cfg.torch_threads!r}.")
-        if cfg.temporal_reference not in ("previous", "prediction"):
-            raise InputError(f"temporal_reference must be 'previous' or 'prediction'; got {cfg.temporal_reference!r}.")
-        if cfg.silhouette_model not in ("capsules", "mesh"):
-            raise InputError(f"silhouette_model must be 'capsules' or 'mesh'; got {cfg.silhouette_model!r}.")
-        for s in cfg.stages:
-            if not s or any(l < 0 or l >= cfg.levels for l in s):
-                raise InputError(f"stages {cfg.stages} must name pyramid levels 0..{cfg.levels - 1}.")
-        return cfg
+        else:
+            raise InputError(f"a config is a JSON file's path or a dict of settings; got {type(path).__name__}.")
+        if base is not None and not isinstance(base, Mapping):
+            raise InputError(f"base must be a dict of settings; got {type(base).__name__}.")
+        given = {k: v for k, v in overrides.items() if v is not None}
+        check_setting_names(base or {}, "base settings")
+        check_setting_names(values, where)
+        check_setting_names(given, "config overrides")
+        return cls(**{**PROFILES[profile], **(base or {}), **values, **given})
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["stages"] = [list(s) for s in self.stages]
         return d
+
+
+def check_setting_names(values: Mapping[str, Any], source: str = "config") -> None:
+    """Refuse a removed setting (saying what happens now) or an unknown one."""
+    for name in values:
+        if name in REMOVED_SETTINGS:
+            raise InputError(f"{source}: setting {name!r} was removed: {REMOVED_SETTINGS[name]}. "
+                             f"Delete it from the config.")
+    names = {f.name for f in fields(TrackerConfig)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise InputError(f"{source}: unknown config settings {unknown}; known: {sorted(names)}.")
+
+
+__all__ = ["TrackerConfig", "PROFILES", "REAL_VIDEO", "REMOVED_SETTINGS", "profile_names", "check_setting_names"]
