@@ -13,7 +13,6 @@ from flowmocap.render import (
     flow_loss,
     flow_residuals,
     flow_target,
-    gaussian_pyramid,
     prepare_faces,
     pyr_down,
     rasterize,
@@ -134,16 +133,6 @@ def test_pyr_down_matches_opencv(shape):
     np.testing.assert_allclose(pyr_down(img), cv2.pyrDown(img).reshape(pyr_down(img).shape), atol=3e-7)
     gray = rng.standard_normal(shape)
     np.testing.assert_allclose(pyr_down(gray), cv2.pyrDown(gray), atol=1e-12)
-
-
-def test_gaussian_pyramid_levels_match_repeated_opencv_pyrdown():
-    img = np.random.default_rng(1).random((97, 131, 3)).astype(np.float32)
-    pyr = gaussian_pyramid(img, 4)
-    ref = img
-    for level in pyr[1:]:
-        ref = cv2.pyrDown(ref)
-        assert level.shape == ref.shape
-        np.testing.assert_allclose(level, ref, atol=1e-6)
 
 
 def test_pyramid_adjoint_is_the_transpose_on_regions():

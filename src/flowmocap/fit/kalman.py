@@ -716,16 +716,6 @@ class PoseFilter:
         """``(24, 3, 3)`` current joint rotation matrices."""
         return self._R.copy()
 
-    @property
-    def angular_velocity(self) -> np.ndarray:
-        """``(24, 3)`` body-frame angular velocities, rad/frame."""
-        return self._w.copy()
-
-    @property
-    def trans_velocity(self) -> np.ndarray:
-        """``(3,)`` translation velocity, m/frame."""
-        return self.translation.velocity
-
     # --------------------------------------------------------------- filtering
     def predict(self) -> tuple[np.ndarray, np.ndarray]:
         """Advance one frame; returns the a-priori ``(pose (72,), trans (3,))``.

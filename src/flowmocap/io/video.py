@@ -28,20 +28,6 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 DEFAULT_FOCAL_FACTOR = 0.9
 
 
-def read_video(path: str | Path, max_side: int | None = None) -> tuple[list[np.ndarray], float]:
-    """Decode every frame of a video.
-
-    Returns:
-        ``frames``: list of ``(H, W, 3)`` uint8 RGB arrays, and ``fps`` (mean frames per
-        second from the timestamps, else the container's rate, else 30).
-
-    Raises:
-        DataError: missing file, a file that cannot be decoded, or no frames.
-    """
-    frames, info = decode_video(path, max_side=max_side)
-    return frames, info["fps"]
-
-
 def decode_video(path: str | Path, max_side: int | None = None) -> tuple[list[np.ndarray], dict]:
     """Decode every frame of a video, upright, with timing and camera metadata.
 

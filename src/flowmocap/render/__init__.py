@@ -11,7 +11,7 @@ Inputs are projected vertices ``verts_px (V, 2)`` in pixels (pixel centres at in
 """
 
 from flowmocap.render._checks import Faces, prepare_faces
-from flowmocap.render.capsules import capsule_distance_map, project_capsules, segment_distance
+from flowmocap.render.capsules import capsule_distance_map, project_capsules
 from flowmocap.render.flow import (
     FlowResiduals,
     FlowTarget,
@@ -21,7 +21,7 @@ from flowmocap.render.flow import (
     render_flow,
 )
 from flowmocap.render.interpolate import interpolate
-from flowmocap.render.pyramid import gaussian_pyramid, pyr_down
+from flowmocap.render.pyramid import pyr_down
 from flowmocap.render.raster import Raster, rasterize, silhouette
 from flowmocap.render.shade import (
     face_normals,
@@ -46,9 +46,7 @@ __all__ = [
     "FlowResiduals",
     "capsule_distance_map",
     "project_capsules",
-    "segment_distance",
     "pyr_down",
-    "gaussian_pyramid",
     "shade",
     "face_normals",
     "vertex_normals",

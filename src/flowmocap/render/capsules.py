@@ -25,7 +25,7 @@ import torch.nn.functional  # noqa: F401  (interpolate)
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_size
 
-__all__ = ["capsule_distance_map", "project_capsules", "segment_distance"]
+__all__ = ["capsule_distance_map", "project_capsules"]
 
 
 def _as_tensor(x: Any, name: str, shape_tail: tuple[int, ...], ref: torch.Tensor | None) -> torch.Tensor:
@@ -53,30 +53,6 @@ def _reference(*xs: Any) -> torch.Tensor | None:
         if isinstance(x, torch.Tensor) and torch.is_floating_point(x):
             return x
     return None
-
-
-def segment_distance(points: torch.Tensor, starts: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
-    """Euclidean distance of each point to each segment.
-
-    Args:
-        points: ``(N, D)``; starts, ends: ``(K, D)`` segment end points (same unit).
-
-    Returns:
-        ``(N, K)`` distances, differentiable (the gradient at distance 0 is 0).
-    """
-    d = ends - starts  # (K, D)
-    inv = 1.0 / (d * d).sum(-1).clamp_min(1e-12)  # (K,)
-    # per-component (N, K) arithmetic: much faster in torch than (N, K, D) reductions
-    ap = [points[:, i, None] - starts[None, :, i] for i in range(points.shape[1])]
-    dot = ap[0] * d[None, :, 0]
-    for i in range(1, len(ap)):
-        dot = dot + ap[i] * d[None, :, i]
-    t = (dot * inv[None]).clamp(0.0, 1.0)
-    sq = None
-    for i in range(len(ap)):
-        e = ap[i] - t * d[None, :, i]
-        sq = e * e if sq is None else sq + e * e
-    return torch.sqrt(sq.clamp_min(1e-18)) * (sq > 1e-18)
 
 
 class _GridDistance(torch.autograd.Function):

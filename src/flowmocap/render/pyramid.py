@@ -21,7 +21,7 @@ from numba import njit
 from flowmocap.errors import InputError
 from flowmocap.render._checks import to_numpy
 
-__all__ = ["pyr_down", "gaussian_pyramid", "pyramid_shapes"]
+__all__ = ["pyr_down", "pyramid_shapes"]
 
 _K0 = 1.0 / 16.0
 _K1 = 4.0 / 16.0
@@ -176,13 +176,3 @@ def pyr_down(image: Any) -> np.ndarray:
     if a.ndim == 2:
         dst = dst[:, :, 0]
     return dst.astype(out_dtype, copy=False)
-
-
-def gaussian_pyramid(image: Any, levels: int) -> list[np.ndarray]:
-    """``[image, pyr_down(image), pyr_down(pyr_down(image)), ...]``, ``levels`` entries."""
-    if int(levels) != levels or levels < 1:
-        raise InputError(f"levels must be a positive integer, got {levels}")
-    out = [np.asarray(to_numpy(image, "image"))]
-    for _ in range(int(levels) - 1):
-        out.append(pyr_down(out[-1]))
-    return out

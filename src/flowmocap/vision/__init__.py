@@ -5,7 +5,7 @@ default), :data:`FLOW_METHODS`, :class:`FlowCache`; :func:`load_mask`,
 :func:`chamfer_map`.
 """
 
-from flowmocap.vision.flow import DIS_PRESETS, FLOW_METHODS, FlowCache, flow_consistency, observed_flow
+from flowmocap.vision.flow import DIS_PRESETS, FLOW_METHODS, FlowCache, observed_flow
 from flowmocap.vision.masks import chamfer_map, load_mask
 
-__all__ = ["observed_flow", "FLOW_METHODS", "DIS_PRESETS", "FlowCache", "flow_consistency", "chamfer_map", "load_mask"]
+__all__ = ["observed_flow", "FLOW_METHODS", "DIS_PRESETS", "FlowCache", "chamfer_map", "load_mask"]

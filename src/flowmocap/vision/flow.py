@@ -48,7 +48,7 @@ import numpy as np
 
 from flowmocap.errors import DataError, InputError
 
-__all__ = ["FLOW_METHODS", "DIS_PRESETS", "observed_flow", "FlowCache", "flow_consistency"]
+__all__ = ["FLOW_METHODS", "DIS_PRESETS", "observed_flow", "FlowCache"]
 
 #: DIS presets by name (``preset=`` option of the ``"dis"`` method).
 DIS_PRESETS = {
@@ -237,24 +237,6 @@ class FlowCache:
             raise
         return p
 
-    def get_or_compute(self, index: int, compute: Callable[[], np.ndarray]) -> np.ndarray:
-        """The cached flow of frame ``index``, else ``compute()``, stored and returned.
-
-        Args:
-            index: frame number i.
-            compute: called without arguments when the flow is not cached; returns the
-                ``(H, W, 2)`` flow (e.g. ``lambda: observed_flow(cur, prev)``).
-
-        Returns:
-            ``(H, W, 2)`` float32 flow.
-        """
-        cached = self.get(index)
-        if cached is not None:
-            return cached
-        flow = np.asarray(compute(), dtype=np.float32)
-        self.put(index, flow)
-        return flow
-
     def flow(self, index: int, frame_cur: Any, frame_prev: Any) -> np.ndarray:
         """The flow of frame ``index`` from the cache, computing and storing it if absent.
 
@@ -271,40 +253,3 @@ class FlowCache:
         flow = observed_flow(frame_cur, frame_prev, self.method, **self.options)
         self.put(index, flow)
         return flow
-
-
-def flow_consistency(backward: np.ndarray, forward: np.ndarray, alpha: float = 0.01,
-                     beta: float = 0.5) -> np.ndarray:
-    """Forward-backward consistency of a flow pair (Sundaram, Brox and Keutzer, ECCV 2010).
-
-    A pixel ``x`` of frame i whose backward flow ``b(x)`` leads to ``x' = x + b(x)`` in
-    frame i-1 is consistent when the forward flow there leads back:
-    ``|b(x) + f(x')|^2 <= alpha (|b(x)|^2 + |f(x')|^2) + beta``. Pixels that fail are
-    (dis)occluded between the frames or mismatched; their flow is unreliable. Pixels
-    whose ``x'`` falls outside frame i-1 fail too.
-
-    Args:
-        backward: ``(H, W, 2)`` flow of frame i to i-1 (pixels), at frame i's pixels.
-        forward: ``(H, W, 2)`` flow of frame i-1 to i (pixels), at frame i-1's pixels.
-        alpha: relative tolerance (dimensionless).
-        beta: absolute tolerance, px^2.
-
-    Returns:
-        ``(H, W)`` bool, True where the backward flow is consistent.
-    """
-    b = np.asarray(backward, np.float32)
-    f = np.asarray(forward, np.float32)
-    if b.ndim != 3 or b.shape[2] != 2 or b.shape != f.shape:
-        raise InputError(f"backward and forward flow must both be (H, W, 2) of one size; got {b.shape} and "
-                         f"{f.shape}")
-    H, W = b.shape[:2]
-    # pixel centres at integer + 0.5 in the project's convention; cv2.remap samples at
-    # integer coordinates of array indices, so the offsets cancel
-    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    mx, my = gx + b[..., 0], gy + b[..., 1]
-    fw = cv2.remap(f, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    d = b + fw
-    lhs = (d ** 2).sum(-1)
-    rhs = alpha * ((b ** 2).sum(-1) + (fw ** 2).sum(-1)) + beta
-    inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-    return inside & np.isfinite(lhs) & (lhs <= rhs)
