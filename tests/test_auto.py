@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from flowmocap.body.skeleton import JOINT_INDEX
 from flowmocap.errors import NoPersonError
-from flowmocap.vision.auto import auto_init, detect_sequence, facing_rotvec, first_person_frame, load_detections
+from flowmocap.vision.auto import (auto_init, detect_sequence, facing_rotvec, first_person_frame, frame_runs,
+                                   load_detections)
 from flowmocap.vision.detect import KEYPOINT_NAMES, Detection
 
 from test_detect import FakeDetector, stick_keypoints
@@ -68,6 +69,12 @@ def test_stored_detections_are_reused(tmp_path):
 def test_no_person_anywhere(tmp_path):
     with pytest.raises(NoPersonError, match="no person found"):
         detect_sequence(Frames(3), tmp_path, Nobody(), progress=False)
+
+
+def test_frame_runs():
+    assert frame_runs([2, 3, 4, 7, 9, 10]) == [[2, 4], [7, 7], [9, 10]]
+    assert frame_runs(np.array([5])) == [[5, 5]]
+    assert frame_runs([]) == []
 
 
 def test_the_main_person_is_kept(tmp_path):

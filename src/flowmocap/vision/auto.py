@@ -36,7 +36,7 @@ from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetect
 from flowmocap.vision.person import clean_mask, person_box, same_person
 
 __all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "load_detections", "auto_init",
-           "first_person_frame", "facing_rotvec", "MIN_INIT_JOINTS"]
+           "first_person_frame", "frame_runs", "facing_rotvec", "MIN_INIT_JOINTS"]
 
 #: Confident SMPL keypoints a frame needs to initialise the body on it.
 MIN_INIT_JOINTS = 8
@@ -232,7 +232,7 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     info = {
         "detector": name, "frames": T, "size": [W, H], "keypoint_names": list(KEYPOINT_NAMES),
         "frames_with_person": int(found.sum()),
-        "no_person": _ranges(np.nonzero(~found)[0]),
+        "no_person": frame_runs(np.nonzero(~found)[0]),
         "ignored_people": ignored,
     }
     box_arr = np.array([b if b is not None else (np.nan,) * 4 for b in boxes], np.float64).reshape(T, 4)
@@ -321,8 +321,16 @@ def _split_tracks(cands: list[list[tuple]], max_gap: int = 15) -> list[list[tupl
     return tracks
 
 
-def _ranges(idx) -> list[list[int]]:
-    """``[[first, last], ...]`` runs of consecutive integers."""
+def frame_runs(idx: list[int]) -> list[list[int]]:
+    """Sorted frame indices as runs of consecutive frames.
+
+    Args:
+        idx: ascending frame numbers (any iterable of ints, e.g. ``np.nonzero(mask)[0]``).
+
+    Returns:
+        ``[[first, last], ...]``, one inclusive pair per run; ``[]`` for no frames.
+        ``frame_runs([2, 3, 4, 7, 9, 10]) == [[2, 4], [7, 7], [9, 10]]``.
+    """
     out: list[list[int]] = []
     for i in (int(v) for v in idx):
         if out and out[-1][1] == i - 1:
