@@ -8,7 +8,7 @@ import torch
 from scipy.ndimage import binary_dilation, binary_erosion
 
 from flowmocap.errors import InputError
-from flowmocap.render import interpolate, prepare_faces, rasterize, shade, silhouette
+from flowmocap.render import body_mask, interpolate, prepare_faces, rasterize, shade, silhouette
 from flowmocap.render.primitives import box, grid_mesh, icosphere, mannequin
 
 
@@ -101,6 +101,15 @@ def test_backface_culling_and_orientation():
     cov = full.face_id >= 0
     np.testing.assert_array_equal(flipped.face_id >= 0, cov)
     assert np.all(flipped.depth[cov] > full.depth[cov])
+
+
+def test_body_mask_is_the_silhouette_of_a_closed_mesh():
+    verts, faces = mannequin(2)
+    X = verts + np.array([0.0, -0.9, 3.0])
+    xy = project(X, 60.0, 24.0, 32.0)
+    mask = body_mask(torch.as_tensor(xy), torch.as_tensor(X[:, 2]), prepare_faces(faces), 64, 48)
+    assert mask.dtype == bool and mask.shape == (64, 48) and 0 < mask.sum() < mask.size
+    np.testing.assert_array_equal(mask, silhouette(rasterize(xy, X[:, 2], faces, 64, 48)))
 
 
 def test_near_plane_skips_triangles():

@@ -153,7 +153,7 @@ def silhouette_iou(pred, gt) -> np.ndarray:
 
 
 def render_silhouettes(model, poses, trans, betas, camera) -> np.ndarray:
-    """The fitted body's silhouettes, rasterised with :func:`flowmocap.render.rasterize`.
+    """The fitted body's silhouettes, rasterised with :func:`flowmocap.render.body_mask`.
 
     Args:
         model: the :class:`~flowmocap.body.BodyModel` of the result.
@@ -165,7 +165,7 @@ def render_silhouettes(model, poses, trans, betas, camera) -> np.ndarray:
     """
     import torch
 
-    from flowmocap.render import prepare_faces, rasterize, silhouette
+    from flowmocap.render import body_mask, prepare_faces
 
     poses = np.asarray(poses, np.float32).reshape(-1, 72)
     trans = np.asarray(trans, np.float32).reshape(-1, 3)
@@ -177,7 +177,6 @@ def render_silhouettes(model, poses, trans, betas, camera) -> np.ndarray:
             v = model(betas=b.expand(len(poses[s:s + 32]), -1), pose=torch.as_tensor(poses[s:s + 32]),
                       trans=torch.as_tensor(trans[s:s + 32])).vertices
             for k in range(v.shape[0]):
-                r = rasterize(camera.project(v[k]).numpy(), camera.depth(v[k]).numpy(), faces,
-                              camera.height, camera.width)
-                out[s + k] = silhouette(r)
+                out[s + k] = body_mask(camera.project(v[k]).numpy(), camera.depth(v[k]).numpy(), faces,
+                                       camera.height, camera.width)
     return out

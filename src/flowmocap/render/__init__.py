@@ -2,7 +2,7 @@
 
 ``rasterize -> interpolate -> shade`` for colour images; ``rasterize -> render_flow``
 and ``flow_loss`` / ``flow_residuals`` for the differentiable flow renderer of the
-paper (Sec. 3.2-3.3); ``silhouette`` and ``capsule_distance_map`` for the silhouette
+paper (Sec. 3.2-3.3); ``body_mask`` (a posed body's pixels), ``silhouette`` and ``capsule_distance_map`` for the silhouette
 coverage term (Sec. 3.5).
 
 Inputs are projected vertices ``verts_px (V, 2)`` in pixels (pixel centres at integer
@@ -22,7 +22,7 @@ from flowmocap.render.flow import (
 )
 from flowmocap.render.interpolate import interpolate
 from flowmocap.render.pyramid import pyr_down
-from flowmocap.render.raster import Raster, rasterize, silhouette
+from flowmocap.render.raster import Raster, body_mask, rasterize, silhouette
 from flowmocap.render.shade import (
     face_normals,
     procedural_pattern,
@@ -37,6 +37,7 @@ __all__ = [
     "Raster",
     "rasterize",
     "silhouette",
+    "body_mask",
     "interpolate",
     "render_flow",
     "flow_target",

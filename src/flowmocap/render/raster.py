@@ -32,7 +32,7 @@ from numba import njit
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_faces, check_points, check_size, check_vector
 
-__all__ = ["Raster", "rasterize", "silhouette"]
+__all__ = ["Raster", "rasterize", "silhouette", "body_mask"]
 
 
 @dataclass(frozen=True)
@@ -266,6 +266,22 @@ def rasterize_scratch(xy: np.ndarray, z: np.ndarray, faces: np.ndarray, height: 
     bbox = tuple(int(b) for b in box)
     buf[4] = bbox
     return Raster(face_id, bary, zbuf, bbox)
+
+
+def body_mask(verts_px: Any, depth: Any, faces: Any, height: int, width: int) -> np.ndarray:
+    """The pixels a closed mesh (a posed body) covers: :func:`rasterize` with back faces
+    culled (the same outline as without, from half the triangles), then :func:`silhouette`.
+
+    Args:
+        verts_px: ``(V, 2)`` projected vertices in pixels (pixel centres at integer + 0.5).
+        depth: ``(V,)`` camera-space Z in metres.
+        faces: ``(F, 3)`` int vertex indices, or a :class:`~flowmocap.render.Faces`.
+        height, width: image size in pixels.
+
+    Returns:
+        ``(H, W)`` bool, True where a triangle covers the pixel centre.
+    """
+    return rasterize(verts_px, depth, faces, height, width, cull_backfaces=True).face_id >= 0
 
 
 def silhouette(raster: Raster, dtype: Any = bool) -> np.ndarray:

@@ -135,11 +135,10 @@ class ResultScene:
 
     def silhouette(self, k: int) -> np.ndarray:
         """``(H, W)`` bool: the fitted body's pixels at row ``k``."""
-        from flowmocap.render import rasterize
+        from flowmocap.render import body_mask
 
         v = self.vertices(k)
-        r = rasterize(self.camera.project(v), self.camera.depth(v), self.faces, self.camera.height, self.camera.width)
-        return r.face_id >= 0
+        return body_mask(self.camera.project(v), self.camera.depth(v), self.faces, self.camera.height, self.camera.width)
 
     def observed_flow(self, k: int) -> np.ndarray:
         """``(H, W, 2)`` float32 observed backward flow ``F_o(i, i-1)`` of row ``k``'s frame ``i``,
