@@ -42,39 +42,36 @@ def track(inp: Path, out: Path, extra: list[str]) -> float:
 
 def body_ious(out: Path, reference) -> list[float]:
     """Silhouette IoU of the fitted body per tracked frame against ``reference(frame) -> mask``."""
-    import torch
-
     from flowmocap.body import load_body_model
-    from flowmocap.fit.reinit import body_silhouette, silhouette_iou
-    from flowmocap.fit.tracker import Scene
+    from flowmocap.eval.metrics import render_silhouettes
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.io.results import read_result
+    from flowmocap.vision.masks import mask_iou
 
     motion, run = read_result(out)
     model = load_body_model(run["model"] if run.get("model") and Path(run["model"]).exists() else "default",
                             gender=run["gender"])
     camera = PinholeCamera.from_dict(json.loads(str(motion["camera"])))
-    scene = Scene(model, torch.as_tensor(motion["betas"])[None], camera)
-    return [silhouette_iou(body_silhouette(scene, torch.as_tensor(p), torch.as_tensor(t)), reference(int(f)))
-            for p, t, f in zip(motion["poses"], motion["trans"], motion["frame_index"])]
+    body = render_silhouettes(model, motion["poses"], motion["trans"], motion["betas"], camera)
+    return mask_iou(body, np.stack([reference(int(f)) for f in motion["frame_index"]])).tolist()
 
 
 def davis(work: Path, extra: list[str], data: Path = DATA) -> dict:
     from flowmocap.io.results import read_result
     from flowmocap.vision.auto import load_detections
-    from flowmocap.vision.masks import load_mask
+    from flowmocap.vision.masks import load_mask, mask_iou
 
     clip = data / "davis-dance-twirl"
     out = work / "davis-dance-twirl"
     seconds = track(clip / "JPEGImages", out, extra)
     gt = [load_mask(p) for p in sorted((clip / "Annotations").glob("*.png"))]
     det = load_detections(out)
-    mask_iou = [float((det.mask(i) & g).sum() / (det.mask(i) | g).sum()) for i, g in enumerate(gt)]
+    auto_iou = mask_iou(np.stack([det.mask(i) for i in range(len(gt))]), np.stack(gt))
     ious = body_ious(out, lambda f: gt[f])
     motion, run = read_result(out)
     return {
         "clip": "davis-dance-twirl", "frames": len(gt), "tracked_frames": len(motion["frame_index"]),
-        "auto_mask_iou_mean": float(np.mean(mask_iou)), "auto_mask_iou_min": float(np.min(mask_iou)),
+        "auto_mask_iou_mean": float(np.mean(auto_iou)), "auto_mask_iou_min": float(np.min(auto_iou)),
         "body_iou_mean": float(np.mean(ious)), "body_iou_min": float(np.min(ious)),
         "body_iou_per_frame": [round(v, 4) for v in ious],
         "reinitialisations": [e["frame"] for e in run["events"] if e.get("event") == "re-initialised"],

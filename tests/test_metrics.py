@@ -15,8 +15,8 @@ from flowmocap.eval.metrics import (
     joint2d_error,
     local_procrustes_error,
     mpjpe,
-    silhouette_iou,
 )
+from flowmocap.vision.masks import mask_iou
 
 
 def _skeleton(T=5, seed=0):
@@ -87,21 +87,6 @@ def test_joint2d_error():
         joint2d_error(pred[:, :, :1], gt[:, :, :1])
 
 
-def test_silhouette_iou_on_squares():
-    a = np.zeros((2, 10, 10), bool)
-    b = np.zeros((2, 10, 10), bool)
-    a[0, 0:4, 0:4] = True          # 16 px
-    b[0, 2:6, 0:4] = True          # 16 px, overlap 8 -> 8 / 24
-    a[1, 0:5, 0:5] = True
-    b[1, 0:5, 0:5] = True
-    iou = silhouette_iou(a, b)
-    assert np.allclose(iou, [8 / 24, 1.0])
-    assert silhouette_iou(np.zeros((4, 4)), np.zeros((4, 4))) == 1.0
-    assert silhouette_iou(np.ones((4, 4)), np.zeros((4, 4))) == 0.0
-    with pytest.raises(InputError):
-        silhouette_iou(a, b[:, :5])
-
-
 def test_rendered_silhouette_of_ground_truth_matches_synthetic_masks(tmp_path):
     from flowmocap.body import load_body_model
     from flowmocap.eval.metrics import render_silhouettes
@@ -114,4 +99,4 @@ def test_rendered_silhouette_of_ground_truth_matches_synthetic_masks(tmp_path):
     model = load_body_model("default")
     sil = render_silhouettes(model, seq.gt["poses"], seq.gt["trans"], seq.gt["betas"], seq.camera)
     masks = np.stack([seq.mask(i) for i in range(3)])
-    assert silhouette_iou(sil, masks).min() > 0.98
+    assert mask_iou(sil, masks).min() > 0.98

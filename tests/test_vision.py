@@ -181,3 +181,21 @@ def test_dis_fine_is_more_accurate_than_dis_on_a_rotating_zooming_texture():
     epe = {m: np.linalg.norm(observed_flow(cur, prev, m)[inner] - truth[inner], axis=-1).mean()
            for m in ("dis", "dis-fine")}
     assert epe["dis-fine"] < 0.7 * epe["dis"], epe  # measured 0.52-0.55 over three textures
+
+
+def test_mask_iou_on_squares():
+    from flowmocap.vision import mask_iou
+
+    a = np.zeros((2, 10, 10), bool)
+    b = np.zeros((2, 10, 10), bool)
+    a[0, 0:4, 0:4] = True          # 16 px
+    b[0, 2:6, 0:4] = True          # 16 px, overlap 8 -> 8 / 24
+    a[1, 0:5, 0:5] = True
+    b[1, 0:5, 0:5] = True
+    iou = mask_iou(a, b)
+    assert iou.shape == (2,) and np.allclose(iou, [8 / 24, 1.0])
+    assert mask_iou(a[0], b[0]) == pytest.approx(8 / 24) and isinstance(mask_iou(a[0], b[0]), float)
+    assert mask_iou(np.zeros((4, 4)), np.zeros((4, 4))) == 1.0
+    assert mask_iou(np.ones((4, 4)), np.zeros((4, 4))) == 0.0
+    with pytest.raises(InputError):
+        mask_iou(a, b[:, :5])

@@ -8,8 +8,7 @@ from flowmocap.eval.metrics import (
     joint2d_error,
     local_procrustes_error,
     mpjpe,
-    silhouette_iou,
 )
 
 __all__ = ["local_procrustes_error", "global_procrustes_error", "mpjpe", "acceleration_error",
-           "joint2d_error", "silhouette_iou"]
+           "joint2d_error"]

@@ -10,7 +10,7 @@ depth_split_error            root-relative, split into the image      m (per joi
                              plane and the camera's depth axis
 acceleration_error           |second difference pred - gt|, world     m/frame^2
 joint2d_error                Euclidean 2D distance                    px (per frame)
-silhouette_iou               intersection / union of masks            -- (per frame)
+mask_iou (vision.masks)      intersection / union of masks            -- (per frame)
 ==========================  ======================================  ================
 
 3D metrics use the paper's 13 joints (:data:`~flowmocap.body.skeleton.EVAL_JOINTS`) by
@@ -133,23 +133,6 @@ def joint2d_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
     if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != 2:
         raise InputError(f"2D joints must be (T, J, 2) of equal shape; got {pred.shape} and {gt.shape}.")
     return np.linalg.norm(pred[:, list(joints)] - gt[:, list(joints)], axis=-1).mean(-1)
-
-
-def silhouette_iou(pred, gt) -> np.ndarray:
-    """Intersection over union of binary masks, per frame.
-
-    Args:
-        pred, gt: ``(T, H, W)`` (or ``(H, W)``) masks; non-zero = person.
-
-    Returns:
-        ``(T,)`` (or a 0-d array) in [0, 1]; 1 where both masks are empty.
-    """
-    pred, gt = np.asarray(pred) != 0, np.asarray(gt) != 0
-    if pred.shape != gt.shape or pred.ndim not in (2, 3):
-        raise InputError(f"masks must be (T, H, W) or (H, W) of equal shape; got {pred.shape} and {gt.shape}.")
-    inter = (pred & gt).sum((-2, -1))
-    union = (pred | gt).sum((-2, -1))
-    return np.where(union > 0, inter / np.maximum(union, 1), 1.0)
 
 
 def render_silhouettes(model, poses, trans, betas, camera) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 
 from flowmocap.errors import DataError
 from flowmocap.eval import metrics as m
+from flowmocap.vision.masks import mask_iou
 
 #: The headline metrics, in table order, with their table headers.
 COLUMNS = (
@@ -101,7 +102,7 @@ def score_result(result: str | Path, seq, model=None) -> dict:
         if masks.shape[1:] != sil.shape[1:]:
             raise DataError(f"the masks of {seq.root} are {masks.shape[2]}x{masks.shape[1]} but the result's camera "
                             f"is {sil.shape[2]}x{sil.shape[1]}; score against the sequence the result was made from.")
-        iou = m.silhouette_iou(sil, masks)
+        iou = mask_iou(sil, masks)
         out["iou"] = _mean(iou)
         out["iou_per_frame"] = iou.round(3).tolist()
     t = run.get("timings", {})

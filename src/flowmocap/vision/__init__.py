@@ -2,10 +2,10 @@
 
 Public API: :func:`observed_flow` (backward flow ``F_o(i, i-1)``, OpenCV DIS by
 default), :data:`FLOW_METHODS`, :class:`FlowCache`; :func:`load_mask`,
-:func:`chamfer_map`.
+:func:`chamfer_map`, :func:`mask_iou`.
 """
 
 from flowmocap.vision.flow import DIS_PRESETS, FLOW_METHODS, FlowCache, observed_flow
-from flowmocap.vision.masks import chamfer_map, load_mask
+from flowmocap.vision.masks import chamfer_map, load_mask, mask_iou
 
-__all__ = ["observed_flow", "FLOW_METHODS", "DIS_PRESETS", "FlowCache", "chamfer_map", "load_mask"]
+__all__ = ["observed_flow", "FLOW_METHODS", "DIS_PRESETS", "FlowCache", "chamfer_map", "load_mask", "mask_iou"]

@@ -15,7 +15,7 @@ import numpy as np
 
 from flowmocap.errors import DataError, InputError, NoPersonError
 
-__all__ = ["chamfer_map", "load_mask"]
+__all__ = ["chamfer_map", "load_mask", "mask_iou"]
 
 
 def chamfer_map(mask: Any) -> np.ndarray:
@@ -83,3 +83,25 @@ def load_mask(path: str | Path) -> np.ndarray:
     if not mask.any():
         raise NoPersonError(f"mask {p} is empty (no non-zero pixel): no person to fit in this frame")
     return mask
+
+
+def mask_iou(a: Any, b: Any) -> float | np.ndarray:
+    """Intersection over union of binary masks (non-zero = person).
+
+    Args:
+        a, b: ``(H, W)`` masks, or ``(T, H, W)`` stacks of ``T`` mask pairs.
+
+    Returns:
+        A float in [0, 1] for one pair, ``(T,)`` float64 for stacks; 1 where both masks
+        are empty.
+
+    Raises:
+        InputError: shapes differ or are neither ``(H, W)`` nor ``(T, H, W)``.
+    """
+    a, b = np.asarray(a) != 0, np.asarray(b) != 0
+    if a.shape != b.shape or a.ndim not in (2, 3):
+        raise InputError(f"masks must be (T, H, W) or (H, W) of equal shape; got {a.shape} and {b.shape}.")
+    inter = (a & b).sum((-2, -1))
+    union = (a | b).sum((-2, -1))
+    iou = np.where(union > 0, inter / np.maximum(union, 1), 1.0)
+    return float(iou) if a.ndim == 2 else iou
