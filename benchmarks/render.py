@@ -34,7 +34,7 @@ import torch
 from flowmocap.body import body_capsules, load_body_model
 from flowmocap.geometry.camera import PinholeCamera, look_at
 from flowmocap.render import (
-    capsule_distance_map,
+    capsule_signed_distance,
     flow_loss,
     flow_target,
     prepare_faces,
@@ -155,15 +155,15 @@ def bench(model, H: int, W: int, repeats: int) -> dict:
         out[f"flow_loss_L{levels}_with_rasterize_ms"] = _time(with_raster, repeats)
         out[f"flow_loss_L{levels}_with_rasterize_cull_ms"] = _time(with_raster_cull, repeats)
         out[f"flow_loss_L{levels}_raw_arrays_ms"] = _time(raw_arrays, max(5, repeats // 5))
-    a, b, r = (x.detach() for x in _capsules(model, body_out, cam))
-    out["capsules"] = int(a.shape[0])
+    a, b, r = (x.detach()[None] for x in _capsules(model, body_out, cam))
+    out["capsules"] = int(a.shape[1])
     for step in (4, 8):
         out[f"capsule_distance_map_step{step}_ms"] = _time(
-            lambda: capsule_distance_map(a, b, r, H, W, grid_step=step), max(5, repeats // 5))
+            lambda: capsule_signed_distance(a, b, r, H, W, grid_step=step), max(5, repeats // 5))
         a_, b_, r_ = (x.clone().requires_grad_() for x in (a, b, r))
 
         def cap_bwd():
-            capsule_distance_map(a_, b_, r_, H, W, grid_step=step).sum().backward()
+            capsule_signed_distance(a_, b_, r_, H, W, grid_step=step).clamp_min(0).sum().backward()
 
         out[f"capsule_distance_map_step{step}_fwd_bwd_ms"] = _time(cap_bwd, max(5, repeats // 5))
     bg = np.full((H, W, 3), 128, np.uint8)

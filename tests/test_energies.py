@@ -31,11 +31,11 @@ from flowmocap.fit import (
     temporal_energy,
     temporal_residuals,
 )
-from flowmocap.fit.energies import _project, capsule_signed_distance
+from flowmocap.fit.energies import _project
+from flowmocap.render import capsule_signed_distance
 from flowmocap.fit.joint_limits import LIMITS_DEG
 from flowmocap.geometry import PinholeCamera, look_at
 from flowmocap.io import walk_poses
-from flowmocap.render import capsule_distance_map
 
 J = JOINT_INDEX
 
@@ -299,36 +299,6 @@ def scene(body):
 def _sil_energy(body, scene, trans, **kw):
     caps = body_capsules(body, body(pose=scene["pose"], trans=trans))
     return silhouette_energy(caps, scene["cam"], scene["target"], **kw)
-
-
-def test_signed_distance_agrees_with_the_render_distance_map():
-    rng = np.random.default_rng(4)
-    H, W, K = 37, 53, 5
-    a = torch.tensor(rng.uniform([0, 0], [W, H], (1, K, 2)))
-    b = a + torch.tensor(rng.normal(0, 8, (1, K, 2)))
-    r = torch.tensor(rng.uniform(1, 4, (1, K)))
-    for step in (1, 4):
-        sd = capsule_signed_distance(a, b, r, H, W, step)[0]
-        cm = capsule_distance_map(a[0], b[0], r[0], H, W, step)
-        torch.testing.assert_close(sd.clamp_min(0)[::step, ::step], cm[::step, ::step])
-    # exact (step 1) against brute force, inside values included
-    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    p = np.stack([u, v], -1)[:, :, None]
-    A, B, Rr = a[0].numpy(), b[0].numpy(), r[0].numpy()
-    t = np.clip(((p - A) * (B - A)).sum(-1) / ((B - A) ** 2).sum(-1), 0, 1)
-    ref = (np.linalg.norm(p - (A + t[..., None] * (B - A)), axis=-1) - Rr).min(-1)
-    np.testing.assert_allclose(capsule_signed_distance(a, b, r, H, W, 1)[0].numpy(), ref, atol=1e-9)
-
-
-def test_signed_distance_gradient_matches_finite_differences():
-    rng = np.random.default_rng(5)
-    H, W, K = 19, 23, 3
-    a = torch.tensor(rng.uniform([0, 0], [W, H], (2, K, 2)), requires_grad=True)
-    b = (a.detach() + torch.tensor(rng.normal(0, 6, (2, K, 2)))).requires_grad_()
-    r = torch.tensor(rng.uniform(1, 3, (2, K)), requires_grad=True)
-    w = torch.tensor(rng.random((H, W)))
-    f = lambda a_, b_, r_: (capsule_signed_distance(a_, b_, r_, H, W, 3) * w).sum((1, 2))  # noqa: E731
-    assert torch.autograd.gradcheck(f, (a, b, r), eps=1e-6, atol=1e-6)
 
 
 def test_silhouette_energy_near_zero_at_the_mask_and_grows_away(body, scene):

@@ -1,4 +1,4 @@
-"""The capsule model distance map C_M (paper Sec. 3.5) and capsule projection."""
+"""The capsule model's signed distance map (C_M, paper Sec. 3.5) and capsule projection."""
 
 from __future__ import annotations
 
@@ -7,73 +7,70 @@ import pytest
 import torch
 
 from flowmocap.errors import InputError
-from flowmocap.render import capsule_distance_map, project_capsules
+from flowmocap.render import capsule_signed_distance, project_capsules
 
 
-def _exact_map(a, b, r, H, W):
-    """Brute force in numpy: max(0, min_k dist(p, segment_k) - r_k) at every pixel centre."""
+def _exact_signed(a, b, r, H, W):
+    """Brute force in numpy: min_k dist(p, segment_k) - r_k at every pixel centre."""
     u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     p = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
     d = b - a
     t = np.clip(((p - a) * d).sum(-1) / (d * d).sum(-1), 0, 1)
-    dist = np.linalg.norm(p - (a + t[..., None] * d), axis=-1)
-    return np.maximum(0.0, (dist - r).min(-1))
+    return (np.linalg.norm(p - (a + t[..., None] * d), axis=-1) - r).min(-1)
 
 
-def _capsules(seed=0, K=6, H=37, W=53):
+def _capsules(seed=0, B=1, K=6, H=37, W=53):
     rng = np.random.default_rng(seed)
-    a = rng.uniform([0, 0], [W, H], size=(K, 2))
-    b = a + rng.normal(0, 8, size=(K, 2))
-    r = rng.uniform(1.0, 4.0, size=K)
+    a = rng.uniform([0, 0], [W, H], size=(B, K, 2))
+    b = a + rng.normal(0, 8, size=(B, K, 2))
+    r = rng.uniform(1.0, 4.0, size=(B, K))
     return a, b, r
 
 
 @pytest.mark.parametrize("step", [1, 3, 4])
-def test_distance_map_is_exact_at_grid_points(step):
+def test_signed_distance_is_exact_at_grid_points(step):
     H, W = 37, 53
-    a, b, r = _capsules()
-    d = capsule_distance_map(torch.tensor(a), torch.tensor(b), torch.tensor(r), H, W, grid_step=step)
-    assert d.shape == (H, W) and d.dtype == torch.float64
-    exact = _exact_map(a, b, r, H, W)
-    np.testing.assert_allclose(d.numpy()[::step, ::step], exact[::step, ::step], atol=1e-9)
-    assert (d >= 0).all()
-    # between grid points: bilinear interpolation, within step/2 px of the exact map
-    assert np.abs(d.numpy() - exact).max() <= step / 2 + 1e-9
-    assert (d.numpy()[exact == 0] < step).all()
+    a, b, r = _capsules(B=2)
+    sd = capsule_signed_distance(torch.tensor(a), torch.tensor(b), torch.tensor(r), H, W, grid_step=step)
+    assert sd.shape == (2, H, W) and sd.dtype == torch.float64
+    for k in range(2):
+        exact = _exact_signed(a[k], b[k], r[k], H, W)
+        np.testing.assert_allclose(sd[k].numpy()[::step, ::step], exact[::step, ::step], atol=1e-9)
+        # between grid points: bilinear interpolation of a 1-Lipschitz function
+        assert np.abs(sd[k].numpy() - exact).max() <= step / np.sqrt(2) + 1e-9
 
 
-def test_distance_map_gradient_matches_finite_differences():
-    H, W = 21, 26
-    a, b, r = _capsules(1, K=3, H=H, W=W)
+def test_a_window_is_the_same_part_of_the_whole_map():
+    H, W = 37, 53
+    a, b, r = (torch.tensor(x) for x in _capsules())
+    whole = capsule_signed_distance(a, b, r, H, W, grid_step=4)
+    part = capsule_signed_distance(a, b, r, 13, 21, grid_step=4, origin=(8, 12))
+    torch.testing.assert_close(part, whole[:, 8:21, 12:33])
+    with pytest.raises(InputError):
+        capsule_signed_distance(a, b, r, 13, 21, grid_step=4, origin=(6, 12))
+
+
+def test_signed_distance_gradient_matches_finite_differences():
+    H, W = 19, 23
+    a, b, r = _capsules(5, B=2, K=3, H=H, W=W)
     inputs = tuple(torch.tensor(x, requires_grad=True) for x in (a, b, r))
-    weights = torch.tensor(np.random.default_rng(2).random((H, W)))
-
-    def f(a_, b_, r_):
-        return (capsule_distance_map(a_, b_, r_, H, W, grid_step=3) * weights).sum()
-
-    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+    w = torch.tensor(np.random.default_rng(2).random((H, W)))
+    f = lambda a_, b_, r_: (capsule_signed_distance(a_, b_, r_, H, W, 3) * w).sum((1, 2))  # noqa: E731
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6)
 
 
-def test_float32_numpy_inputs_and_errors():
-    a, b, r = _capsules()
-    d32 = capsule_distance_map(torch.tensor(a, dtype=torch.float32), b, r, 37, 53)
-    assert d32.dtype == torch.float32
-    d_np = capsule_distance_map(a, b, r, 37, 53)
-    assert d_np.dtype == torch.float64
+def test_signed_distance_errors():
+    a, b, r = (torch.tensor(x) for x in _capsules())
     with pytest.raises(InputError):
-        capsule_distance_map(a[:, :1], b, r, 37, 53)
+        capsule_signed_distance(a[..., :1], b, r, 37, 53)
     with pytest.raises(InputError):
-        capsule_distance_map(a, b[:-1], r, 37, 53)
+        capsule_signed_distance(a, b[:, :-1], r, 37, 53)
     with pytest.raises(InputError):
-        capsule_distance_map(a, b, -r, 37, 53)
+        capsule_signed_distance(a, b, r[:, :-1], 37, 53)
     with pytest.raises(InputError):
-        capsule_distance_map(a, b, r, 0, 53)
+        capsule_signed_distance(a, b, r, 0, 53)
     with pytest.raises(InputError):
-        capsule_distance_map(a, b, r, 37, 53, grid_step=0)
-    bad = a.copy()
-    bad[0, 0] = np.nan
-    with pytest.raises(InputError):
-        capsule_distance_map(bad, b, r, 37, 53)
+        capsule_signed_distance(a, b, r, 37, 53, grid_step=0)
 
 
 def test_project_capsules():

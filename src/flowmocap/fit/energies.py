@@ -43,7 +43,7 @@ from flowmocap.fit import rotation_terms as rt
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from flowmocap.render.capsules import project_capsules
+from flowmocap.render.capsules import capsule_signed_distance, project_capsules
 from flowmocap.vision.masks import chamfer_map
 
 __all__ = [
@@ -441,100 +441,6 @@ def _as_target(target: Any, chamfer: Any, dtype: torch.dtype) -> SilhouetteTarge
 _SOFT_REACH = 12.0
 
 
-class _GridSignedDistance(torch.autograd.Function):
-    """``min_k (dist(p, segment_k) - r_k)`` at fixed points ``p (N, 2)`` for a batch.
-
-    Inputs ``a, b (B, K, 2)``, ``r (B, K)``; output ``(B, N)``. The forward pass keeps the
-    nearest capsule of each point, so the backward pass costs O(B N) (the gradient of
-    a minimum flows to its arg-min; for the distance to a segment it is that of the
-    distance to the fixed closest point ``c = a + t (b - a)``).
-    """
-
-    @staticmethod
-    def forward(ctx, pts, a, b, r):  # noqa: D102
-        d = b - a  # (B, K, 2)
-        inv = 1.0 / (d * d).sum(-1).clamp_min(1e-12)
-        B, K = r.shape
-        px0, py0 = pts[None, :, 0], pts[None, :, 1]
-        best = torch.full((B, pts.shape[0]), float("inf"), dtype=a.dtype, device=a.device)
-        arg = torch.zeros((B, pts.shape[0]), dtype=torch.long, device=a.device)
-        for k in range(K):
-            px = px0 - a[:, k, 0:1]
-            py = py0 - a[:, k, 1:2]
-            dx, dy = d[:, k, 0:1], d[:, k, 1:2]
-            t = ((px * dx + py * dy) * inv[:, k:k + 1]).clamp(0.0, 1.0)
-            ex = px - t * dx
-            ey = py - t * dy
-            dist = torch.sqrt(ex * ex + ey * ey) - r[:, k:k + 1]
-            closer = dist < best
-            best = torch.where(closer, dist, best)
-            arg = torch.where(closer, torch.full_like(arg, k), arg)
-        ctx.save_for_backward(pts, a, b, arg)
-        return best
-
-    @staticmethod
-    def backward(ctx, grad):  # noqa: D102
-        pts, a, b, arg = ctx.saved_tensors
-        ak = torch.gather(a, 1, arg[..., None].expand(-1, -1, 2))  # (B, N, 2)
-        bk = torch.gather(b, 1, arg[..., None].expand(-1, -1, 2))
-        d = bk - ak
-        t = (((pts[None] - ak) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
-        e = pts[None] - ak - t[..., None] * d
-        dist = torch.sqrt((e * e).sum(-1))
-        n = torch.where(dist[..., None] > 1e-12, e / dist.clamp_min(1e-12)[..., None], torch.zeros_like(e))
-        ga = torch.zeros_like(a).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * ((1.0 - t) * grad)[..., None])
-        gb = torch.zeros_like(b).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * (t * grad)[..., None])
-        gr = torch.zeros_like(a[..., 0]).scatter_add_(1, arg, -grad)
-        return None, ga, gb, gr
-
-
-def capsule_signed_distance(
-    starts_px: torch.Tensor, ends_px: torch.Tensor, radii_px: torch.Tensor, height: int, width: int, grid_step: int = 4
-) -> torch.Tensor:
-    """Signed distance (pixels) of every pixel centre to the union of 2D capsules.
-
-    ``sd(p) = min_k (dist(p, segment_k) - radius_k)``: negative inside the union,
-    positive outside (there it equals :func:`flowmocap.render.capsule_distance_map`).
-    Evaluated exactly on the grid of pixel centres ``(u + 0.5, v + 0.5)`` with
-    ``u, v`` multiples of ``grid_step`` and bilinearly interpolated in between, as
-    ``capsule_distance_map`` does.
-
-    Args:
-        starts_px, ends_px: ``(B, K, 2)`` segment end points in pixels.
-        radii_px: ``(B, K)`` radii in pixels.
-        height, width: image size in pixels.
-        grid_step: spacing in pixels of the exact evaluations (positive integer).
-
-    Returns:
-        ``(B, H, W)`` tensor, differentiable w.r.t. the end points and radii.
-    """
-    if int(grid_step) != grid_step or grid_step < 1:
-        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
-    if starts_px.dim() != 3 or starts_px.shape[-1] != 2 or ends_px.shape != starts_px.shape:
-        raise InputError(f"starts_px and ends_px must have shape (B, K, 2), got {tuple(starts_px.shape)}"
-                         f" and {tuple(ends_px.shape)}")
-    if radii_px.shape != starts_px.shape[:2]:
-        raise InputError(f"radii_px must have shape (B, K) = {tuple(starts_px.shape[:2])}, got {tuple(radii_px.shape)}")
-    return _signed_distance_window(starts_px, ends_px, radii_px, 0, 0, int(height), int(width), int(grid_step))
-
-
-def _signed_distance_window(a, b, r, y0: int, x0: int, h: int, w: int, step: int) -> torch.Tensor:
-    """:func:`capsule_signed_distance` on the window ``[y0, y0 + h) x [x0, x0 + w)``.
-
-    ``y0`` and ``x0`` must be multiples of ``step`` so the grid is the full image's.
-    Returns ``(B, h, w)``.
-    """
-    gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
-    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + (y0 + 0.5)
-    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + (x0 + 0.5)
-    pts = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).reshape(-1, 2)
-    grid = _GridSignedDistance.apply(pts, a, b, r).reshape(-1, 1, gh, gw)
-    if step == 1:
-        return grid[:, 0, :h, :w]
-    up = F.interpolate(grid, size=((gh - 1) * step + 1, (gw - 1) * step + 1), mode="bilinear", align_corners=True)
-    return up[:, 0, :h, :w]
-
-
 def _project(capsules: Capsules, camera: PinholeCamera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     starts = camera.to_camera(capsules.start)
     ends = camera.to_camera(capsules.end)
@@ -639,7 +545,7 @@ def _silhouette_window(capsules, camera, target, a, grid_step, softness):
     y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
     x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
     y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
-    sd = _signed_distance_window(s, e, r, y0, x0, y1 - y0, x1 - x0, step)  # (B, h, w)
+    sd = capsule_signed_distance(s, e, r, y1 - y0, x1 - x0, step, origin=(y0, x0))  # (B, h, w)
     mask = target.mask[y0:y1, x0:x1].to(sd.dtype)
     cham = target.chamfer[y0:y1, x0:x1].to(sd.dtype)
     soft = torch.sigmoid(-sd / softness)

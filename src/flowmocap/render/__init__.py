@@ -2,8 +2,8 @@
 
 ``rasterize -> interpolate -> shade`` for colour images; ``rasterize -> render_flow``
 and ``flow_loss`` / ``flow_residuals`` for the differentiable flow renderer of the
-paper (Sec. 3.2-3.3); ``body_mask`` (a posed body's pixels), ``silhouette`` and ``capsule_distance_map`` for the silhouette
-coverage term (Sec. 3.5).
+paper (Sec. 3.2-3.3); ``body_mask`` (a posed body's pixels), ``silhouette`` and
+``capsule_signed_distance`` for the silhouette coverage term (Sec. 3.5).
 
 Inputs are projected vertices ``verts_px (V, 2)`` in pixels (pixel centres at integer
 + 0.5; the image spans ``[0, W] x [0, H]``), camera-space ``depth (V,)`` in metres and
@@ -11,7 +11,7 @@ Inputs are projected vertices ``verts_px (V, 2)`` in pixels (pixel centres at in
 """
 
 from flowmocap.render._checks import Faces, prepare_faces
-from flowmocap.render.capsules import capsule_distance_map, project_capsules
+from flowmocap.render.capsules import capsule_signed_distance, project_capsules
 from flowmocap.render.flow import (
     FlowResiduals,
     FlowTarget,
@@ -45,7 +45,7 @@ __all__ = [
     "flow_loss",
     "flow_residuals",
     "FlowResiduals",
-    "capsule_distance_map",
+    "capsule_signed_distance",
     "project_capsules",
     "pyr_down",
     "shade",

@@ -1,17 +1,15 @@
 """The model's differentiable distance map ``C_M`` from a capsule body (paper Sec. 3.5).
 
-``C_M(p)`` is the distance in pixels from pixel centre ``p`` to the model's silhouette
-(0 inside), approximated by the union of the projected capsules ("stadiums": all
-points within ``radius`` of a 2D segment):
+The model's silhouette is approximated by the union of the projected capsules
+("stadiums": all points within ``radius`` of a 2D segment). Its signed distance in
+pixels from pixel centre ``p`` is
 
-    C_M(p) = max(0, min_k (dist(p, segment_k) - radius_k)).
+    sd(p) = min_k (dist(p, segment_k) - radius_k),    C_M(p) = max(0, sd(p)).
 
 To keep it cheap it is evaluated exactly on a coarse grid of pixel centres, every
 ``grid_step`` pixels starting at pixel (0, 0), and bilinearly interpolated in between
-(exact at grid pixels ``(u, v)`` with ``u % grid_step == 0`` and ``v % grid_step == 0``;
-between them the interpolation error is at most ``grid_step / 2`` px near a
-capsule's rim, 0 inside the capsules and far from them it is tiny). Everything is
-torch, differentiable w.r.t. the segment end points and radii.
+(exact at grid pixels ``(u, v)`` with ``u % grid_step == 0`` and ``v % grid_step == 0``).
+Everything is torch, differentiable w.r.t. the segment end points and radii.
 """
 
 from __future__ import annotations
@@ -25,7 +23,7 @@ import torch.nn.functional  # noqa: F401  (interpolate)
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_size
 
-__all__ = ["capsule_distance_map", "project_capsules"]
+__all__ = ["capsule_signed_distance", "project_capsules"]
 
 
 def _as_tensor(x: Any, name: str, shape_tail: tuple[int, ...], ref: torch.Tensor | None) -> torch.Tensor:
@@ -55,104 +53,109 @@ def _reference(*xs: Any) -> torch.Tensor | None:
     return None
 
 
-class _GridDistance(torch.autograd.Function):
-    """``max(0, min_k (dist(p, segment_k) - r_k))`` at fixed points ``p (N, 2)``.
+class _GridSignedDistance(torch.autograd.Function):
+    """``min_k (dist(p, segment_k) - r_k)`` at fixed points ``p (N, 2)`` for a batch.
 
-    The forward pass keeps only the nearest capsule of each point, so the backward pass
-    costs O(N) instead of O(N K): by the envelope theorem the gradient of the distance
-    to a segment w.r.t. its end points is that of the distance to the (fixed) closest
-    point ``c = a + t (b - a)``: ``-n (1 - t)`` and ``-n t`` with ``n`` the unit vector
-    from ``c`` to ``p``; w.r.t. the radius it is -1 (0 where clamped to 0 or at ``p = c``).
+    Inputs ``a, b (B, K, 2)``, ``r (B, K)``; output ``(B, N)``. The forward pass keeps the
+    nearest capsule of each point, so the backward pass costs O(B N) (the gradient of
+    a minimum flows to its arg-min; for the distance to a segment it is that of the
+    distance to the fixed closest point ``c = a + t (b - a)``).
     """
 
     @staticmethod
     def forward(ctx, pts, a, b, r):  # noqa: D102
-        d = b - a
+        d = b - a  # (B, K, 2)
         inv = 1.0 / (d * d).sum(-1).clamp_min(1e-12)
-        best = torch.full((pts.shape[0],), float("inf"), dtype=a.dtype, device=a.device)
-        arg = torch.zeros(pts.shape[0], dtype=torch.long, device=a.device)
-        for k in range(a.shape[0]):
-            px = pts[:, 0] - a[k, 0]
-            py = pts[:, 1] - a[k, 1]
-            t = ((px * d[k, 0] + py * d[k, 1]) * inv[k]).clamp(0.0, 1.0)
-            ex = px - t * d[k, 0]
-            ey = py - t * d[k, 1]
-            dist = torch.sqrt(ex * ex + ey * ey) - r[k]
+        B, K = r.shape
+        px0, py0 = pts[None, :, 0], pts[None, :, 1]
+        best = torch.full((B, pts.shape[0]), float("inf"), dtype=a.dtype, device=a.device)
+        arg = torch.zeros((B, pts.shape[0]), dtype=torch.long, device=a.device)
+        for k in range(K):
+            px = px0 - a[:, k, 0:1]
+            py = py0 - a[:, k, 1:2]
+            dx, dy = d[:, k, 0:1], d[:, k, 1:2]
+            t = ((px * dx + py * dy) * inv[:, k:k + 1]).clamp(0.0, 1.0)
+            ex = px - t * dx
+            ey = py - t * dy
+            dist = torch.sqrt(ex * ex + ey * ey) - r[:, k:k + 1]
             closer = dist < best
             best = torch.where(closer, dist, best)
             arg = torch.where(closer, torch.full_like(arg, k), arg)
-        ctx.save_for_backward(pts, a, b, r, arg, best)
-        return best.clamp_min(0.0)
+        ctx.save_for_backward(pts, a, b, arg)
+        return best
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
-        pts, a, b, r, arg, best = ctx.saved_tensors
-        g = grad * (best > 0)
-        ak, bk = a[arg], b[arg]
+        pts, a, b, arg = ctx.saved_tensors
+        ak = torch.gather(a, 1, arg[..., None].expand(-1, -1, 2))  # (B, N, 2)
+        bk = torch.gather(b, 1, arg[..., None].expand(-1, -1, 2))
         d = bk - ak
-        t = (((pts - ak) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
-        e = pts - ak - t[:, None] * d
+        t = (((pts[None] - ak) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+        e = pts[None] - ak - t[..., None] * d
         dist = torch.sqrt((e * e).sum(-1))
-        n = torch.where(dist[:, None] > 1e-12, e / dist.clamp_min(1e-12)[:, None], torch.zeros_like(e))
-        ga = torch.zeros_like(a).index_add_(0, arg, -n * ((1.0 - t) * g)[:, None])
-        gb = torch.zeros_like(b).index_add_(0, arg, -n * (t * g)[:, None])
-        gr = torch.zeros_like(r).index_add_(0, arg, -g)
+        n = torch.where(dist[..., None] > 1e-12, e / dist.clamp_min(1e-12)[..., None], torch.zeros_like(e))
+        ga = torch.zeros_like(a).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * ((1.0 - t) * grad)[..., None])
+        gb = torch.zeros_like(b).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * (t * grad)[..., None])
+        gr = torch.zeros_like(a[..., 0]).scatter_add_(1, arg, -grad)
         return None, ga, gb, gr
 
 
-def capsule_distance_map(
-    starts_px: Any,
-    ends_px: Any,
-    radii_px: Any,
+def capsule_signed_distance(
+    starts_px: torch.Tensor,
+    ends_px: torch.Tensor,
+    radii_px: torch.Tensor,
     height: int,
     width: int,
     grid_step: int = 4,
+    origin: tuple[int, int] = (0, 0),
 ) -> torch.Tensor:
-    """Distance (pixels) of every pixel centre to the union of 2D capsules, 0 inside.
+    """Signed distance (pixels) of every pixel centre to the union of 2D capsules.
+
+    ``sd(p) = min_k (dist(p, segment_k) - radius_k)``: negative inside the union,
+    positive outside; the model's distance map is ``C_M = max(0, sd)``. Evaluated
+    exactly on the pixel centres ``(u + 0.5, v + 0.5)`` with ``u, v`` multiples of
+    ``grid_step`` and bilinearly interpolated in between (see the module docstring).
 
     Args:
-        starts_px, ends_px: ``(K, 2)`` segment end points in pixels (pixel centres at
-            +0.5), torch (differentiable) or numpy.
-        radii_px: ``(K,)`` capsule radii in pixels.
-        height, width: image size ``H, W``.
-        grid_step: spacing in pixels of the grid of exact evaluations (1 = exact
-            everywhere); see the module docstring.
+        starts_px, ends_px: ``(B, K, 2)`` segment end points in pixels (pixel centres at
+            +0.5), for a batch of B capsule sets.
+        radii_px: ``(B, K)`` radii in pixels.
+        height, width: size in pixels of the window evaluated (the whole image by default).
+        grid_step: spacing in pixels of the exact evaluations (1 = exact everywhere).
+        origin: ``(y0, x0)`` top-left pixel of the window, multiples of ``grid_step`` so
+            that the grid is the whole image's.
 
     Returns:
-        ``(H, W)`` torch tensor (dtype/device of the first floating torch input, else
-        float64), differentiable w.r.t. the inputs.
+        ``(B, height, width)`` tensor of the inputs' dtype, differentiable w.r.t. the end
+        points and radii.
 
     Raises:
-        InputError: wrong shapes, NaNs, negative radii, an empty image, a bad step.
+        InputError: wrong shapes, a bad step, or an origin off the grid.
     """
-    h, w = check_size(height, width)
     if int(grid_step) != grid_step or grid_step < 1:
         raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
     step = int(grid_step)
-    ref = _reference(starts_px, ends_px, radii_px)
-    a = _as_tensor(starts_px, "starts_px", (2,), ref)
-    b = _as_tensor(ends_px, "ends_px", (2,), a)
-    if a.shape[0] == 0:
-        raise InputError("capsule_distance_map needs at least one capsule")
-    if b.shape[0] != a.shape[0]:
-        raise InputError(f"starts_px and ends_px must have the same length, got {a.shape[0]} and {b.shape[0]}")
-    r = _as_tensor(radii_px, "radii_px", (), a)
-    if r.shape[0] != a.shape[0]:
-        raise InputError(f"radii_px must have one radius per capsule ({a.shape[0]}), got {r.shape[0]}")
-    if (r.detach() < 0).any():
-        raise InputError("radii_px must be non-negative")
+    a, b, r = starts_px, ends_px, radii_px
+    if a.dim() != 3 or a.shape[-1] != 2 or b.shape != a.shape:
+        raise InputError(f"starts_px and ends_px must have shape (B, K, 2), got {tuple(a.shape)} and {tuple(b.shape)}")
+    if r.shape != a.shape[:2]:
+        raise InputError(f"radii_px must have shape (B, K) = {tuple(a.shape[:2])}, got {tuple(r.shape)}")
+    h, w = check_size(height, width)
+    y0, x0 = (int(o) for o in origin)
+    if y0 % step or x0 % step:
+        raise InputError(f"origin {origin} must be a multiple of grid_step ({step})")
     gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
-    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + 0.5
-    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + 0.5
+    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + (y0 + 0.5)
+    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + (x0 + 0.5)
     pts = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).reshape(-1, 2)
-    grid = _GridDistance.apply(pts, a, b, r).reshape(gh, gw)
+    grid = _GridSignedDistance.apply(pts, a, b, r).reshape(-1, 1, gh, gw)
     if step == 1:
-        return grid[:h, :w]
+        return grid[:, 0, :h, :w]
     # pixel u sits at grid coordinate u / step: align_corners interpolation onto
     # (gh - 1) * step + 1 samples puts output sample o exactly there
     up = torch.nn.functional.interpolate(
-        grid[None, None], size=((gh - 1) * step + 1, (gw - 1) * step + 1), mode="bilinear", align_corners=True)
-    return up[0, 0, :h, :w]
+        grid, size=((gh - 1) * step + 1, (gw - 1) * step + 1), mode="bilinear", align_corners=True)
+    return up[:, 0, :h, :w]
 
 
 def project_capsules(
