@@ -114,3 +114,19 @@ def test_mediapipe_finds_nobody_in_an_empty_image():
 
     img = np.full((120, 160, 3), 90, np.uint8)
     assert MediaPipePoseDetector(augment=False).detect(img) is None
+
+
+def test_mediapipe_prints_nothing_to_stderr(capfd):
+    """MediaPipe's C++ log lines (TFLite's XNNPACK INFO, absl's W0000 feedback-manager
+    warnings) are kept off the terminal: creating, running, resetting and closing."""
+    pytest.importorskip("mediapipe")
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    img = np.full((120, 160, 3), 90, np.uint8)
+    det = MediaPipePoseDetector()
+    for _ in range(2):
+        det.detect(img)
+    det.reset()
+    det.detect(img)
+    det.close()
+    assert capfd.readouterr().err == ""

@@ -10,10 +10,20 @@ Keypoints come in the order of :data:`KEYPOINT_NAMES`: the twelve SMPL joints an
 ``init.json`` takes (hips, knees, ankles, shoulders, elbows, wrists, by SMPL's names,
 "left" being the person's own left), then the nose and the ears, which are not SMPL
 joints and serve only to tell which way the person faces.
+
+MediaPipe's C++ side (TFLite, absl logging) writes lines such as "INFO: Created
+TensorFlow Lite XNNPACK delegate" and "W0000 ... inference_feedback_manager" straight to
+file descriptor 2, from its graph threads, whenever a graph is created, run or closed;
+no environment variable of mediapipe 0.10.21 turns them off (``GLOG_minloglevel`` and
+``TF_CPP_MIN_LOG_LEVEL`` were tried). :class:`MediaPipePoseDetector` therefore points
+fd 2 at ``/dev/null`` for the duration of each of those calls.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -39,6 +49,21 @@ MEDIAPIPE_LANDMARKS: dict[str, int] = {
     "left_wrist": 15, "right_wrist": 16, "left_hip": 23, "right_hip": 24,
     "left_knee": 25, "right_knee": 26, "left_ankle": 27, "right_ankle": 28,
 }
+
+
+@contextlib.contextmanager
+def _native_stderr_to_devnull():
+    """File descriptor 2 points at ``/dev/null`` inside the block (C-level writes included)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 @dataclass
@@ -135,15 +160,17 @@ class MediaPipePoseDetector:
 
     def reset(self) -> None:
         """Forget the tracked person (call between videos)."""
-        for p in self._runs.values():
-            p.close()
-        self._runs = {"main": self._pose(False)}
-        if self.augment:
-            self._runs.update({"mirror": self._pose(False), "border": self._pose(False), "single": self._pose(True)})
+        self.close()
+        with _native_stderr_to_devnull():
+            self._runs = {"main": self._pose(False)}
+            if self.augment:
+                self._runs.update({"mirror": self._pose(False), "border": self._pose(False),
+                                   "single": self._pose(True)})
 
     def close(self) -> None:
-        for p in self._runs.values():
-            p.close()
+        with _native_stderr_to_devnull():
+            for p in self._runs.values():
+                p.close()
         self._runs = {}
 
     def detect(self, image_rgb: np.ndarray) -> Detection | None:
@@ -155,9 +182,12 @@ class MediaPipePoseDetector:
             raise InputError(f"detect needs an (H, W, 3) uint8 RGB image; got {img.shape} {img.dtype}.")
         img = np.ascontiguousarray(img)
         H, W = img.shape[:2]
-        res = self._runs["main"].process(img)
-        if res.pose_landmarks is None or res.segmentation_mask is None:
-            return None
+        with _native_stderr_to_devnull():
+            res = self._runs["main"].process(img)
+            if res.pose_landmarks is None or res.segmentation_mask is None:
+                return None
+            if self.augment:
+                soft = self._augmented(img, np.asarray(res.segmentation_mask, np.float32))
         lm = res.pose_landmarks.landmark
         kp = np.zeros((len(KEYPOINT_NAMES), 2))
         conf = np.zeros(len(KEYPOINT_NAMES))
@@ -166,9 +196,8 @@ class MediaPipePoseDetector:
             kp[k] = (p.x * W, p.y * H)
             inside = 0.0 <= kp[k, 0] <= W and 0.0 <= kp[k, 1] <= H
             conf[k] = float(np.clip(p.visibility, 0.0, 1.0)) if inside else 0.0
-        soft = np.asarray(res.segmentation_mask, np.float32)
-        if self.augment:
-            soft = self._augmented(img, soft)
+        if not self.augment:
+            soft = np.asarray(res.segmentation_mask, np.float32)
         soft = cv2.ximgproc.guidedFilter(img, soft, 4, 1e-3 * 255.0 ** 2) if hasattr(cv2, "ximgproc") else soft
         soft = np.clip(soft, 0.0, 1.0)
         world = None
