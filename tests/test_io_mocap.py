@@ -9,7 +9,7 @@ import pytest
 
 from flowmocap.errors import DataError
 from flowmocap.io import read_asf_amc, read_bvh, read_mocap, resample, write_bvh
-from flowmocap.io.mocap import find_asf, slerp
+from flowmocap.io.mocap import find_asf
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CMU = SHARED_DATA / "mocap" / "cmu"
@@ -260,14 +260,6 @@ def test_bvh_errors(tmp_path):
 
 
 # ------------------------------------------------------------------------ resampling
-
-
-def test_slerp_endpoints_and_midpoint():
-    q0 = np.array([1.0, 0, 0, 0])
-    q1 = np.array([np.cos(0.5), np.sin(0.5), 0, 0])  # 1 rad about x
-    np.testing.assert_allclose(slerp(q0, q1, 0.0), q0, atol=1e-12)
-    np.testing.assert_allclose(slerp(q0, q1, 1.0), q1, atol=1e-12)
-    np.testing.assert_allclose(slerp(q0, -q1, 0.5), [np.cos(0.25), np.sin(0.25), 0, 0], atol=1e-12)
 
 
 @needs_cmu

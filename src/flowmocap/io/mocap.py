@@ -42,14 +42,10 @@ from typing import Sequence
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from flowmocap.errors import DataError, InputError
-from flowmocap.geometry import (
-    euler_to_matrix,
-    matrix_to_euler,
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-)
+from flowmocap.geometry import matrix_to_euler
 
 __all__ = [
     "MocapClip",
@@ -60,7 +56,6 @@ __all__ = [
     "find_asf",
     "write_bvh",
     "resample",
-    "slerp",
     "BVH_UNITS",
 ]
 
@@ -204,30 +199,15 @@ def _make_clip(names, parents, offsets, rotations, translations, end_site, fps, 
 # ------------------------------------------------------------------------- rotations
 
 
-def _axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
-    """(...,) radians -> (..., 3, 3) right-handed rotation about x, y or z."""
-    c, s = np.cos(angle), np.sin(angle)
-    o, i = np.zeros_like(angle), np.ones_like(angle)
-    rows = {
-        "x": [i, o, o, o, c, -s, o, s, c],
-        "y": [c, o, s, o, i, o, -s, o, c],
-        "z": [c, -s, o, s, c, o, o, o, i],
-    }[axis]
-    return np.stack(rows, axis=-1).reshape(np.shape(angle) + (3, 3))
-
-
-def _fixed_axes_rotation(axes: str, angles: np.ndarray) -> np.ndarray:
-    """Rotations about fixed axes applied in the listed order: ``R = R_last ... R_first``.
-
-    Args:
-        axes: letters from ``xyz`` (any length >= 0).
-        angles: ``(..., len(axes))`` radians.
-    """
+def _euler(axes: str, angles: np.ndarray) -> np.ndarray:
+    """``(..., len(axes))`` radians -> ``(..., 3, 3)`` by scipy's convention: lowercase
+    ``axes`` are fixed axes applied in the listed order (``R = R_last ... R_first``),
+    uppercase ones intrinsic; no axes give the identity."""
     angles = np.asarray(angles, dtype=np.float64)
-    R = np.broadcast_to(np.eye(3), angles.shape[:-1] + (3, 3)).copy()
-    for k, a in enumerate(axes):
-        R = _axis_rotation(a, angles[..., k]) @ R
-    return R
+    lead = angles.shape[:-1]
+    if not axes:
+        return np.broadcast_to(np.eye(3), lead + (3, 3)).copy()
+    return Rotation.from_euler(axes, angles.reshape(-1, len(axes))).as_matrix().reshape(lead + (3, 3))
 
 
 # ---------------------------------------------------------------------------- ASF/AMC
@@ -459,20 +439,20 @@ def read_asf_amc(
     for k, c in enumerate(order):
         if c.startswith("t"):
             pos[:, "xyz".index(c[1])] = vals[:, k] * unit
-    C = _fixed_axes_rotation(root["axis"], root["orientation"] * to_rad)
-    M = _fixed_axes_rotation(rot_axes, rot_vals * to_rad)
+    C = _euler(root["axis"], root["orientation"] * to_rad)
+    M = _euler(rot_axes, rot_vals * to_rad)
     rotations[:, 0] = C @ M @ C.T
     translations[:, 0] = pos
 
     for j, b in enumerate(bone_of):
         if b is None:
             continue
-        C = _fixed_axes_rotation(b.axis_order, b.axis * to_rad)
+        C = _euler(b.axis_order, b.axis * to_rad)
         rdofs = [(k, d[1]) for k, d in enumerate(b.dof) if d.startswith("r")]
         if not rdofs:
             continue
         v = np.array([f.get(b.name, np.zeros(len(b.dof))) for f in frames])  # (T, ndof)
-        M = _fixed_axes_rotation("".join(a for _, a in rdofs), v[:, [k for k, _ in rdofs]] * to_rad)
+        M = _euler("".join(a for _, a in rdofs), v[:, [k for k, _ in rdofs]] * to_rad)
         rotations[:, j] = C @ M @ C.T
     if any(d in ("tx", "ty", "tz", "l") for b in bones.values() for d in b.dof):
         warnings.warn(f"{asf_path}: translation/length dofs of bones are read but not applied")
@@ -725,11 +705,7 @@ def read_bvh(
         rot = [(k, c[1]) for k, c in enumerate(chans) if c.startswith("r")]
         if rot:
             order = "".join(a.upper() for _, a in rot)
-            ang = torch.as_tensor(np.deg2rad(block[:, [k for k, _ in rot]]))
-            if len(rot) == 3:
-                rotations[:, j] = euler_to_matrix(ang, order).numpy()
-            else:
-                rotations[:, j] = _fixed_axes_rotation(order.lower()[::-1], ang.numpy()[:, ::-1])
+            rotations[:, j] = _euler(order, np.deg2rad(block[:, [k for k, _ in rot]]))
         for k, c in enumerate(chans):
             if c.startswith("p"):
                 translations[:, j, "xyz".index(c[1])] = block[:, k] * scale
@@ -894,36 +870,14 @@ def resample(clip: MocapClip, fps: float) -> MocapClip:
     src = np.arange(n_out) * (clip.fps / fps)  # fractional input frame index
     i0 = np.clip(np.floor(src).astype(int), 0, clip.num_frames - 1)
     i1 = np.minimum(i0 + 1, clip.num_frames - 1)
-    w = (src - i0)[:, None]
-    q = matrix_to_quaternion(torch.as_tensor(clip.rotations)).numpy()  # (T, J, 4)
-    rot = quaternion_to_matrix(torch.as_tensor(slerp(q[i0], q[i1], w))).numpy()
-    trans = (1 - w[..., None]) * clip.translations[i0] + w[..., None] * clip.translations[i1]
+    w = src - i0
+    # slerp: R0 Exp(w Log(R0^T R1)), the shorter arc
+    r0 = Rotation.from_matrix(clip.rotations[i0].reshape(-1, 3, 3))
+    step = (r0.inv() * Rotation.from_matrix(clip.rotations[i1].reshape(-1, 3, 3))).as_rotvec()
+    rot = (r0 * Rotation.from_rotvec(step * np.repeat(w, clip.rotations.shape[1])[:, None])).as_matrix()
+    rot = rot.reshape(n_out, -1, 3, 3)
+    w = w[:, None, None]
+    trans = (1 - w) * clip.translations[i0] + w * clip.translations[i1]
     _, P = forward_kinematics(clip.parents, rot, trans)
     info = dict(clip.info, resampled_from_fps=clip.fps)
     return replace(clip, rotations=rot, translations=trans, positions=P, fps=float(fps), info=info)
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Spherical linear interpolation of unit quaternions ``(w, x, y, z)``.
-
-    Args:
-        q0, q1: ``(..., 4)`` unit quaternions (the shorter arc is taken).
-        w: weights broadcastable to ``(...)``, 0 gives ``q0`` and 1 gives ``q1``.
-
-    Returns:
-        ``(..., 4)`` unit quaternions.
-    """
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    w = np.broadcast_to(np.asarray(w, dtype=np.float64), q0.shape[:-1])[..., None]
-    dot = (q0 * q1).sum(-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    s = np.sin(theta)
-    small = s < 1e-6
-    s_safe = np.where(small, 1.0, s)
-    a = np.where(small, 1 - w, np.sin((1 - w) * theta) / s_safe)
-    b = np.where(small, w, np.sin(w * theta) / s_safe)
-    q = a * q0 + b * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)

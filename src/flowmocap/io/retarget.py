@@ -47,6 +47,7 @@ import re
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from flowmocap.body.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS, children
 from flowmocap.errors import DataError, InputError
@@ -231,11 +232,6 @@ def _frame(p: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, e3], axis=-1)
 
 
-def _rot_y(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def _horizontal_unit(v: np.ndarray, what: str, source: str) -> np.ndarray:
     h = np.array([v[0], 0.0, v[2]])
     n = np.linalg.norm(h)
@@ -418,7 +414,7 @@ def retarget(
         n = max(1, min(clip.num_frames, int(round(clip.fps))))
         yaw = body_yaw(G[:n, 0])
         yaw_turn = float(facing) - math.atan2(np.sin(yaw).mean(), np.cos(yaw).mean())
-    Ry = _rot_y(yaw_turn)
+    Ry = Rotation.from_euler("y", yaw_turn).as_matrix()
     G = Ry @ G
     local = G.copy()
     parents = np.asarray(PARENTS)
