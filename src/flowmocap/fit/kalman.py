@@ -104,6 +104,7 @@ from typing import Any
 import numpy as np
 from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
+from scipy.spatial.transform import Rotation
 
 from flowmocap.errors import InputError
 
@@ -172,10 +173,7 @@ def so3_hat(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation vectors (radians, any angle) to rotation matrices, Rodrigues' formula.
-
-    ``Exp(phi) = I + sin(t)/t K + (1 - cos t)/t^2 K^2``, ``K = hat(phi)``, ``t = |phi|``,
-    with Taylor series for ``t < 1`` (exact at and near 0).
+    """Rotation vectors (radians, any angle) to rotation matrices (scipy's ``Rotation``).
 
     Args:
         rotvec: ``(..., 3)``.
@@ -184,54 +182,11 @@ def so3_exp(rotvec: np.ndarray) -> np.ndarray:
         ``(..., 3, 3)`` float64 rotation matrices (acting on column vectors).
     """
     v = np.asarray(rotvec, dtype=np.float64)
-    a, b, _ = _abc(np.einsum("...i,...i->...", v, v))
-    k = so3_hat(v)
-    return np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
-
-
-def _shepperd_table() -> tuple[np.ndarray, np.ndarray]:
-    """Constants with ``m = R.reshape(9) @ A + c``, ``m.reshape(4, 4)[i] = 4 q_i q``."""
-    rows = [  # (sign, row, col) terms of each entry; the constant 1 is on the diagonal
-        [[(1, 0, 0), (1, 1, 1), (1, 2, 2)], [(1, 2, 1), (-1, 1, 2)], [(1, 0, 2), (-1, 2, 0)],
-         [(1, 1, 0), (-1, 0, 1)]],
-        [[(1, 2, 1), (-1, 1, 2)], [(1, 0, 0), (-1, 1, 1), (-1, 2, 2)], [(1, 0, 1), (1, 1, 0)],
-         [(1, 0, 2), (1, 2, 0)]],
-        [[(1, 0, 2), (-1, 2, 0)], [(1, 0, 1), (1, 1, 0)], [(-1, 0, 0), (1, 1, 1), (-1, 2, 2)],
-         [(1, 1, 2), (1, 2, 1)]],
-        [[(1, 1, 0), (-1, 0, 1)], [(1, 0, 2), (1, 2, 0)], [(1, 1, 2), (1, 2, 1)],
-         [(-1, 0, 0), (-1, 1, 1), (1, 2, 2)]],
-    ]
-    A = np.zeros((9, 16))
-    for i in range(4):
-        for j in range(4):
-            for sign, r, c in rows[i][j]:
-                A[3 * r + c, 4 * i + j] += sign
-    return A, np.eye(4).reshape(16)
-
-
-_SHEPPERD_A, _SHEPPERD_C = _shepperd_table()
-
-
-def _matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """``(..., 3, 3)`` -> ``(..., 4)`` unit quaternions (w, x, y, z), ``w >= 0``.
-
-    Shepperd: row ``i`` of ``m`` is ``4 q_i q``; the row with the largest diagonal entry
-    ``4 q_i^2`` (>= 1) is normalised, so no division by a small number happens.
-    """
-    lead = R.shape[:-2]
-    m = (R.reshape(-1, 9) @ _SHEPPERD_A + _SHEPPERD_C).reshape(-1, 4, 4)
-    best = np.argmax(m[:, [0, 1, 2, 3], [0, 1, 2, 3]], axis=-1)
-    q = m[np.arange(m.shape[0]), best]
-    q /= np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
-    q *= np.where(q[:, :1] < 0.0, -1.0, 1.0)
-    return q.reshape(lead + (4,))
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(v.shape[:-1] + (3, 3))
 
 
 def so3_log(matrix: np.ndarray) -> np.ndarray:
-    """Rotation matrices to rotation vectors with angle in ``[0, pi]``.
-
-    Via a Shepperd quaternion (accurate axis near ``pi``) and
-    ``angle = 2 atan2(|q_xyz|, q_w)``, with a series for ``angle / |q_xyz|`` near 0.
+    """Rotation matrices to rotation vectors with angle in ``[0, pi]`` (scipy's ``Rotation``).
     At exactly ``pi`` either of ``+-pi * axis`` may come back.
 
     Args:
@@ -240,15 +195,8 @@ def so3_log(matrix: np.ndarray) -> np.ndarray:
     Returns:
         ``(..., 3)`` float64 axis * angle, radians.
     """
-    q = _matrix_to_quaternion(np.asarray(matrix, dtype=np.float64))
-    w, xyz = q[..., 0], q[..., 1:]
-    n = np.linalg.norm(xyz, axis=-1)
-    small = n < 1e-4  # then w > 0.99999999 and t = n/w < 1.0001e-4: series exact to 1e-20
-    t = np.where(small, n / np.where(small, w, 1.0), 0.0)
-    t2 = t * t
-    series = 2.0 / np.where(small, w, 1.0) * (1.0 - t2 / 3.0 + t2 * t2 / 5.0)
-    exact = 2.0 * np.arctan2(n, w) / np.where(small, 1.0, n)
-    return np.where(small, series, exact)[..., None] * xyz
+    m = np.asarray(matrix, dtype=np.float64)
+    return Rotation.from_matrix(m.reshape(-1, 3, 3)).as_rotvec().reshape(m.shape[:-2] + (3,))
 
 
 def so3_right_jacobian(rotvec: np.ndarray) -> np.ndarray:
