@@ -59,8 +59,8 @@ correction to a vector state (``x + K y``) and has no injection/reset step, whic
 exactly what the manifold needs, and it filters one joint at a time in Python. The
 error-state EKF is ~30 lines of numpy here, and :class:`PoseFilter` runs the same code
 batched over all 24 joints at once (the joints stay independent filters). The SO(3)
-``exp``/``log``/right Jacobian are small batched numpy functions below (series near 0,
-a Shepperd quaternion step near pi) rather than the torch ones in
+``exp``/``log`` come from scipy's ``Rotation`` and the right Jacobian is a small batched
+numpy function below (series near 0), rather than the torch ones in
 :mod:`flowmocap.geometry.rotations`: the filter is numpy end to end and runs on tiny
 arrays where the torch call overhead would dominate.
 
