@@ -7,7 +7,7 @@ on the main joints. Prints the paper's local / global Procrustes errors on 13 jo
 the median seconds per frame (observed flow included) and the detector's time for the 3D
 joints of E_d (run once over the clip before tracking), and writes JSON.
 
-Usage: python benchmarks/track.py [--frames 130] [--size 640x480] [--fps 60] [--motion PATH]
+Usage: python benchmarks/track.py [--num-frames 130] [--size 640x480] [--fps 60] [--motion PATH]
        [--out benchmarks/results/track.json] [--work DIR] [--config cfg.json]
        [--gt-init] [--true-flow] [--track-frames A:B]
 
@@ -35,7 +35,7 @@ CMU = ROOT.parent / "shared" / "data" / "mocap" / "cmu" / "35_01.amc"
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--motion", default=str(CMU))
-    ap.add_argument("--frames", type=int, default=130)
+    ap.add_argument("--num-frames", type=int, default=130)
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--azimuth", type=float, default=60.0)
@@ -51,13 +51,11 @@ def main() -> int:
         print(f"skipped: {CMU} not found (../shared/data is absent)")
         return 0
 
-    from flowmocap.body import load_body_model
     from flowmocap.eval.protocol import evaluate, noisy_init
     from flowmocap.fit.config import TrackerConfig
-    from flowmocap.fit.init import parse_init
-    from flowmocap.fit.tracker import KnownStart, track_sequence
-    from flowmocap.io.results import read_result
+    from flowmocap.fit.tracker import KnownStart
     from flowmocap.io.sequence import load_sequence
+    from flowmocap.pipeline import track
     from flowmocap.synth import synthesize
     from flowmocap.vision import FlowCache
     from flowmocap.vision.auto import detect_joints3d
@@ -65,7 +63,7 @@ def main() -> int:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="flowmocap_track_"))
     seq_dir, res_dir = work / "sequence", work / "result"
     if not (seq_dir / "gt.npz").exists() or (args.true_flow and not (seq_dir / "flow").is_dir()):
-        synthesize(args.motion, seq_dir, fps=args.fps, frames=args.frames, size=args.size, betas="random",
+        synthesize(args.motion, seq_dir, fps=args.fps, frames=args.num_frames, size=args.size, betas="random",
                    seed=args.seed, azimuth=args.azimuth, flow=args.true_flow)
     seq = load_sequence(seq_dir)
     gt = seq.gt
@@ -73,7 +71,7 @@ def main() -> int:
     if args.gt_init:
         init = KnownStart(poses=gt["poses"][start:start + 2], trans=gt["trans"][start:start + 2], betas=gt["betas"])
     else:
-        init = parse_init(noisy_init(gt, frame=start, seed=args.seed), *seq.size)
+        init = noisy_init(gt, frame=start, seed=args.seed)
     cfg = TrackerConfig.load(args.config)
     if args.true_flow:  # the tracker reads its observed flow from this cache
         cache = FlowCache(res_dir / "flow_cache", method=cfg.flow_method)
@@ -81,20 +79,19 @@ def main() -> int:
             if int(f.stem) not in cache:
                 with np.load(f) as z:
                     cache.put(int(f.stem), z["flow"])
-    model = load_body_model("default")
     t0 = time.perf_counter()
     joints3d, detect_note = None, "E_d off"
-    if cfg.limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
+    if cfg.limb_depth_weight > 0:  # timed here; track() below finds the stored detections
         joints3d, detect_note = detect_joints3d(seq, res_dir, seq.camera, progress=False)
     detect_s = time.perf_counter() - t0
-    run = track_sequence(seq, res_dir, model, seq.camera, init, cfg=cfg, frames=args.track_frames,
-                         resume=(res_dir / "motion.npz").exists(), progress=True, joints3d=joints3d)
+    result = track(seq_dir, res_dir, init=init, config=args.config, frames=args.track_frames,
+                   resume=(res_dir / "motion.npz").exists(), progress=True, log=None)
     wall = time.perf_counter() - t0
-    motion, _ = read_result(res_dir)
+    motion, run = result.motion, result.run
     scores = evaluate(motion, seq.gt)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     result = {
-        "benchmark": "track", "commit": commit, "motion": Path(args.motion).name, "frames": args.frames,
+        "benchmark": "track", "commit": commit, "motion": Path(args.motion).name, "frames": args.num_frames,
         "size": args.size, "fps": args.fps, "azimuth": args.azimuth, "seed": args.seed,
         "gt_init": args.gt_init, "true_flow": args.true_flow, "track_frames": args.track_frames,
         "config": cfg.to_dict(), "local_cm": scores["local_cm"], "global_cm": scores["global_cm"],

@@ -8,7 +8,7 @@ the same ``--jobs`` on the same machine: with more jobs than cores they grow.
 
 Usage: python benchmarks/track_seeds.py [--seeds 0,1,2,3] [--jobs 2]
        [--config NAME=cfg.json ...] [--work DIR] [--out benchmarks/results/track_seeds.json]
-       [--motion PATH] [--frames 130]
+       [--motion PATH] [--num-frames 130]
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ TARGETS = {"local_cm": 5.5, "global_cm": 7.6}
 def run_one(name: str, config: str | None, seed: int, args, work: Path) -> dict:
     out = work / f"{name}_s{seed}.json"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "track.py"), "--seed", str(seed), "--motion", args.motion,
-           "--frames", str(args.frames), "--work", str(work / f"seq_s{seed}" / name), "--out", str(out)]
+           "--num-frames", str(args.num_frames), "--work", str(work / f"seq_s{seed}" / name), "--out", str(out)]
     if config:
         cmd += ["--config", config]
     # the synthetic sequence depends on the seed only (made by synth_once): every setting links to it
@@ -66,7 +66,7 @@ def synth_once(seed: int, args, work: Path) -> None:
 
     seq = work / f"seq_s{seed}" / "sequence"
     if not (seq / "gt.npz").exists():
-        synthesize(args.motion, seq, fps=60.0, frames=args.frames, size="640x480", betas="random", seed=seed,
+        synthesize(args.motion, seq, fps=60.0, frames=args.num_frames, size="640x480", betas="random", seed=seed,
                    azimuth=60.0, flow=False)
 
 
@@ -78,7 +78,7 @@ def main() -> int:
                     help="NAME=cfg.json (repeatable); the defaults run as 'default' unless --no-default")
     ap.add_argument("--no-default", action="store_true")
     ap.add_argument("--motion", default=str(CMU))
-    ap.add_argument("--frames", type=int, default=130)
+    ap.add_argument("--num-frames", type=int, default=130)
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "seeds"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "track_seeds.json"))
     args = ap.parse_args()

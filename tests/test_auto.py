@@ -191,10 +191,10 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     assert any(e.get("frame") == 4 and "empty mask" in e["event"] for e in run["events"])
     assert (out / "init_auto.json").exists() and (out / "detections" / "masks" / "000004.png").exists()
     assert np.isfinite(motion["poses"]).all()
-    # automatic masks: the real-video settings, under the config file's
-    from flowmocap.fit.config import REAL_VIDEO
+    # automatic masks: the video profile, under the config file's
+    from flowmocap.fit.config import PROFILES
 
-    assert {k: run["config"][k] for k in REAL_VIDEO} == REAL_VIDEO and "REAL_VIDEO" in run["config_base"]
+    assert run["profile"] == "video" and {k: run["config"][k] for k in PROFILES["video"]} == PROFILES["video"]
     assert run["config"]["iterations"] == 4
 
 

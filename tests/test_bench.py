@@ -11,7 +11,7 @@ from flowmocap.errors import InputError
 from flowmocap.eval import bench
 
 
-FAST = ["--frames", "4", "--size", "160x120", "--quiet", "--no-isolate", "--baseline-iterations", "8"]
+FAST = ["--num-frames", "4", "--size", "160x120", "--quiet", "--no-isolate", "--baseline-iterations", "8"]
 
 
 def test_bench_quick_on_a_tiny_clip_writes_table_and_json(tmp_path, capsys):
@@ -38,12 +38,11 @@ def test_bench_quick_on_a_tiny_clip_writes_table_and_json(tmp_path, capsys):
     assert "not recomputed" in capsys.readouterr().out
 
 
-def test_davis_entry_is_skipped_without_automatic_init(tmp_path, monkeypatch):
-    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None)
+def test_davis_entry_is_skipped_without_its_frames(tmp_path):
     spec = bench.RealSpec("davis-dance-twirl", str(tmp_path / "frames"), str(tmp_path / "masks"))
     res = bench.run_bench([spec], tmp_path / "o", "full", log=lambda *a: None)
     entry = res["sequences"]["davis-dance-twirl"]
-    assert "issue 7" in entry["skipped"]
+    assert "not found" in entry["skipped"]
     assert "skipped:" in (tmp_path / "o" / "bench.md").read_text()
 
 

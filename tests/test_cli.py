@@ -21,7 +21,7 @@ def test_demo_tracks_scores_and_points_to_the_next_commands(tmp_path, capsys):
 
     from flowmocap.cli import main
 
-    assert main(["demo", "--out", str(tmp_path), "--frames", "4", "--size", "240x180", "--quiet"]) == 0
+    assert main(["demo", "--out", str(tmp_path), "--num-frames", "4", "--size", "240x180", "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "3D joint error" in printed and "flowmocap render" in printed and "flowmocap export" in printed
     img = iio.imread(tmp_path / "default_body.png")

@@ -12,7 +12,6 @@ import pytest
 from flowmocap.errors import InputError
 from flowmocap.fit.config import (
     PROFILES,
-    REAL_VIDEO,
     REMOVED_SETTINGS,
     TrackerConfig,
     check_setting_names,
@@ -23,7 +22,6 @@ from flowmocap.fit.config import (
 def test_profiles():
     assert profile_names() == ["synthetic", "video"]
     assert PROFILES["synthetic"] == {}
-    assert REAL_VIDEO is PROFILES["video"]
     assert TrackerConfig.load() == TrackerConfig() == TrackerConfig.load(profile=None)
     video = TrackerConfig.load(profile="video")
     assert {k: v for k, v in video.to_dict().items() if v != TrackerConfig().to_dict()[k]} == PROFILES["video"]

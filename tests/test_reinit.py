@@ -1,5 +1,5 @@
 """Re-initialisation monitor: good frames pass, a run of bad frames is re-fitted from the
-detector, earlier verdicts survive a resume (re-judged from motion.npz)."""
+detector, earlier verdicts survive a resume (re-judged from the stored 2D joints)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from test_auto import GroundTruthDetector
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     from flowmocap.body import load_body_model
-    from flowmocap.fit.tracker import Scene
+    from flowmocap.fit.objective import Scene
     from flowmocap.io.sequence import load_sequence
     from flowmocap.synth import synthesize
 
@@ -32,7 +32,7 @@ def setup(tmp_path_factory):
 
 
 def _state(seq, i, shift=(0.0, 0.0, 0.0)):
-    from flowmocap.fit.tracker import FrameState
+    from flowmocap.fit.objective import FrameState
 
     return FrameState(torch.as_tensor(seq.gt["poses"][i]), torch.as_tensor(seq.gt["trans"][i]) + torch.tensor(shift))
 
@@ -64,7 +64,8 @@ def test_a_run_of_bad_frames_is_reinitialised(setup):
 
 
 def test_verdicts_survive_a_resume(setup, tmp_path):
-    """A fresh monitor (as after --resume) re-judges the earlier frames from motion.npz."""
+    """A fresh monitor (as after --resume) re-judges the earlier frames from their stored
+    2D joints (``motion.npz`` ``joints2d`` by ``frame_index``, as the pipeline passes them)."""
     seq, track, scene = setup
     with torch.no_grad():
         j2d = []
@@ -72,7 +73,9 @@ def test_verdicts_survive_a_resume(setup, tmp_path):
             out, _, _ = scene.forward(*(lambda s: (s.pose, s.trans))(_state(seq, i, (0.5, 0.0, 0.0))))
             j2d.append(scene.camera.project(out.joints[0]).numpy())
     np.savez(tmp_path / "motion.npz", joints2d=np.array(j2d), frame_index=np.arange(4))
-    mon = ReinitMonitor(track, TrackerConfig(reinit_iterations=15), out_dir=tmp_path, patience=3)
+    with np.load(tmp_path / "motion.npz") as motion:
+        stored = {int(f): j for f, j in zip(motion["frame_index"], motion["joints2d"])}
+    mon = ReinitMonitor(track, TrackerConfig(reinit_iterations=15), stored_joints2d=stored, patience=3)
     assert mon(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is not None
     fresh = ReinitMonitor(track, TrackerConfig(reinit_iterations=15), patience=3)  # no stored result
     assert fresh(4, _state(seq, 4, (0.5, 0.0, 0.0)), scene, seq.mask(4)) is None

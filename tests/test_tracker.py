@@ -1,5 +1,7 @@
-"""The tracker end to end on short synthetic clips: accuracy with and without the flow
-term, resuming an interrupted run, init.json checks and bad input."""
+"""The tracker end to end on short synthetic clips (through :func:`flowmocap.pipeline.track`,
+or :class:`~flowmocap.fit.tracker.SequenceTracker` where a test injects observations):
+accuracy with and without the flow term, resuming an interrupted run, init.json checks
+and bad input."""
 
 from __future__ import annotations
 
@@ -15,9 +17,11 @@ from flowmocap.errors import DataError, InputError, NoPersonError, OptimizationE
 from flowmocap.eval.protocol import evaluate, noisy_init
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import parse_init
-from flowmocap.fit.tracker import KnownStart, track_sequence
+from flowmocap.fit.objective import FrameState, Scene, frame_data, keypoint_observation
+from flowmocap.fit.tracker import KnownStart, SequenceTracker, track_frames
 from flowmocap.io.results import read_result
 from flowmocap.io.sequence import load_sequence
+from flowmocap.pipeline import parse_frame_range, track
 from flowmocap.synth import synthesize
 
 FRAMES = 8
@@ -43,10 +47,52 @@ def _known_start(seq):
 
 
 def _track(seq, out, model, cfg=None, init=None, **kw):
-    track_sequence(seq, out, model, seq.camera, init or _known_start(seq), cfg=cfg or TrackerConfig(),
-                   progress=False, **kw)
+    """:func:`track` on the sequence folder ``seq.root`` (its masks and camera), from the
+    known start unless ``init`` (an init.json dict) is given, without the detector's 3D joints."""
+    track(seq.root, out, init=init or _known_start(seq), config=(cfg or TrackerConfig()).to_dict(), model=model,
+          progress=False, joints3d="off", log=None, **kw)
     motion, run = read_result(out)
     return motion, run
+
+
+def _f32(x) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+
+def _track_direct(seq, out, model, cfg, frames, keypoints=None, joints3d=None):
+    """:class:`SequenceTracker` + :func:`track_frames` from the known start, with per-frame
+    detections :func:`track` does not take: ``keypoints(i) -> (j2d (24, 2), conf (24,))``
+    for ``E_j`` and ``joints3d(i) -> (j3d (24, 3), conf (24,))`` for ``E_d``.
+
+    Returns ``(joints2d (T, 24, 2), terms)`` of the tracked frames (from the third on),
+    ``terms`` one dict of energies per frame."""
+    from flowmocap.vision import FlowCache
+
+    a, b = parse_frame_range(frames, len(seq))
+    gt = seq.gt
+    scene = Scene(model, _f32(gt["betas"])[None], seq.camera)
+    tracker = SequenceTracker(scene, cfg)
+    tracker.start(*(FrameState(_f32(gt["poses"][k]), _f32(gt["trans"][k])) for k in (a, a + 1)), anchored=True)
+    cache = FlowCache(out / "flow_cache", method=cfg.flow_method)
+
+    def observe(i):
+        mask = seq.mask(i)
+        kp = keypoint_observation(*keypoints(i)) if keypoints is not None else None
+        data = frame_data(mask, cache.flow(i, seq.frame(i), seq.frame(i - 1)), cfg, float("nan"), kp)
+        data.joints3d = joints3d(i) if joints3d is not None else None
+        return mask, data
+
+    results = []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(cfg.torch_threads)
+    try:
+        track_frames(tracker, range(a + 2, b), observe, results.append, progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    with torch.no_grad():
+        j2d = np.stack([scene.camera.project(scene.forward(r.state.pose, r.state.trans)[0].joints[0]).numpy()
+                        for r in results])
+    return j2d, [r.terms for r in results]
 
 
 def test_flow_term_keeps_the_error_small(clip, model, tmp_path):
@@ -58,6 +104,7 @@ def test_flow_term_keeps_the_error_small(clip, model, tmp_path):
     e_none = evaluate(without, seq.gt)
     print("local cm with flow", e_flow["local_cm"], "without", e_none["local_cm"])
     assert with_flow["poses"].shape == (FRAMES, 72)
+    assert np.isnan(with_flow["energies"][:2]).all()  # the known start is not optimised: no energies
     assert e_flow["local_cm"] < 4.0
     assert e_flow["local_cm"] < 0.8 * e_none["local_cm"]
 
@@ -91,15 +138,17 @@ def test_interrupted_run_resumes_to_the_same_result(clip, model, tmp_path, monke
     np.testing.assert_array_equal(resumed["trans"], ref["trans"])
     with pytest.raises(InputError, match="cannot resume"):
         _track(seq, tmp_path / "run", model, frames="0:5", resume=True)
-    # a run written by an older version lacks newer settings: they count as their defaults
+    with pytest.raises(InputError, match="config differs"):
+        _track(seq, tmp_path / "run", model, TrackerConfig(flow_weight=2.0), frames="0:6", resume=True)
+    # a run written by an older version holds no tracker state to continue exactly from: refused
     from flowmocap.io.results import write_run
 
     _, old = read_result(tmp_path / "run")
-    del old["config"]["occlusion_temporal_gain"]
+    assert set(old["tracker"]) == {"prev", "anchor", "kalman"}
+    del old["tracker"]
     write_run(tmp_path / "run", old)
-    _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
-    with pytest.raises(InputError, match="config differs"):
-        _track(seq, tmp_path / "run", model, TrackerConfig(flow_weight=2.0), frames="0:6", resume=True)
+    with pytest.raises(InputError, match="older flowmocap"):
+        _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
 
 
 def test_non_finite_energy_is_rolled_back_and_recorded(clip, model, tmp_path, monkeypatch):
@@ -126,7 +175,7 @@ def test_a_trial_pose_that_cannot_be_evaluated_makes_the_line_search_back_off():
     """A line-search trial outside where the energy can be evaluated (a capsule behind the
     camera) counts as a wall: the minimiser stops inside it, lower than it started;
     a start that cannot be evaluated rolls the frame back (OptimizationError)."""
-    from flowmocap.fit.tracker import minimise
+    from flowmocap.fit.lbfgs import minimise
 
     x = torch.zeros(3, requires_grad=True)
 
@@ -145,10 +194,8 @@ def test_a_trial_pose_that_cannot_be_evaluated_makes_the_line_search_back_off():
 
 def test_initialisation_from_noisy_joints(clip, model, tmp_path):
     seq = load_sequence(clip)
-    init = parse_init(noisy_init(seq.gt, frame=0, seed=1), *seq.size)
     cfg = TrackerConfig(init_iterations=40, init_flow_iterations=10)
-    track_sequence(seq, tmp_path / "init", model, seq.camera, init, cfg=cfg, frames="0:3", progress=False)
-    motion, run = read_result(tmp_path / "init")
+    motion, run = _track(seq, tmp_path / "init", model, cfg, init=noisy_init(seq.gt, frame=0, seed=1), frames="0:3")
     scores = evaluate(motion, seq.gt)
     assert scores["local_cm_per_frame"][0] < 9.0
     assert run["timings"]["init_s"] > 0
@@ -207,7 +254,7 @@ def test_config_file(tmp_path):
     p.write_text(json.dumps({"flow_wieght": 2.0}))
     with pytest.raises(InputError, match="unknown config"):
         TrackerConfig.load(p)
-    for bad in ({"silhouette_model": "voxels"}, {"temporal_reference": "next"}, {"optimizer": "adam"}):
+    for bad in ({"silhouette_model": "voxels"}, {"flow_method": "magic"}):
         p.write_text(json.dumps(bad))
         with pytest.raises(InputError, match=next(iter(bad))):
             TrackerConfig.load(p)
@@ -221,7 +268,7 @@ def test_config_file(tmp_path):
 
 def test_all_weights_zero_keeps_the_prediction(clip, model):
     """With every term switched off the energy is an exact 0-d zero, not a Python int."""
-    from flowmocap.fit.tracker import FrameState, Scene, frame_data, frame_energy
+    from flowmocap.fit.objective import frame_energy
 
     seq = load_sequence(clip)
     cfg = TrackerConfig(flow_weight=0.0, silhouette_weight=0.0, temporal_weight=0.0, limit_weight=0.0,
@@ -253,7 +300,8 @@ def test_video_input_tracks(clip, model, tmp_path):
     assert np.abs(seq.frame(3).astype(int) - frames[3]).mean() < 8  # lossy codec
     gt = load_sequence(clip).gt
     start = KnownStart(poses=gt["poses"][:2], trans=gt["trans"][:2], betas=gt["betas"])
-    track_sequence(seq, tmp_path / "out", model, load_sequence(clip).camera, start, frames="0:4", progress=False)
+    track(video, tmp_path / "out", init=start, masks=clip / "masks", camera=clip / "camera.json",
+          config=TrackerConfig().to_dict(), frames="0:4", model=model, progress=False, joints3d="off", log=None)
     motion, run = read_result(tmp_path / "out")
     assert len(motion["poses"]) == 4 and run["status"] == "finished"
 
@@ -276,32 +324,7 @@ def test_bad_videos(clip, tmp_path):
         load_video(video, masks=few)
 
 
-def test_hidden_parts_sees_the_far_arm_hidden_in_a_side_view(model):
-    """In the rest (T) pose seen from the body's left, the right arm hides behind the left."""
-    from flowmocap.body import JOINT_INDEX
-    from flowmocap.fit.tracker import FrameState, Scene, hidden_parts
-    from flowmocap.geometry import PinholeCamera, look_at
-
-    R, t = look_at((4.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # +x is the body's left
-    cam = PinholeCamera.from_focal(320, 240, 400.0, R, t)
-    scene = Scene(model, torch.zeros(1, 10), cam)
-    h = hidden_parts(scene, FrameState(torch.zeros(72), torch.zeros(3)))
-    assert h.shape == (24,) and ((h >= 0) & (h <= 1)).all()
-    # the near arm points at the camera (foreshortened, partly self-occluded); the far
-    # arm and leg are entirely behind the near ones
-    for part in ("elbow", "wrist", "hip", "knee"):
-        near, far = h[JOINT_INDEX[f"left_{part}"]], h[JOINT_INDEX[f"right_{part}"]]
-        assert far > 0.9 and near < 0.6, (part, near, far)
-    # from the front both arms are in view
-    R, t = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
-    front = hidden_parts(Scene(model, torch.zeros(1, 10), PinholeCamera.from_focal(320, 240, 400.0, R, t)),
-                         FrameState(torch.zeros(72), torch.zeros(3)))
-    assert front[JOINT_INDEX["right_elbow"]] < 0.3 and front[JOINT_INDEX["left_elbow"]] < 0.3
-
-
 def _true_joints2d(seq, model):
-    from flowmocap.fit.tracker import Scene
-
     scene = Scene(model, torch.as_tensor(seq.gt["betas"], dtype=torch.float32)[None], seq.camera)
     with torch.no_grad():
         return [scene.camera.project(scene.forward(torch.as_tensor(p, dtype=torch.float32),
@@ -319,19 +342,16 @@ def test_detected_joints_pull_the_body(clip, model, tmp_path):
     conf[[10, 11, 22, 23]] = 0.0  # joints a detector does not give
     # the other terms off, and a prediction that drifts: without E_j the body drifts
     cfg = TrackerConfig(flow_weight=0.0, silhouette_weight=0.0, keypoint_weight=0.05, kalman=False, temporal_weight=0.0)
-    seen, run = _track(seq, tmp_path / "kp", model, cfg, frames="0:6", keypoints=lambda i: (noisy[i], conf))
-    blind, _ = _track(seq, tmp_path / "none", model, cfg, frames="0:6")
-    err = lambda m: float(np.median(np.linalg.norm(m["joints2d"][2:] - np.stack(truth[2:6]), axis=-1)))  # noqa: E731
-    names = list(seen["energy_names"])
-    assert np.isfinite(seen["energies"][2:, names.index("keypoints")]).all()
-    assert np.isnan(blind["energies"][2:, names.index("keypoints")]).all()
+    seen = _track_direct(seq, tmp_path / "kp", model, cfg, "0:6", keypoints=lambda i: (noisy[i], conf))
+    blind = _track_direct(seq, tmp_path / "none", model, cfg, "0:6")
+    err = lambda m: float(np.median(np.linalg.norm(m[0] - np.stack(truth[2:6]), axis=-1)))  # noqa: E731
+    assert all(np.isfinite(t["keypoints"]) for t in seen[1])
+    assert not any("keypoints" in t for t in blind[1])
     print("median 2D joint error px with E_j", err(seen), "without", err(blind))
     assert err(seen) < 3.0 and err(seen) < 0.5 * err(blind), (err(seen), err(blind))
 
 
 def test_keypoint_observation_checks():
-    from flowmocap.fit.tracker import keypoint_observation
-
     j = np.arange(48, dtype=float).reshape(24, 2)
     c = np.full(24, 0.9)
     c[:3] = 0.2
@@ -366,37 +386,6 @@ def test_a_result_from_an_older_version_resumes_with_its_energy_columns(clip, mo
     assert resumed["energies"].shape == (4, len(names))
     assert list(resumed["energy_names"]) == names
     np.testing.assert_allclose(resumed["energies"][:3, keep], old["energies"][:3], equal_nan=True)
-
-
-def test_occlusion_check_drops_inconsistent_flow_pixels_from_e_f(clip, model, tmp_path, monkeypatch):
-    """With ``flow_occlusion_check`` the forward flows are computed and cached, E_f's pixel
-    weights are zero wherever the forward-backward check fails (some person pixels of a
-    walker: the swinging limbs (dis)occlude), and tracking stays accurate."""
-    import flowmocap.fit.tracker as tracker
-
-    seen = []
-    original = tracker.frame_data
-
-    def spy(mask, flow, cfg, fallback, keypoints=None, flow_valid=None):
-        data = original(mask, flow, cfg, fallback, keypoints, flow_valid)
-        if flow is not None:
-            seen.append((mask, flow_valid, data))
-        return data
-
-    monkeypatch.setattr(tracker, "frame_data", spy)
-    seq = load_sequence(clip)
-    motion, run = _track(seq, tmp_path / "occ", model, TrackerConfig(flow_occlusion_check=True))
-    assert run["config"]["flow_occlusion_check"] is True
-    assert len(list((tmp_path / "occ" / "flow_cache_forward").glob("*.npz"))) == FRAMES - 2
-    assert len(seen) == FRAMES - 2
-    dropped = 0
-    for mask, valid, data in seen:
-        assert valid is not None and valid.shape == mask.shape
-        dropped += int((mask & ~valid).sum())
-        for target in data.targets:  # E_f's pixel weights: the mask and the check
-            assert np.array_equal(target.sqrt_weight > 0, mask & valid)
-    assert dropped > 0  # some person pixels fail the check
-    assert evaluate(motion, seq.gt)["local_cm"] < 4.0
 
 
 def test_rough_pose_weights_follow_the_joints_the_init_states(clip, model):
@@ -452,12 +441,12 @@ def test_kalman_process_noise_comes_from_the_config():
             TrackerConfig.load(kalman_rot_accel_noise=bad)
 
 
-
 def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp_path):
     """``E_a`` is ``anchor_weight`` times the squared distance of every joint's rotation but
-    the root's from the track's first frame (closed form); the first frame is the first
-    tracked one or the last re-initialised one; tracking with it stays accurate."""
-    from flowmocap.fit.tracker import FrameData, FrameState, Scene, _anchor_state, frame_energy
+    the root's from the track's first frame (closed form); the first frame is the start
+    of a track someone vouched for, and there is none after an automatic init or a
+    re-initialisation; tracking with it stays accurate."""
+    from flowmocap.fit.objective import FrameData, frame_energy
 
     seq = load_sequence(clip)
     gt = seq.gt
@@ -472,27 +461,50 @@ def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp
     _, terms = frame_energy(scene, state, FrameData(None, None, 1.0, anchor=anchor), cfg, None, None, None)
     assert terms["anchor"] == pytest.approx(3.0 * (0.04 + 0.01 + 0.0025), rel=1e-5)
 
-    states = [FrameState(torch.full((72,), float(f)), torch.zeros(3)) for f in range(5, 12)]  # frames 5..11
-    run = {"frames": [5, 30], "anchored": True, "events": [{"frame": 7, "event": "non-finite energy"}]}
-    assert float(_anchor_state(states, run).pose[0]) == 5.0
-    assert _anchor_state(states, {**run, "anchored": False}) is None  # an automatic init
-    run["events"].append({"frame": 9, "event": "re-initialised"})
-    assert _anchor_state(states, run) is None
+    # SequenceTracker: the anchor is the first frame of an anchored start, kept through
+    # the frames and a state round trip, dropped for good when the monitor re-initialises
+    gts = [FrameState(_f32(p), _f32(t)) for p, t in zip(gt["poses"], gt["trans"])]
+    cfg = TrackerConfig(anchor_weight=0.5, iterations=3)
+    data = lambda i: frame_data(seq.mask(i), None, cfg, 1.0)  # noqa: E731
+    asked = []
+
+    def monitor(i, state, scene, mask):
+        asked.append(i)
+        return (gts[i].clone(), {"why": "test"}) if i == 3 else None
+
+    tr = SequenceTracker(scene, cfg, monitor)
+    tr.start(gts[0], gts[1], anchored=True)
+    assert torch.equal(tr.anchor.pose, gts[0].pose)
+    restored = SequenceTracker(scene, cfg)
+    restored.load_state_dict(json.loads(json.dumps(tr.state_dict())))
+    assert torch.equal(restored.anchor.pose, gts[0].pose)
+    res = tr.step(2, seq.mask(2), data(2))
+    assert "anchor" in res.terms and torch.equal(tr.anchor.pose, gts[0].pose)
+    res = tr.step(3, seq.mask(3), data(3))
+    assert [e["event"] for e in res.events] == ["re-initialised"] and res.events[0]["why"] == "test"
+    assert tr.anchor is None and tr.state_dict()["anchor"] is None
+    assert torch.equal(res.state.pose, gts[3].pose) and torch.equal(tr.prev.pose, gts[3].pose)
+    res = tr.step(4, seq.mask(4), data(4))
+    assert "anchor" not in res.terms and tr.anchor is None and asked == [2, 3, 4]
+    restored.load_state_dict(json.loads(json.dumps(tr.state_dict())))
+    assert restored.anchor is None
+    guess = SequenceTracker(scene, cfg)  # an automatic init's start is a guess: no anchor
+    guess.start(gts[0], gts[1], anchored=False)
+    assert guess.anchor is None and "anchor" not in guess.step(2, seq.mask(2), data(2)).terms
 
     motion, run = _track(seq, tmp_path / "anchor", model, TrackerConfig(anchor_weight=0.5))  # a known start
-    assert run["anchored"] is True
+    np.testing.assert_array_equal(np.asarray(run["tracker"]["anchor"], np.float32), motion["poses"][0])
     col = list(motion["energy_names"]).index("anchor")
     assert np.isfinite(motion["energies"][2:, col]).all()
     assert evaluate(motion, seq.gt)["local_cm"] < 4.0
-    spec = parse_init({"joints2d": noisy_init(gt, frame=0, seed=1)["joints2d"]}, *seq.size)  # no rough pose
+    bare = {"joints2d": noisy_init(gt, frame=0, seed=1)["joints2d"]}  # no rough pose
     motion, run = _track(seq, tmp_path / "bare", model, TrackerConfig(anchor_weight=0.5, init_iterations=10,
                                                                       init_flow_iterations=5), frames="0:4",
-                         init=spec)
-    assert run["anchored"] is False
+                         init=bare)
+    assert run["tracker"]["anchor"] is None
     assert np.isnan(motion["energies"][:, col]).all()
-    for bad in ({"anchor_weight": -1.0}, {"anchor_weight": 1.0, "optimizer": "lm", "silhouette_model": "mesh"}):
-        with pytest.raises(InputError):
-            TrackerConfig.load(**bad)
+    with pytest.raises(InputError):
+        TrackerConfig.load(anchor_weight=-1.0)
 
 
 def test_the_flow_step_of_the_init_keeps_frame_0_to_its_rough_pose(clip, model, tmp_path):
@@ -507,8 +519,7 @@ def test_the_flow_step_of_the_init_keeps_frame_0_to_its_rough_pose(clip, model, 
     for name, weight in (("stiff", 1e7), ("free", 0.0)):
         cfg = TrackerConfig(init_rough_pose_weight=weight, init_iterations=15, init_flow_iterations=10,
                             anchor_weight=0.0)
-        track_sequence(seq, tmp_path / name, model, seq.camera, spec, cfg=cfg, frames="0:2", progress=False)
-        motion, _ = read_result(tmp_path / name)
+        motion, _ = _track(seq, tmp_path / name, model, cfg, init=noisy_init(seq.gt, frame=0, seed=4), frames="0:2")
         moved[name] = np.abs(motion["poses"][0][stated] - spec.pose[stated]).max()
     assert moved["stiff"] < 2e-3
     assert moved["free"] > 0.05
@@ -524,7 +535,7 @@ def test_limb_depth_term_in_the_frame_energy(clip, model, tmp_path):
     are the truth in the camera's axes, positive with a shin bent out of place; the tracker
     takes them per frame and records the term."""
     from flowmocap.body.skeleton import JOINT_INDEX
-    from flowmocap.fit.tracker import FrameData, FrameState, Scene, frame_energy
+    from flowmocap.fit.objective import FrameData, frame_energy
 
     seq = load_sequence(clip)
     gt = seq.gt
@@ -546,9 +557,7 @@ def test_limb_depth_term_in_the_frame_energy(clip, model, tmp_path):
         asked.append(i)
         return _camera_joints3d(seq, i)
 
-    motion, run = _track(seq, tmp_path / "ed", model, TrackerConfig(limb_depth_weight=2.0), frames="0:4",
-                         joints3d=joints3d)
+    _, terms = _track_direct(seq, tmp_path / "ed", model, TrackerConfig(limb_depth_weight=2.0), "0:4",
+                             joints3d=joints3d)
     assert sorted(asked) == [2, 3]
-    col = [str(n) for n in motion["energy_names"]].index("limb_depth")
-    assert np.isfinite(motion["energies"][2:, col]).all()  # frames 2 and 3 have the term
-    assert np.isnan(motion["energies"][:2, col]).all()  # the known start has none
+    assert len(terms) == 2 and all(np.isfinite(t["limb_depth"]) for t in terms)  # frames 2 and 3 have the term

@@ -22,7 +22,7 @@ def register(subparsers) -> None:
     b.add_argument("--config", default=None,
                    help="tracker settings JSON (fields of TrackerConfig), recorded in bench.json")
     # hidden overrides for tests and quick experiments
-    b.add_argument("--frames", type=int, default=None, help=argparse.SUPPRESS)
+    b.add_argument("--num-frames", type=int, default=None, help=argparse.SUPPRESS)
     b.add_argument("--size", default=None, help=argparse.SUPPRESS)
     b.add_argument("--no-isolate", action="store_true", help=argparse.SUPPRESS)
     b.add_argument("--baseline-iterations", type=int, default=None, help=argparse.SUPPRESS)
@@ -33,19 +33,23 @@ def cmd_bench(args) -> int:
     from flowmocap.eval.bench import mocap_specs, run_bench, suite
     from flowmocap.errors import InputError
 
-    if args.frames is not None and args.frames < 3:
-        raise InputError("--frames must be at least 3 (the acceleration error needs 3 frames).")
+    if args.num_frames is not None and args.num_frames < 3:
+        raise InputError("--num-frames must be at least 3 (the acceleration error needs 3 frames).")
     if args.mocap:
-        specs = mocap_specs(args.mocap, frames=args.frames or 130, size=args.size or "640x480")
+        specs = mocap_specs(args.mocap, frames=args.num_frames or 130, size=args.size or "640x480")
         name = "mocap"
     else:
         name = args.suite or "quick"
-        specs = suite(name, frames=args.frames, size=args.size)
+        specs = suite(name, frames=args.num_frames, size=args.size)
     tracker = {}
     if args.config:
+        import json
+        from pathlib import Path
+
         from flowmocap.fit.config import TrackerConfig
 
-        tracker = TrackerConfig.load(args.config).to_dict()
+        TrackerConfig.load(args.config)  # refuses a bad file before any work
+        tracker = json.loads(Path(args.config).read_text())
     baseline = {}
     if args.baseline_iterations:
         baseline = {"iterations": args.baseline_iterations, "orient_iterations": args.baseline_iterations}

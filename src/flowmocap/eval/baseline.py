@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flowmocap import __version__
+from flowmocap.version import __version__
 from flowmocap.body import JOINT_INDEX, BodyModel
 from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit import energies as en

@@ -11,9 +11,9 @@ Protocol on a synthetic sequence (one folder ``DIR/NAME/`` per sequence):
 2. ``init.json``: :func:`flowmocap.eval.protocol.noisy_init` -- frame 0's ground-truth
    2D joints with 3 px noise and a rough pose with 15 degrees of noise on the main
    joints; the tracker starts from the mean shape.
-3. ``flowmocap/``: :func:`flowmocap.fit.tracker.track_sequence` with the default
-   :class:`~flowmocap.fit.config.TrackerConfig` from that init (keypoints on frame 0
-   only, as in the paper) and, for ``E_d``, MediaPipe's 3D joints of every frame.
+3. ``flowmocap/``: :func:`flowmocap.pipeline.track` from that init, as ``flowmocap track
+   SEQ --init init.json`` runs it (the ``synthetic`` profile; keypoints on frame 0 only, as
+   in the paper; for ``E_d``, MediaPipe's 3D joints of every frame).
 4. ``baseline/``: :func:`flowmocap.eval.baseline.run_baseline` on detector-like
    keypoints of every frame (ground truth + 3 px noise + 5 % outliers of 20-60 px),
    its shape fitted on frame 0 from the same init.
@@ -23,13 +23,12 @@ A finished result (``run.json`` status ``finished``) is not recomputed; an unfin
 resumes. Each method runs in a fresh process (``multiprocessing`` spawn), so the
 ``peak_rss_mb`` it records is its own. The DAVIS dance-twirl clip needs automatic
 initialisation (``flowmocap.vision.auto``, see :func:`run_real`); without it the entry is
-recorded as skipped.
+recorded as skipped. The real clip runs through :func:`flowmocap.pipeline.track` exactly
+as ``flowmocap track FRAMES_DIR`` does, so its row is what a user gets.
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import json
 import subprocess
 import time
@@ -38,8 +37,22 @@ from pathlib import Path
 
 import numpy as np
 
+import torch
+
+from flowmocap.body import JOINT_INDEX, load_body_model
 from flowmocap.errors import DataError, InputError
-from flowmocap.eval.scoring import COLUMNS
+from flowmocap.eval.baseline import KEYPOINT_JOINTS, BaselineConfig, detector_keypoints, run_baseline
+from flowmocap.eval.protocol import noisy_init
+from flowmocap.eval.scoring import COLUMNS, score_result
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.init import parse_init
+from flowmocap.io.results import read_result, write_run
+from flowmocap.io.sequence import load_sequence
+from flowmocap.pipeline import load_result, track
+from flowmocap.synth import synthesize
+from flowmocap.version import __version__
+from flowmocap.vision.auto import load_detections
+from flowmocap.vision.detect import SMPL_KEYPOINTS
 
 ROOT = Path(__file__).resolve().parents[3]
 SHARED = ROOT.parent / "shared" / "data"
@@ -150,36 +163,19 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
     With ``record_memory`` the process's peak resident memory is added to ``run.json``
     as ``peak_rss_mb`` (meaningful when the method had the process to itself).
     """
-    import torch
-
-    from flowmocap.body import load_body_model
-    from flowmocap.fit.init import parse_init
-    from flowmocap.io.results import read_result, write_run
-    from flowmocap.io.sequence import load_sequence
-
     seq = load_sequence(seq_dir)
     res = Path(res_dir)
-    spec = parse_init(init, *seq.size)
-    model = load_body_model("default", gender=str(seq.meta.get("gender", "neutral")))
     resume = (res / "motion.npz").exists()
+    gender = str(seq.meta.get("gender", "neutral"))
     if method == "flowmocap":
-        from flowmocap.fit.config import TrackerConfig
-        from flowmocap.fit.tracker import track_sequence
-
-        cfg = TrackerConfig.load(None, **(tracker_config or {}))
-        joints3d = None
-        if cfg.limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
-            from flowmocap.vision.auto import detect_joints3d
-
-            joints3d, _ = detect_joints3d(seq, res, seq.camera, progress=progress)
-        track_sequence(seq, res, model, seq.camera, spec, cfg=cfg, resume=resume, progress=progress,
-                       joints3d=joints3d)
+        track(seq_dir, res, init=init, config=tracker_config or None, resume=resume, progress=progress,
+              gender=gender, log=None)
     elif method == "baseline":
-        from flowmocap.eval.baseline import BaselineConfig, detector_keypoints, run_baseline
-
+        spec = parse_init(init, *seq.size)
+        model = load_body_model("default", gender=gender)
         cfg = BaselineConfig(**{**(baseline_config or {}), "seed": baseline_seed})
         kp, conf = detector_keypoints(seq.gt["joints2d"], cfg.noise_px, cfg.outlier_rate, cfg.outlier_px, cfg.seed)
-        note = (f"ground-truth 2D joints of {', '.join(_kp_names())} + N(0, {cfg.noise_px} px) per coordinate; "
+        note = (f"ground-truth 2D joints of {', '.join(KEYPOINT_JOINTS)} + N(0, {cfg.noise_px} px) per coordinate; "
                 f"{100 * cfg.outlier_rate:g} % outliers displaced {cfg.outlier_px[0]:g}-{cfg.outlier_px[1]:g} px; "
                 f"seed {cfg.seed}")
         run_baseline(seq, res, model, seq.camera, spec, kp, conf, cfg=cfg, resume=resume, progress=progress,
@@ -193,12 +189,6 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
         run["peak_rss_note"] = f"{how} of a fresh process that ran only this method"
         run["torch_threads"] = torch.get_num_threads()
         write_run(res, run)
-
-
-def _kp_names():
-    from flowmocap.eval.baseline import KEYPOINT_JOINTS
-
-    return KEYPOINT_JOINTS
 
 
 def _finished(res_dir: Path) -> bool:
@@ -229,11 +219,6 @@ def _run_isolated(isolate: bool, **kw) -> None:
 def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, progress: bool = True,
                   log=print, tracker_config: dict | None = None, baseline_config: dict | None = None) -> dict:
     """Synthesise (unless present), run both methods (unless finished), score both."""
-    from flowmocap.eval.protocol import noisy_init
-    from flowmocap.eval.scoring import score_result
-    from flowmocap.io.sequence import load_sequence
-    from flowmocap.synth import synthesize
-
     d = out_dir / spec.name
     seq_dir = d / "sequence"
     if spec.motion != "builtin:walk" and not Path(spec.motion).exists():
@@ -273,86 +258,50 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
     return entry
 
 
-def auto_init_provider():
-    """``(module, None)`` when ``flowmocap.vision.auto`` offers automatic initialisation
-    (``detect_sequence``, ``first_person_frame``, ``auto_init``), else ``(None, reason)``."""
-    if importlib.util.find_spec("flowmocap.vision.auto") is None:
-        return None, "needs automatic initialisation (flowmocap.vision.auto, issue 7), which is not built yet"
-    try:
-        mod = importlib.import_module("flowmocap.vision.auto")
-    except ImportError as e:
-        return None, f"flowmocap.vision.auto cannot be imported ({e})"
-    missing = [n for n in ("detect_sequence", "first_person_frame", "auto_init") if not callable(getattr(mod, n, None))]
-    if missing:
-        return None, f"flowmocap.vision.auto lacks {', '.join(missing)}; the bench cannot initialise automatically"
-    return mod, None
+def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print,
+             tracker_config: dict | None = None) -> dict:
+    """A real clip, tracked without manual input by :func:`flowmocap.pipeline.track` as
+    ``flowmocap track FRAMES_DIR`` runs it (automatic masks, 2D and 3D joints, init,
+    camera; the ``video`` profile; re-initialisation), scored by silhouette IoU against
+    its hand-made masks; or a skip record when automatic initialisation is unavailable.
 
-
-def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print) -> dict:
-    """A real clip, tracked without manual input, scored by silhouette IoU against its
-    hand-made masks; or a skip record when automatic initialisation is unavailable.
-
-    Our method: ``flowmocap.vision.auto.detect_sequence`` (automatic masks and keypoints,
-    stored in the result folder), ``auto_init`` on the first frame with the person, the
-    default camera of :func:`flowmocap.io.video.default_camera`, tracking with the
-    automatic masks and the detector's 3D joints (``E_d``). The baseline fits the detector's keypoints of every frame (frames
-    with fewer than 4 confident joints make it ``None``). Joint metrics are ``None``
-    (no ground truth).
+    The baseline fits the same detections' keypoints of every frame (frames with fewer
+    than 4 confident joints make it ``None``). Joint metrics are ``None`` (no ground truth).
     """
-    mod, reason = auto_init_provider()
     entry = {"settings": asdict(spec)}
-    if mod is None:
-        log(f"[{spec.name}] skipped: {reason}")
-        return {**entry, "skipped": reason}
     if not Path(spec.frames_dir).is_dir():
         return {**entry, "skipped": f"{spec.frames_dir} not found"}
-    from flowmocap.body import JOINT_INDEX, load_body_model
-    from flowmocap.eval.scoring import score_result
-    from flowmocap.fit.init import parse_init
-    from flowmocap.fit.tracker import track_sequence
-    from flowmocap.io.sequence import load_sequence
-    from flowmocap.io.video import default_camera
-
     hand = load_sequence(spec.frames_dir, masks=spec.masks_dir)
     w, h = hand.size
-    camera, cam_note = default_camera(w, h)
-    entry["settings"]["camera"] = cam_note
     d = out_dir / spec.name
     res = d / "flowmocap"
-    res.mkdir(parents=True, exist_ok=True)
-    log(f"[{spec.name}] detecting the person in {len(hand)} frames ...")
-    track = mod.detect_sequence(hand, res, progress=progress)
-    first = mod.first_person_frame(track)
-    if first is None:
-        return {**entry, "skipped": "the detector found no frame with enough joints to initialise"}
-    init = mod.auto_init(track, first)
-    (d / "init.json").write_text(json.dumps(init, indent=2, default=_json_default))
-    auto = load_sequence(spec.frames_dir, masks=Path(track.mask_paths[0]).parent)
-    model = load_body_model("default")
     if not _finished(res):
-        log(f"[{spec.name}] running flowmocap from frame {first} ...")
-        track_sequence(auto, res, model, camera, parse_init(init, w, h), frames=(first, len(auto)),
-                       resume=(res / "motion.npz").exists(), progress=progress,
-                       joints3d=lambda i: track.smpl_joints3d(i, camera))
+        log(f"[{spec.name}] running flowmocap track {spec.frames_dir} (automatic everything) ...")
+        track(spec.frames_dir, res, config=tracker_config or None, resume=(res / "motion.npz").exists(),
+              progress=progress, log=log)
+    result = load_result(res)
+    entry["settings"]["camera"] = result.run.get("camera_source")
+    entry["settings"]["profile"] = result.run.get("profile")
+    model = load_body_model("default")
     scores = score_result(res, hand, model=model)
     entry["flowmocap"] = {k: scores.get(k) for k in METRICS}
-    names = getattr(importlib.import_module("flowmocap.vision.detect"), "SMPL_KEYPOINTS", ())
+    track_ = load_detections(res)
+    init = json.loads((res / "init_auto.json").read_text())
+    names = SMPL_KEYPOINTS
     kp = np.full((len(hand), 24, 2), np.nan)
     conf = np.zeros((len(hand), 24))
     for k, n in enumerate(names):
-        kp[:, JOINT_INDEX[n]] = track.keypoints[:, k]
-        conf[:, JOINT_INDEX[n]] = track.confidence[:, k]
+        kp[:, JOINT_INDEX[n]] = track_.keypoints[:, k]
+        conf[:, JOINT_INDEX[n]] = track_.confidence[:, k]
     conf = np.where(conf >= 0.3, conf, 0.0)
     if (conf > 0).sum(1).min() < 4:
         entry["baseline"] = None
         entry["baseline_note"] = "some frames have fewer than 4 confident detected joints"
         return entry
-    from flowmocap.eval.baseline import run_baseline
-
     bres = d / "baseline"
     if not _finished(bres):
         log(f"[{spec.name}] running baseline ...")
-        run_baseline(hand, bres, model, camera, parse_init(init, w, h), kp, conf,
+        run_baseline(hand, bres, model, result.camera, parse_init(init, w, h), kp, conf,
                      resume=(bres / "motion.npz").exists(), progress=progress,
                      keypoint_note="flowmocap.vision.auto.detect_sequence keypoints (confidence >= 0.3)")
     b = score_result(bres, hand, model=model)
@@ -376,12 +325,6 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
     Returns:
         the contents of bench.json.
     """
-    import torch
-
-    from flowmocap import __version__
-    from flowmocap.eval.baseline import BaselineConfig
-    from flowmocap.fit.config import TrackerConfig
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
@@ -404,7 +347,7 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
     for spec in specs:
         t0 = time.perf_counter()
         if isinstance(spec, RealSpec):
-            entry = run_real(spec, out_dir, progress=progress, log=log)
+            entry = run_real(spec, out_dir, progress=progress, log=log, tracker_config=tracker_config)
         else:
             entry = run_synthetic(spec, out_dir, isolate=isolate, progress=progress, log=log,
                                   tracker_config=tracker_config, baseline_config=baseline_config)

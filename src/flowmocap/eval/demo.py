@@ -8,23 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
-from flowmocap.body import load_body_model
 from flowmocap.eval.protocol import evaluate, noisy_init
-from flowmocap.fit.config import TrackerConfig
-from flowmocap.fit.init import parse_init
-from flowmocap.fit.tracker import track_sequence
-from flowmocap.io.results import read_result
 from flowmocap.io.sequence import load_sequence
+from flowmocap.pipeline import track
 from flowmocap.synth import synthesize
-from flowmocap.vision.auto import detect_joints3d
 
 
 def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "640x480", fps: float = 30.0,
-             seed: int = 0, progress: bool = True, config: TrackerConfig | None = None) -> dict:
+             seed: int = 0, progress: bool = True, config: dict | None = None) -> dict:
     """Synthesise ``builtin:walk`` with a random body shape, track it, write ``eval.json``.
 
     The tracker starts from the mean shape, the ground-truth 2D joints of frame 0 with
-    3 px noise and a rough pose with 15 degrees of noise on the main joints.
+    3 px noise and a rough pose with 15 degrees of noise on the main joints, through
+    :func:`flowmocap.pipeline.track` as ``flowmocap track SEQ --init init.json`` does
+    (``config``: settings over the ``synthetic`` profile).
 
     Returns:
         the contents of ``out_dir/eval.json``: ``local_cm``, ``global_cm``, ``mpjpe_cm``,
@@ -40,23 +37,18 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "64
     seq = load_sequence(seq_dir)
     init = noisy_init(seq.gt, frame=0, seed=seed)
     (out_dir / "init.json").write_text(json.dumps(init, indent=2))
-    spec = parse_init(init, *seq.size)
-    model = load_body_model("default", gender=str(seq.meta.get("gender", "neutral")))
-    resume = (res_dir / "motion.npz").exists()
     t1 = time.perf_counter()
-    joints3d = None
-    if (config or TrackerConfig()).limb_depth_weight > 0:  # as `flowmocap track SEQ --init init.json` does
-        joints3d, _ = detect_joints3d(seq, res_dir, seq.camera, progress=False)
-    detect_s = time.perf_counter() - t1
-    run = track_sequence(seq, res_dir, model, seq.camera, spec, cfg=config, resume=resume, progress=progress,
-                         joints3d=joints3d)
-    motion, _ = read_result(res_dir)
+    result = track(seq_dir, res_dir, init=init, config=config, resume=(res_dir / "motion.npz").exists(),
+                   gender=str(seq.meta.get("gender", "neutral")),
+                   progress=progress, log=None)
+    track_s = time.perf_counter() - t1
+    run, motion = result.run, result.motion
     scores = evaluate(motion, seq.gt)
     scores.update({
         "s_per_frame": run["timings"].get("s_per_frame_median"),
         "init_s": run["timings"].get("init_s"),
         "synth_s": synth_s,
-        "detect_s": detect_s,
+        "track_s": track_s,
         "size": seq.size,
         "fps": fps,
         "seed": seed,

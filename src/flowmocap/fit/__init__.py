@@ -1,5 +1,9 @@
-"""Fitting: energy terms, joint limits (and, to come, Kalman filters, initialisation,
-per-frame tracking and the optimiser).
+"""Fitting: energy terms and joint limits (:mod:`energies`, :mod:`joint_limits`), the
+per-frame objective (:mod:`objective`), the optimiser (:mod:`lbfgs`), Kalman filters
+(:mod:`kalman`), initialisation (:mod:`init`), per-frame tracking (:mod:`tracker`) and
+re-initialisation (:mod:`reinit`). Module order: config, energies, objective, lbfgs,
+kalman, init, tracker, reinit; reading inputs and writing results is
+:mod:`flowmocap.pipeline`'s.
 
 Every energy has a residual form (``*_residuals -> (B, M)``) and an energy form
 (``*_energy -> (B,)``, the sum of squared residuals); see :mod:`flowmocap.fit.energies`.

@@ -40,10 +40,6 @@ PROFILES: dict[str, dict[str, Any]] = {
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3},
 }
 
-#: The ``"video"`` profile under its old name (kept for existing callers; prefer
-#: ``PROFILES["video"]``).
-REAL_VIDEO = PROFILES["video"]
-
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
     "occlusion_temporal_gain": "E_theta weighs every joint alike (temporal_weight), hidden or not",
@@ -231,4 +227,4 @@ def check_setting_names(values: Mapping[str, Any], source: str = "config") -> No
         raise InputError(f"{source}: unknown config settings {unknown}; known: {sorted(names)}.")
 
 
-__all__ = ["TrackerConfig", "PROFILES", "REAL_VIDEO", "REMOVED_SETTINGS", "profile_names", "check_setting_names"]
+__all__ = ["TrackerConfig", "PROFILES", "REMOVED_SETTINGS", "profile_names", "check_setting_names"]

@@ -18,8 +18,9 @@ Schema of ``init.json`` (every key optional except ``joints2d``)::
 
 Three steps, as in the paper: (1) fit translation, pose and shape to the 2D joints, with
 priors towards the rough pose and the mean shape, joint limits and interpenetration;
-(2) the same plus the silhouette term; (3) the flow step on frame 1 while frame 0's pose
-and translation may still move (done by the tracker, :func:`flow_refine`).
+(2) the same plus the silhouette term (:func:`fit_frame0`); (3) the flow step on frame 1
+while frame 0's pose and translation may still move (:func:`refine_first_pair`).
+:func:`initialise` runs the three.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ from flowmocap.body import JOINT_INDEX, BodyModel, body_capsules
 from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.lbfgs import minimise
+from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import prepare_faces
 
@@ -204,8 +207,6 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
     """
-    from flowmocap.fit.tracker import minimise
-
     iterations = iterations or cfg.init_iterations
     ref_pose = torch.as_tensor(pose0, dtype=torch.float32).detach().clone()
     pose = ref_pose.clone().requires_grad_()
@@ -258,3 +259,73 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     with torch.no_grad():
         energy(silhouette is not None, terms)
     return pose.detach(), trans.detach(), betas.detach(), terms
+
+
+def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameData, d1: FrameData,
+                      cfg: TrackerConfig, j2d: torch.Tensor, conf: torch.Tensor,
+                      prior: tuple) -> tuple[FrameState, FrameState]:
+    """Initialisation step 3: the flow step on frame 1 while frame 0 may still move.
+
+    Frame 0 keeps the terms of steps 1-2 that only it has: its 2D joints (``j2d (24, 2)``
+    px, ``conf (24,)``) and the prior towards the init's pose, ``prior = (pose (72,) rad,
+    per-joint weights (24,) per rad^2)`` (:func:`rough_pose_weights` when the init states
+    a rough pose, zeros when its pose is only a guess). Without that prior the flow of
+    frame 1 and the silhouettes, which cannot tell a limb from its mirror image in depth,
+    moved frame 0 away from the rough pose the user gave.
+    """
+    p0, t0 = s0.pose.clone().requires_grad_(), s0.trans.clone().requires_grad_()
+    p1, t1 = s1.pose.clone().requires_grad_(), s1.trans.clone().requires_grad_()
+    a, b = FrameState(p0, t0), FrameState(p1, t1)
+    prior_pose = torch.as_tensor(prior[0], dtype=p0.dtype).reshape(1, 72)
+    prior_w = torch.as_tensor(np.asarray(prior[1], np.float64), dtype=p0.dtype)
+
+    def energy(stage):
+        out0, px0, _ = scene.forward(p0, t0)
+        e1, _ = frame_energy(scene, b, d1, cfg, stage, px0, p0)
+        e0, _ = frame_energy(scene, a, d0, cfg, stage, None, None)
+        pj = scene.camera.project(out0.joints[0])
+        ek = cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0]
+        ep = en.pose_prior_energy(p0.reshape(1, 72), prior_pose, weights=prior_w)[0]
+        return e1 + e0 + ek + ep
+
+    for stage in range(len(cfg.stages)):
+        minimise([p0, t0, p1, t1], lambda: energy(stage), cfg.init_flow_iterations)
+    return FrameState(p0.detach(), t0.detach()), FrameState(p1.detach(), t1.detach())
+
+
+@dataclass
+class Start:
+    """The result of the initialisation: the scene (with the fitted shape), the first two
+    frames' states and their energies."""
+
+    scene: Scene
+    first: FrameState
+    second: FrameState
+    first_terms: dict
+    second_terms: dict
+
+
+def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: FrameData, d1: FrameData,
+               cfg: TrackerConfig) -> Start:
+    """The paper's three initialisation steps on the first two frames.
+
+    Args:
+        spec: the parsed init (2D joints of the first frame, optional rough pose).
+        d0, d1: the first two frames' observations (:func:`~flowmocap.fit.objective.frame_data`;
+            ``d1`` with the observed flow to the first frame; ``joints3d`` set for ``E_d``).
+
+    Returns:
+        a :class:`Start`; ``second_terms`` are the energies of frame 1 against frame 0.
+    """
+    pose0, trans0, betas, first_terms = fit_frame0(model, camera, spec, d0.silhouette, cfg, d0.joints3d)
+    scene = Scene(model, betas, camera)
+    s0 = FrameState(pose0, trans0)
+    j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
+    conf = torch.as_tensor(spec.confidence, dtype=torch.float32)
+    # a rough pose the init states holds frame 0 through step 3 too; the automatic init's
+    # start pose is a guess, and holding it there cost DAVIS body IoU (docs/experiments.md)
+    prior_w = rough_pose_weights(spec, cfg) if spec.states_rough_pose else np.zeros(24)
+    s0, s1 = refine_first_pair(scene, s0, s0.clone(), d0, d1, cfg, j2d, conf, (spec.pose, prior_w))
+    _, second_terms = frame_energy(scene, s1, d1, cfg, len(cfg.stages) - 1,
+                                   scene.forward(s0.pose, s0.trans)[1].detach(), s0.pose)
+    return Start(scene, s0, s1, first_terms, second_terms)

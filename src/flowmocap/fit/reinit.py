@@ -1,5 +1,5 @@
 """Re-initialisation when tracking fails (the paper's future work), for the tracker's
-``monitor`` hook (:func:`flowmocap.fit.tracker.track_sequence`).
+``monitor`` hook (:class:`flowmocap.fit.tracker.SequenceTracker`).
 
 A tracked frame is *bad* when the rendered body covers the person's mask poorly
 (silhouette IoU below ``min_iou``) or its 2D joints disagree with the detector's
@@ -16,15 +16,14 @@ settings. Frames without the person (no mask, too few confident joints) are neit
 nor bad: they end a run of bad frames.
 
 Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
-a ``--resume`` it re-judges the frames before the resumed one by their stored 2D joints
-(``motion.npz``) against the detector's (the silhouette test needs the body rendered
-and is skipped for them), so a run of bad frames is not forgotten.
+a resume it re-judges the frames before the resumed one by their stored 2D joints
+(``stored_joints2d``) against the detector's (the silhouette test needs the body
+rendered and is skipped for them), so a run of bad frames is not forgotten.
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -32,26 +31,20 @@ import torch
 from flowmocap.errors import OptimizationError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.init import InitSpec, fit_to_joints, guess_translation
+from flowmocap.fit.objective import FrameState, Scene
+from flowmocap.render import body_mask
 from flowmocap.vision.auto import CONFIDENT, MIN_INIT_JOINTS, PersonTrack, facing_rotvec
+from flowmocap.vision.masks import mask_iou
 
-__all__ = ["body_silhouette", "silhouette_iou", "joint_disagreement", "fit_to_detection", "ReinitMonitor"]
+__all__ = ["body_silhouette", "joint_disagreement", "fit_to_detection", "ReinitMonitor"]
 
 
-def body_silhouette(scene, pose: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
+def body_silhouette(scene: Scene, pose: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
     """``(H, W)`` bool: the pixels the body covers (rasterised mesh) with this pose."""
-    from flowmocap.render import rasterize
-
     with torch.no_grad():
         _, px, d = scene.forward(pose, trans)
-    r = rasterize(px.numpy().astype(np.float64), d.numpy(), scene.faces, scene.camera.height,
-                  scene.camera.width, cull_backfaces=True)
-    return r.face_id >= 0
-
-
-def silhouette_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over union of two ``(H, W)`` bool masks (1 when both are empty)."""
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+    return body_mask(px.numpy().astype(np.float64), d.numpy(), scene.faces, scene.camera.height, scene.camera.width)
 
 
 def joint_disagreement(joints2d: np.ndarray, j2d: np.ndarray, conf: np.ndarray,
@@ -79,7 +72,7 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
     orientation), then the same plus the silhouette term.
 
     Args:
-        scene: the tracker's :class:`~flowmocap.fit.tracker.Scene`.
+        scene: the tracker's :class:`~flowmocap.fit.objective.Scene`.
         j2d: ``(24, 2)`` pixels; conf: ``(24,)``; mask: ``(H, W)`` bool or None.
         pose0: ``(72,)`` start and prior; trans0: ``(3,)`` metres.
         joints3d: the detector's 3D joints of the frame for ``E_d`` (see
@@ -88,8 +81,6 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final energy (float).
     """
-    from flowmocap.fit.init import fit_to_joints
-
     sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
     pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
                                           scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d)
@@ -103,24 +94,24 @@ class ReinitMonitor:
     Args:
         track: the detector's keypoints per frame (:class:`~flowmocap.vision.auto.PersonTrack`).
         cfg: the tracker settings (the fit uses its ``init_*`` weights).
-        out_dir: the result folder, to re-judge earlier frames after a resume.
+        stored_joints2d: after a resume, ``{frame: (24, 2) pixels}`` of the frames tracked
+            before it (``motion.npz`` ``joints2d``), to re-judge them.
         min_iou: silhouette IoU below which a frame is bad (default ``cfg.reinit_min_iou``).
         max_joint_error: median joint distance (fraction of the person's height) above which
             a frame is bad (default ``cfg.reinit_max_joint_error``).
         patience: bad frames in a row before re-initialising (default ``cfg.reinit_patience``).
     """
 
-    def __init__(self, track: PersonTrack, cfg: TrackerConfig, out_dir: str | Path | None = None,
+    def __init__(self, track: PersonTrack, cfg: TrackerConfig, stored_joints2d: dict | None = None,
                  min_iou: float | None = None, max_joint_error: float | None = None, patience: int | None = None):
         self.track = track
         self.cfg = cfg
-        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.stored = dict(stored_joints2d or {})
         self.min_iou = cfg.reinit_min_iou if min_iou is None else min_iou
         self.max_joint_error = cfg.reinit_max_joint_error if max_joint_error is None else max_joint_error
         self.patience = max(int(cfg.reinit_patience if patience is None else patience), 1)
         self.verdicts: dict[int, bool | None] = {}  # frame -> bad (None: cannot tell)
         self.scores: dict[int, dict] = {}
-        self._stored: dict | None = None
         self._last_attempt = -(10 ** 9)
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
@@ -130,7 +121,7 @@ class ReinitMonitor:
             out, _, _ = scene.forward(pose, trans)
             pj = scene.camera.project(out.joints[0]).numpy()
         err = joint_disagreement(pj, j2d, conf) if j2d is not None else None
-        iou = silhouette_iou(body_silhouette(scene, pose, trans), mask) if mask is not None and mask.any() else None
+        iou = mask_iou(body_silhouette(scene, pose, trans), mask) if mask is not None and mask.any() else None
         if err is None and iou is None:
             bad = None
         else:
@@ -138,19 +129,11 @@ class ReinitMonitor:
         return {"iou": iou, "joint_error": err, "bad": bad}
 
     def _stored_verdict(self, j: int) -> bool | None:
-        """Joint-only verdict of an earlier frame from ``motion.npz`` (after a resume)."""
-        if self.out_dir is None:
-            return None
-        if self._stored is None:
-            try:
-                with np.load(self.out_dir / "motion.npz", allow_pickle=False) as z:
-                    self._stored = {int(f): z["joints2d"][k] for k, f in enumerate(z["frame_index"])}
-            except (FileNotFoundError, KeyError, ValueError, OSError):
-                self._stored = {}
-        if j not in self._stored or j >= len(self.track):
+        """Joint-only verdict of a frame tracked before a resume."""
+        if j not in self.stored or j >= len(self.track):
             return None
         j2d, conf = self.track.smpl_joints(j)
-        err = joint_disagreement(self._stored[j], j2d, conf)
+        err = joint_disagreement(self.stored[j], j2d, conf)
         return None if err is None else err > self.max_joint_error
 
     def _confident(self, i: int) -> bool:
@@ -177,9 +160,6 @@ class ReinitMonitor:
         return self._reinitialise(i, state, scene, mask, s)
 
     def _reinitialise(self, i: int, state, scene, mask, before: dict):
-        from flowmocap.fit.init import InitSpec, guess_translation
-        from flowmocap.fit.tracker import FrameState
-
         j2d, conf = self.track.smpl_joints(i)
         joints3d = self.track.smpl_joints3d(i, scene.camera)
         starts = [(state.pose, state.trans)]

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 
-from flowmocap import __version__
+from flowmocap.version import __version__
 from flowmocap.errors import DataError, InputError
 from flowmocap.geometry import PinholeCamera
 from flowmocap.io.motion_source import load_motion

@@ -1,0 +1,58 @@
+"""The per-frame optimiser: torch's L-BFGS with a strong-Wolfe line search that backs
+off from points where the energy cannot be evaluated."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from flowmocap.errors import InputError, OptimizationError
+
+
+def minimise(params: list[torch.Tensor], closure_energy: Callable[[], torch.Tensor], iterations: int) -> float:
+    """L-BFGS (strong Wolfe) on ``params``, in place; raises OptimizationError on a
+    non-finite energy.
+
+    A trial point of the line search where the energy cannot be evaluated (an
+    :class:`~flowmocap.errors.InputError`, e.g. a step so long that part of the body
+    ends up behind the camera) counts as an energy above every accepted one, with zero
+    gradient, so the line search backs off towards the last good point instead of giving
+    up the frame. Only a start that cannot be evaluated raises.
+
+    Args:
+        params: leaf tensors with ``requires_grad``; closure_energy: returns the scalar energy.
+        iterations: L-BFGS iterations (``max_iter``).
+
+    Returns:
+        the last energy L-BFGS evaluated (the parameters hold the result; callers that
+        need the energy's terms at the result evaluate them themselves).
+    """
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-7, tolerance_change=1e-9, history_size=20)
+    last = [float("nan")]
+    first = [None]
+
+    def closure():
+        opt.zero_grad()
+        try:
+            e = closure_energy()
+        except InputError as err:
+            if first[0] is None:
+                raise OptimizationError(f"the energy could not be evaluated at the start pose: {err}") from err
+            # above every energy L-BFGS has accepted (they only decrease from the start),
+            # so the Armijo test fails and the line search shrinks the step; not so high
+            # that its cubic interpolation collapses the step to nothing
+            wall = sum((p * 0.0).sum() for p in params) + first[0] + 1.0 + abs(first[0])
+            wall.backward()  # zero gradients: nothing to follow past the wall
+            return wall
+        if not torch.isfinite(e):
+            raise OptimizationError("the energy became non-finite (NaN or inf)")
+        e.backward()
+        last[0] = float(e.detach())
+        if first[0] is None:
+            first[0] = last[0]
+        return e
+
+    opt.step(closure)
+    return last[0]

@@ -1,0 +1,186 @@
+"""The per-frame objective (paper Eq. 4 plus our extensions) and what it is evaluated on.
+
+    E = l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j] [+ l_a E_a] [+ l_d E_d]
+
+``E_f`` compares the observed backward flow F_o(i, i-1) with the flow rendered from the
+model at frame i (the variables) to the model at frame i-1 (fixed); ``E_c`` the body's
+silhouette with the person's mask; ``E_b`` joint limits; ``E_sp`` capsule
+interpenetration; ``E_theta`` closeness to a reference pose (the Kalman prediction while
+tracking). Not in the paper: ``E_j`` pulls the projected joints towards a detector's 2D
+joints (real video), ``E_a`` every joint but the root towards its rotation in the
+track's first frame, ``E_d`` each limb's direction in depth towards a detector's 3D
+joints. :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
+faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from flowmocap.body import BodyModel, Capsules, body_capsules
+from flowmocap.body.capsules import rest_capsules
+from flowmocap.errors import InputError
+from flowmocap.fit import energies as en
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.render import flow_loss, flow_target, prepare_faces
+
+#: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
+ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
+                "limb_depth")
+
+
+@dataclass
+class FrameState:
+    """Fitted parameters of one frame: ``pose (72,)`` radians, ``trans (3,)`` metres."""
+
+    pose: torch.Tensor
+    trans: torch.Tensor
+
+    def clone(self) -> "FrameState":
+        """A detached copy."""
+        return FrameState(self.pose.detach().clone(), self.trans.detach().clone())
+
+
+@dataclass
+class Scene:
+    """What every energy evaluation needs: the body, its shape ``betas (1, 10)``, the
+    camera and the prepared faces."""
+
+    model: BodyModel
+    betas: torch.Tensor  # (1, 10)
+    camera: PinholeCamera
+    faces: object = None
+
+    def __post_init__(self):
+        if self.faces is None:
+            self.faces = prepare_faces(self.model.faces_np)
+        with torch.no_grad():
+            self.rest_capsules = rest_capsules(self.model, self.model(betas=self.betas))
+
+    def capsules(self, out) -> Capsules:
+        """Posed capsules of a forward pass with this scene's (fixed) shape."""
+        return body_capsules(self.model, out, rest=self.rest_capsules)
+
+    def forward(self, pose: torch.Tensor, trans: torch.Tensor):
+        """Body output, ``(V, 2)`` projected vertices (pixels) and ``(V,)`` depths (metres)."""
+        out = self.model(betas=self.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3))
+        v = out.vertices[0]
+        return out, self.camera.project(v), self.camera.depth(v)
+
+
+@dataclass
+class FrameData:
+    """Observations of one frame: the person's mask (optional) and its chamfer target,
+    the flow target per optimisation stage, and the detections the extensions use."""
+
+    mask: np.ndarray | None  # (H, W) bool
+    silhouette: object  # fit.energies.SilhouetteTarget or None
+    person_pixels: float  # E_f's and E_c's normaliser
+    targets: list = field(default_factory=list)  # one FlowTarget per stage
+    keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
+    anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a, or None
+    joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d, or None
+
+
+def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
+    """Detected joints for ``E_j``: ``(j2d (24, 2), conf (24,))`` float32 tensors with the
+    confidences below ``min_confidence`` (and non-finite joints) set to 0, or None when
+    fewer than ``min_joints`` joints are left (``j2d``: pixels, SMPL joint order)."""
+    j = np.asarray(j2d, np.float64).reshape(-1, 2)
+    c = np.asarray(conf, np.float64).reshape(-1).copy()
+    if j.shape[0] != c.shape[0]:
+        raise InputError(f"detected joints {j.shape} and confidences {c.shape} differ in count.")
+    ok = np.isfinite(j).all(1) & np.isfinite(c) & (c >= min_confidence)
+    if ok.sum() < min_joints:
+        return None
+    c[~ok] = 0.0
+    j = np.where(ok[:, None], j, 0.0)
+    return torch.as_tensor(j, dtype=torch.float32), torch.as_tensor(c, dtype=torch.float32)
+
+
+def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
+               fallback_pixels: float, keypoints: tuple | None = None) -> FrameData:
+    """Prepare the observations of one frame for repeated energy evaluations.
+
+    Args:
+        mask: ``(H, W)`` bool person mask, or None.
+        flow: ``(H, W, 2)`` observed backward flow in pixels, or None (no ``E_f``).
+        fallback_pixels: the person's size in pixels when there is no mask.
+        keypoints: a :func:`keypoint_observation`, or None.
+    """
+    target = None
+    pixels = fallback_pixels
+    if mask is not None:
+        target = en.silhouette_target(mask)
+        pixels = float(mask.sum())
+    targets = []
+    if flow is not None:
+        # with a mask, E_f counts only person pixels: flow smeared across the motion
+        # boundary would otherwise pull the outline, which E_c carries instead
+        weight = mask.astype(np.float32) if (mask is not None and cfg.flow_in_mask) else None
+        for stage in cfg.stages:
+            lw = [float(4 ** l) if l in stage else 0.0 for l in range(cfg.levels)]
+            targets.append(flow_target(flow, weight=weight, levels=cfg.levels, level_weights=lw))
+    return FrameData(mask=mask, silhouette=target, person_pixels=max(pixels, 1.0), targets=targets,
+                     keypoints=keypoints)
+
+
+def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, stage: int | None,
+                 prev_px: torch.Tensor | None, ref_pose: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+    """The objective of one frame.
+
+    Args:
+        state: the variables; data: the frame's observations.
+        stage: index into ``data.targets`` (the pyramid levels ``E_f`` uses).
+        prev_px: ``(V, 2)`` projected vertices of the previous frame (fixed), or None (no ``E_f``).
+        ref_pose: ``(72,)`` reference of ``E_theta``, or None (no ``E_theta``).
+
+    Returns:
+        ``(total, {name: value})``: the differentiable total and each weighted term as a float.
+    """
+    out, px, depth = scene.forward(state.pose, state.trans)
+    terms = {}
+    if prev_px is not None and data.targets and cfg.flow_weight > 0:
+        ef = flow_loss(px, prev_px, scene.faces, data.targets[stage], depth_cur=depth, cull_backfaces=True)
+        terms["flow"] = cfg.flow_weight * ef / data.person_pixels
+    caps = None
+    if data.mask is not None and cfg.silhouette_weight > 0:
+        if cfg.silhouette_model == "mesh":
+            ec = en.mesh_silhouette_energy(px, depth, scene.faces, data.silhouette, a=cfg.silhouette_a,
+                                           grid_step=cfg.capsule_grid_step)
+        else:
+            caps = scene.capsules(out)
+            ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,
+                                      grid_step=cfg.capsule_grid_step)[0]
+        terms["silhouette"] = cfg.silhouette_weight * ec
+    if cfg.limit_weight > 0:
+        terms["limits"] = cfg.limit_weight * en.joint_limit_energy(state.pose.reshape(1, 72))[0]
+    if cfg.penetration_weight > 0:
+        caps = caps if caps is not None else scene.capsules(out)
+        terms["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
+    if ref_pose is not None and cfg.temporal_weight > 0:
+        terms["temporal"] = cfg.temporal_weight * en.temporal_energy(state.pose.reshape(1, 72),
+                                                                     ref_pose.reshape(1, 72))[0]
+    if data.keypoints is not None and cfg.keypoint_weight > 0:
+        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma)
+    if data.anchor is not None and cfg.anchor_weight > 0:
+        terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
+                                                                   data.anchor.reshape(1, 72))[0]
+    if data.joints3d is not None and cfg.limb_depth_weight > 0:
+        terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
+            out.joints, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
+    total = sum(terms.values(), (state.pose * 0.0).sum())
+    return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float) -> torch.Tensor:
+    """``E_j``: robust squared pixel distance (Geman-McClure, scale ``sigma`` px) between the
+    model's projected joints and detected ones, confidence-weighted, per confident joint
+    (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel)."""
+    j2d, conf = keypoints
+    pj = scene.camera.project(out.joints[0])
+    return en.keypoint_energy(pj[None], j2d, conf, sigma=sigma)[0] / float((conf > 0).sum())
