@@ -89,8 +89,8 @@ from flowmocap.render._checks import (
     to_numpy,
 )
 from flowmocap.render.pyramid import (
-    _refl,
-    _tap,
+    reflect_index,
+    binomial_tap,
     down_region,
     pyr_down_adjoint_region,
     pyr_down_region,
@@ -906,8 +906,8 @@ def _pyr_down_matrix(h: int, w: int) -> sp.csr_matrix:
         for i in range(m):
             for t in range(5):
                 rows.append(i)
-                cols.append(_refl(2 * i + t - 2, n))
-                vals.append(_tap(t))
+                cols.append(reflect_index(2 * i + t - 2, n))
+                vals.append(binomial_tap(t))
         return sp.csr_matrix((vals, (rows, cols)), shape=(m, n))
     return sp.kron(sp.kron(one_d(h), one_d(w)), sp.identity(2), format="csr")
 

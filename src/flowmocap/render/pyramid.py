@@ -29,7 +29,8 @@ _K2 = 6.0 / 16.0
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _refl(i, n):
+def reflect_index(i, n):
+    """Index ``i`` reflected into ``[0, n)`` about the borders (OpenCV's BORDER_REFLECT_101)."""
     if n == 1:
         return 0
     if i < 0:
@@ -40,7 +41,8 @@ def _refl(i, n):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tap(t):
+def binomial_tap(t):
+    """Weight ``t`` in 0..4 of the 5-tap binomial kernel (1, 4, 6, 4, 1) / 16."""
     if t == 0 or t == 4:
         return _K0
     if t == 1 or t == 3:
@@ -82,7 +84,7 @@ def pyr_down_region(src, dst, tmp, r0, r1, c0, c1):
                 for c in range(C):
                     acc = 0.0
                     for t in range(5):
-                        acc += _tap(t) * src[r, _refl(x + t - 2, W), c]
+                        acc += binomial_tap(t) * src[r, reflect_index(x + t - 2, W), c]
                     tmp[r, j, c] = acc
     for i in range(r0, r1):
         y = 2 * i
@@ -97,7 +99,7 @@ def pyr_down_region(src, dst, tmp, r0, r1, c0, c1):
                 for c in range(C):
                     acc = 0.0
                     for t in range(5):
-                        acc += _tap(t) * tmp[_refl(y + t - 2, H), j, c]
+                        acc += binomial_tap(t) * tmp[reflect_index(y + t - 2, H), j, c]
                     dst[i, j, c] = acc
 
 
@@ -120,8 +122,8 @@ def pyr_down_adjoint_region(adst, asrc, tmp, r0, r1, c0, c1):
     for i in range(r0, r1):
         y = 2 * i
         for t in range(5):
-            r = _refl(y + t - 2, H)
-            k = _tap(t)
+            r = reflect_index(y + t - 2, H)
+            k = binomial_tap(t)
             for j in range(c0, c1):
                 for c in range(C):
                     tmp[r, j, c] += k * adst[i, j, c]
@@ -140,7 +142,7 @@ def pyr_down_adjoint_region(adst, asrc, tmp, r0, r1, c0, c1):
                 for c in range(C):
                     a = tmp[r, j, c]
                     for t in range(5):
-                        asrc[r, _refl(x + t - 2, W), c] += _tap(t) * a
+                        asrc[r, reflect_index(x + t - 2, W), c] += binomial_tap(t) * a
 
 
 def pyramid_shapes(height: int, width: int, levels: int) -> list[tuple[int, int]]:

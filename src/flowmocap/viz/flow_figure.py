@@ -83,7 +83,7 @@ def flow_pair(frame: int = 20, fps: float = 30.0, size=(640, 480), azimuth: floa
             "observed": observed.astype(np.float32), "rendered": rendered, "mask": mask}
 
 
-def _crop_box(mask: np.ndarray, aspect: float = 0.75, margin: float = 0.08) -> tuple[int, int, int, int]:
+def crop_box(mask: np.ndarray, aspect: float = 0.75, margin: float = 0.08) -> tuple[int, int, int, int]:
     """``(r0, r1, c0, c1)``: the mask's bounding box plus a margin, widened to ``aspect`` (w/h)."""
     H, W = mask.shape
     rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
@@ -97,7 +97,8 @@ def _crop_box(mask: np.ndarray, aspect: float = 0.75, margin: float = 0.08) -> t
     return int(r0), int(r1), c0, c0 + w
 
 
-def _caption(tile: np.ndarray, lines: list[str]) -> np.ndarray:
+def caption_tile(tile: np.ndarray, lines: list[str]) -> np.ndarray:
+    """``tile (H, W, 3)`` uint8 with a white strip of text ``lines`` below it."""
     import cv2
 
     strip = np.full((_CAPTION_H * len(lines), tile.shape[1], 3), 255, np.uint8)
@@ -130,12 +131,12 @@ def flow_figure(frame: int = 20, fps: float = 30.0, size=(640, 480), azimuth: fl
     lengths = np.linalg.norm(ren[mask], axis=1)
     max_mag = float(np.ceil(np.percentile(lengths, 99))) if lengths.size else 1.0
     epe = float(np.linalg.norm(obs[mask] - ren[mask], axis=1).mean()) if lengths.size else float("nan")
-    r0, r1, c0, c1 = _crop_box(mask) if crop else (0, mask.shape[0], 0, mask.shape[1])
+    r0, r1, c0, c1 = crop_box(mask) if crop else (0, mask.shape[0], 0, mask.shape[1])
     tiles = [
-        _caption(p["image"][r0:r1, c0:c1], [f"frame i (built-in walk, {fps:g} fps)", "synthetic video"]),
-        _caption(flow_to_color(obs, max_mag)[r0:r1, c0:c1],
+        caption_tile(p["image"][r0:r1, c0:c1], [f"frame i (built-in walk, {fps:g} fps)", "synthetic video"]),
+        caption_tile(flow_to_color(obs, max_mag)[r0:r1, c0:c1],
                  ["observed F_o(i, i-1): OpenCV DIS", f"on the frames; EPE {epe:.2f} px on body"]),
-        _caption(flow_to_color(ren, max_mag)[r0:r1, c0:c1],
+        caption_tile(flow_to_color(ren, max_mag)[r0:r1, c0:c1],
                  ["rendered F_r(i, i-1): the model", "at frames i and i-1 (render_flow)"]),
     ]
     h, w = r1 - r0, max(120, (c1 - c0) // 2 + 40)
@@ -145,7 +146,7 @@ def flow_figure(frame: int = 20, fps: float = 30.0, size=(640, 480), azimuth: fl
     key[y0:y0 + d, (w - d) // 2:(w - d) // 2 + d] = color_wheel_legend(d)
     cv2.putText(key, f"rim: {max_mag:g} px", ((w - d) // 2, y0 + d + 22), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
                 _INK, 1, cv2.LINE_AA)
-    tiles.append(_caption(key, ["colour key (Middlebury)", "flow (dx, dy), y down"]))
+    tiles.append(caption_tile(key, ["colour key (Middlebury)", "flow (dx, dy), y down"]))
     gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
     row = [tiles[0]]
     for t in tiles[1:]:

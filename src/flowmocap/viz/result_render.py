@@ -21,7 +21,7 @@ import numpy as np
 
 from flowmocap.errors import DataError, InputError
 from flowmocap.viz.flow_colors import color_wheel_legend, flow_to_color
-from flowmocap.viz.flow_figure import _caption, _crop_box
+from flowmocap.viz.flow_figure import caption_tile, crop_box
 from flowmocap.viz.overlay import overlay_body, render_body_view, side_camera
 from flowmocap.viz.traces import GT_TRACE_RGB, TRACE_RGB, draw_traces, trace_box
 
@@ -305,17 +305,17 @@ def figure1(scene: ResultScene, frames: list[int], crop: bool = True, alpha: flo
         lengths = np.linalg.norm(ren[mask], axis=1)
         max_mag = float(max(1.0, np.ceil(np.percentile(lengths, 99)))) if lengths.size else 1.0
         epe = float(np.linalg.norm(obs[mask] - ren[mask], axis=1).mean()) if lengths.size else float("nan")
-        r0, r1, c0, c1 = _crop_box(mask) if crop else (0, mask.shape[0], 0, mask.shape[1])
+        r0, r1, c0, c1 = crop_box(mask) if crop else (0, mask.shape[0], 0, mask.shape[1])
         img = scene.image(k)
         pose = overlay_body(img, scene.vertices(k), scene.faces, scene.camera, alpha=alpha)
         up = lambda a: _upscale(a[r0:r1, c0:c1], min_height)  # noqa: E731
         tiles = [
-            _caption(up(img), [f"input frame {i}"]),
-            _caption(up(flow_to_color(obs, max_mag)), [f"observed flow F_o({i}, {i - 1})"]),
-            _caption(up(flow_to_color(ren, max_mag)), [f"rendered flow, EPE {epe:.2f} px"]),
-            _caption(up(pose), ["resulting pose"]),
+            caption_tile(up(img), [f"input frame {i}"]),
+            caption_tile(up(flow_to_color(obs, max_mag)), [f"observed flow F_o({i}, {i - 1})"]),
+            caption_tile(up(flow_to_color(ren, max_mag)), [f"rendered flow, EPE {epe:.2f} px"]),
+            caption_tile(up(pose), ["resulting pose"]),
         ]
-        tiles.append(_caption(_key_tile(tiles[0].shape[0] - 26, max_mag), ["colour key"]))
+        tiles.append(caption_tile(_key_tile(tiles[0].shape[0] - 26, max_mag), ["colour key"]))
         rows.append(_row(tiles))
     return _column(rows)
 
@@ -349,10 +349,10 @@ def joint_traces(scene: ResultScene, frames: list[int], history: int | None = No
         if gt2d is not None:
             img = draw_traces(img, to_tile(gt2d), k, history, colour=GT_TRACE_RGB, thickness=1, dots=False)
         img = draw_traces(img, to_tile(j2d), k, history, colour=TRACE_RGB, thickness=2)
-        panels.append(_caption(img, [f"frame {i}"]))
+        panels.append(caption_tile(img, [f"frame {i}"]))
     legend = "green: fitted joints" + ("; orange: ground truth" if gt2d is not None else "")
     row = _row(panels)
-    return _caption(row, [f"history of the 13 evaluated joints ({legend})"])
+    return caption_tile(row, [f"history of the 13 evaluated joints ({legend})"])
 
 
 def energy_figure(scene: ResultScene) -> np.ndarray:
