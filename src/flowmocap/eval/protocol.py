@@ -4,7 +4,6 @@ from ground truth, tracking, and the 3D joint errors."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 
@@ -58,9 +57,7 @@ def evaluate(motion: dict, gt: dict) -> dict:
         ``depth_bias_cm``, its root-relative error across and along the camera's view
         (:func:`~flowmocap.eval.metrics.depth_split_error`).
     """
-    import json
-
-    from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_NAMES
+    from flowmocap.body.skeleton import EVAL_JOINTS
     from flowmocap.eval.metrics import depth_split_error, global_procrustes_error, local_procrustes_error, mpjpe
 
     idx = np.asarray(motion["frame_index"], int)

@@ -402,7 +402,6 @@ def retarget(
     for smpl_name, mocap_name in mapping.items():
         m[JOINT_INDEX[smpl_name]] = clip.index(mocap_name)
 
-    dt = model.v_template.dtype
     betas_t = betas_tensor(model, betas)
     b = betas_t[0].double().numpy()
     with torch.no_grad():

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 
 from flowmocap.errors import InputError
 
@@ -62,15 +63,13 @@ class SmplMotion:
                        info=dict(self.info))
 
 
-def betas_tensor(model, betas) -> "torch.Tensor":
+def betas_tensor(model, betas) -> torch.Tensor:
     """``(1, num_betas)`` tensor of ``model``'s dtype from ``betas`` (None = mean shape;
     fewer values are zero-padded).
 
     Raises:
         InputError: more values than the model has, or non-finite values.
     """
-    import torch
-
     nb = model.num_betas
     b = np.zeros(nb) if betas is None else np.asarray(betas, dtype=np.float64).reshape(-1)
     if b.shape[0] > nb or not np.all(np.isfinite(b)):
