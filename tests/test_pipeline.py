@@ -1,0 +1,125 @@
+"""The public API (flowmocap.track, flowmocap.load_result): the one pipeline the command
+line runs too, its Result, and its errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import flowmocap
+from flowmocap.cli import main
+from flowmocap.errors import DataError, InputError
+from flowmocap.eval.protocol import noisy_init
+from flowmocap.io.sequence import load_sequence
+from flowmocap.pipeline import parse_frame_range
+from flowmocap.synth import synthesize
+
+from conftest import SHARED_DATA
+
+QUICK = {"iterations": 4, "init_iterations": 6, "init_flow_iterations": 4}
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pipe") / "seq"
+    synthesize("builtin:walk", d, fps=30, frames=5, size="200x150", betas="random", seed=1, azimuth=60.0,
+               flow=False)
+    (d.parent / "init.json").write_text(json.dumps(noisy_init(load_sequence(d).gt, frame=0, seed=1)))
+    (d.parent / "quick.json").write_text(json.dumps(QUICK))
+    return d
+
+
+def _same(a: flowmocap.Result, b: flowmocap.Result):
+    for k in ("poses", "trans", "betas", "joints3d", "joints2d", "frame_index"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+
+
+def test_python_api_gives_what_the_command_line_gives(seq_dir, tmp_path, capsys):
+    init = seq_dir.parent / "init.json"
+    res = flowmocap.track(seq_dir, tmp_path / "api", init=init, config=QUICK, progress=False, joints3d="off")
+    assert "profile 'synthetic'" in capsys.readouterr().out  # printed: the input brings its own masks
+    assert main(["track", str(seq_dir), "--out", str(tmp_path / "cli"), "--init", str(init), "--config",
+                 str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet"]) == 0
+    cli = flowmocap.load_result(tmp_path / "cli")
+    _same(res, cli)
+    assert len(res) == 5 and res.poses.shape == (5, 72) and res.trans.shape == (5, 3)
+    assert res.joints3d.shape == (5, 24, 3) and res.joints2d.shape == (5, 24, 2) and res.betas.shape == (10,)
+    assert res.run["status"] == "finished" and res.run["profile"] == "synthetic"
+    assert res.run["config"]["iterations"] == 4 and res.fps == pytest.approx(30.0)
+    assert res.camera.width == 200 and set(res.energies) >= {"total", "flow", "silhouette"}
+    assert res.path == tmp_path / "api" and "status 'finished'" in repr(res)
+    # a finished result is not overwritten without resume; resuming a finished one changes nothing
+    with pytest.raises(InputError, match="already holds a result"):
+        flowmocap.track(seq_dir, tmp_path / "api", init=init, config=QUICK, progress=False, joints3d="off")
+    again = flowmocap.track(seq_dir, tmp_path / "api", init=init, config=QUICK, progress=False, joints3d="off",
+                            resume=True, log=None)
+    _same(res, again)
+
+
+def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):
+    res = flowmocap.track(seq_dir, tmp_path / "r", init=seq_dir.parent / "init.json", config=QUICK,
+                          frames="0:3", profile="video", progress=False, joints3d="off", log=None)
+    assert res.run["profile"] == "video" and res.run["config"]["silhouette_model"] == "mesh"
+    assert res.frame_index.tolist() == [0, 1, 2]
+
+
+def test_bad_input_gives_the_projects_errors(seq_dir, tmp_path):
+    init = seq_dir.parent / "init.json"
+    kw = dict(init=init, progress=False, joints3d="off", log=None)
+    with pytest.raises(DataError, match="does not exist"):
+        flowmocap.track(tmp_path / "missing.mp4", tmp_path / "o1", **kw)
+    with pytest.raises(InputError, match="unknown profile"):
+        flowmocap.track(seq_dir, tmp_path / "o2", profile="cinema", **kw)
+    with pytest.raises(InputError, match="focal length"):
+        flowmocap.track(seq_dir, tmp_path / "o3", camera=-5.0, **kw)
+    with pytest.raises(InputError, match="camera must be"):
+        flowmocap.track(seq_dir, tmp_path / "o4", camera=[1, 2], **kw)
+    with pytest.raises(InputError, match="iterations"):
+        flowmocap.track(seq_dir, tmp_path / "o5", config={"iterations": "ten"}, **kw)
+    with pytest.raises(InputError, match="removed"):
+        flowmocap.track(seq_dir, tmp_path / "o6", config={"optimizer": "lm"}, **kw)
+    with pytest.raises(InputError, match="joints3d"):
+        flowmocap.track(seq_dir, tmp_path / "o7", init=init, joints3d="maybe", progress=False)
+    with pytest.raises(DataError, match="not a flowmocap result"):
+        flowmocap.load_result(tmp_path)
+
+
+def test_a_wrongly_typed_config_file_is_a_clear_cli_error(seq_dir, tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"iterations": "ten"}))
+    code = main(["track", str(seq_dir), "--out", str(tmp_path / "o"), "--init", str(seq_dir.parent / "init.json"),
+                 "--config", str(bad), "--joints3d", "off", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("flowmocap: error:") and "iterations" in err and "Traceback" not in err
+
+
+def test_frame_ranges():
+    assert parse_frame_range(None, 10) == (0, 10)
+    assert parse_frame_range("2:", 10) == (2, 10) and parse_frame_range(":5", 10) == (0, 5)
+    assert parse_frame_range((3, 6), 10) == (3, 6)
+    for bad in ("5:4", "0:1", "a:b", "0:11", (1,), "x"):
+        with pytest.raises(InputError):
+            parse_frame_range(bad, 10)
+
+
+DAVIS = SHARED_DATA / "video" / "davis-dance-twirl" / "JPEGImages"
+
+
+@pytest.mark.skipif(not DAVIS.is_dir(), reason=f"{DAVIS} not found: the shared data folder is absent")
+def test_a_real_clip_from_python_matches_the_command_line(tmp_path):
+    """Automatic everything on the first frames of DAVIS dance-twirl (frames copied into a
+    small folder so the detector runs on 4 frames only)."""
+    import shutil
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for p in sorted(DAVIS.glob("*.jpg"))[:4]:
+        shutil.copy(p, frames / p.name)
+    cfg = tmp_path / "quick.json"
+    cfg.write_text(json.dumps({**QUICK, "reinit_iterations": 4}))
+    res = flowmocap.track(frames, tmp_path / "api", config=cfg, progress=False, log=None)
+    assert main(["track", str(frames), "--out", str(tmp_path / "cli"), "--config", str(cfg), "--quiet"]) == 0
+    _same(res, flowmocap.load_result(tmp_path / "cli"))
+    assert res.run["profile"] == "video" and res.run["init"] == "automatic" and res.run["masks"] == "automatic"
