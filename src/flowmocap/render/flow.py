@@ -115,6 +115,32 @@ def _screen_bary(px, py, x0, y0, x1, y1, x2, y2):
             (y0 - y1) * inv, (x1 - x0) * inv)
 
 
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _face_bary(faces, xc, f, px, py):
+    """Vertices ``i0, i1, i2`` of face ``f`` and :func:`_screen_bary` of (px, py) in its
+    frame-``i`` triangle ``xc``."""
+    i0 = faces[f, 0]
+    i1 = faces[f, 1]
+    i2 = faces[f, 2]
+    l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y = _screen_bary(
+        px, py, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
+    return i0, i1, i2, l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _prev_point(xp, rho, i0, i1, i2, l0, l1, l2):
+    """Where the surface point with screen barycentrics ``l`` was at frame ``i - 1``:
+    ``m_k = lambda_k rho_k``, ``s = 1 / sum_k m_k`` (so ``mu_k = m_k s``) and
+    ``q = sum_k mu_k x'_k`` (module docstring); the flow is ``q - p``."""
+    m0 = l0 * rho[i0]
+    m1 = l1 * rho[i1]
+    m2 = l2 * rho[i2]
+    s = 1.0 / (m0 + m1 + m2)
+    qx = (m0 * xp[i0, 0] + m1 * xp[i1, 0] + m2 * xp[i2, 0]) * s
+    qy = (m0 * xp[i0, 1] + m1 * xp[i1, 1] + m2 * xp[i2, 1]) * s
+    return m0, m1, m2, s, qx, qy
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _render_flow_kernel(face_id, faces, xc, xp, rho, flow):
     H, W = face_id.shape
@@ -125,17 +151,10 @@ def _render_flow_kernel(face_id, faces, xc, xp, rho, flow):
             if f < 0:
                 continue
             px = u + 0.5
-            i0 = faces[f, 0]
-            i1 = faces[f, 1]
-            i2 = faces[f, 2]
-            l0, l1, l2, _a, _b, _c, _d, _e, _f = _screen_bary(
-                px, py, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
-            m0 = l0 * rho[i0]
-            m1 = l1 * rho[i1]
-            m2 = l2 * rho[i2]
-            s = 1.0 / (m0 + m1 + m2)
-            flow[v, u, 0] = (m0 * xp[i0, 0] + m1 * xp[i1, 0] + m2 * xp[i2, 0]) * s - px
-            flow[v, u, 1] = (m0 * xp[i0, 1] + m1 * xp[i1, 1] + m2 * xp[i2, 1]) * s - py
+            i0, i1, i2, l0, l1, l2, _a, _b, _c, _d, _e, _f = _face_bary(faces, xc, f, px, py)
+            _m0, _m1, _m2, _s, qx, qy = _prev_point(xp, rho, i0, i1, i2, l0, l1, l2)
+            flow[v, u, 0] = qx - px
+            flow[v, u, 1] = qy - py
 
 
 @njit(cache=True, nogil=True)
@@ -177,11 +196,7 @@ def _share_vertex(faces, f, g):
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _edge_weights(faces, xc, f, ex, ey):
     """Front face ``f``'s barycentrics at the edge point (ex, ey), clamped to the triangle."""
-    i0 = faces[f, 0]
-    i1 = faces[f, 1]
-    i2 = faces[f, 2]
-    l0, l1, l2, _a, _b, _c, _d, _e, _f = _screen_bary(
-        ex, ey, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
+    _i0, _i1, _i2, l0, l1, l2, _a, _b, _c, _d, _e, _f = _face_bary(faces, xc, f, ex, ey)
     l0 = max(l0, 0.0)
     l1 = max(l1, 0.0)
     l2 = max(l2, 0.0)
@@ -315,17 +330,10 @@ def _flow_objective_kernel(face_id, rdepth, faces, xc, xp, rho, sw, bbuf, shapes
                 A0[v, u, 1] = 2.0 * s0 * b1
                 continue
             px = u + 0.5
-            i0 = faces[f, 0]
-            i1 = faces[f, 1]
-            i2 = faces[f, 2]
-            l0, l1, l2, _a, _b, _c, _d, _e, _f = _screen_bary(
-                px, py, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
-            m0 = l0 * rho[i0]
-            m1 = l1 * rho[i1]
-            m2 = l2 * rho[i2]
-            s = 1.0 / (m0 + m1 + m2)
-            fx = (m0 * xp[i0, 0] + m1 * xp[i1, 0] + m2 * xp[i2, 0]) * s - px
-            fy = (m0 * xp[i0, 1] + m1 * xp[i1, 1] + m2 * xp[i2, 1]) * s - py
+            i0, i1, i2, l0, l1, l2, _a, _b, _c, _d, _e, _f = _face_bary(faces, xc, f, px, py)
+            _m0, _m1, _m2, _s, qx, qy = _prev_point(xp, rho, i0, i1, i2, l0, l1, l2)
+            fx = qx - px
+            fy = qy - py
             w = sw[v, u]
             cx = (1.0 - useb) * B0[v, u, 0] - w * fx
             cy = (1.0 - useb) * B0[v, u, 1] - w * fy
@@ -377,17 +385,8 @@ def _flow_objective_kernel(face_id, rdepth, faces, xc, xp, rho, sw, bbuf, shapes
             if gx == 0.0 and gy == 0.0:
                 continue
             px = u + 0.5
-            i0 = faces[f, 0]
-            i1 = faces[f, 1]
-            i2 = faces[f, 2]
-            l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y = _screen_bary(
-                px, py, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
-            m0 = l0 * rho[i0]
-            m1 = l1 * rho[i1]
-            m2 = l2 * rho[i2]
-            s = 1.0 / (m0 + m1 + m2)
-            qx = (m0 * xp[i0, 0] + m1 * xp[i1, 0] + m2 * xp[i2, 0]) * s
-            qy = (m0 * xp[i0, 1] + m1 * xp[i1, 1] + m2 * xp[i2, 1]) * s
+            i0, i1, i2, l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y = _face_bary(faces, xc, f, px, py)
+            m0, m1, m2, s, qx, qy = _prev_point(xp, rho, i0, i1, i2, l0, l1, l2)
             # t_k = g . (x'_k - q) / S ; dE/drho_k = lambda_k t_k ; h_k = rho_k t_k
             t0 = (gx * (xp[i0, 0] - qx) + gy * (xp[i0, 1] - qy)) * s
             t1 = (gx * (xp[i1, 0] - qx) + gy * (xp[i1, 1] - qy)) * s
@@ -438,17 +437,8 @@ def _jacobian_kernel(face_id, rdepth, faces, xc, xp, rho, sw, r0img, boundary,
             if w == 0.0:
                 continue
             px = u + 0.5
-            i0 = faces[f, 0]
-            i1 = faces[f, 1]
-            i2 = faces[f, 2]
-            l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y = _screen_bary(
-                px, py, xc[i0, 0], xc[i0, 1], xc[i1, 0], xc[i1, 1], xc[i2, 0], xc[i2, 1])
-            m0 = l0 * rho[i0]
-            m1 = l1 * rho[i1]
-            m2 = l2 * rho[i2]
-            s = 1.0 / (m0 + m1 + m2)
-            qx = (m0 * xp[i0, 0] + m1 * xp[i1, 0] + m2 * xp[i2, 0]) * s
-            qy = (m0 * xp[i0, 1] + m1 * xp[i1, 1] + m2 * xp[i2, 1]) * s
+            i0, i1, i2, l0, l1, l2, d0x, d0y, d1x, d1y, d2x, d2y = _face_bary(faces, xc, f, px, py)
+            m0, m1, m2, s, qx, qy = _prev_point(xp, rho, i0, i1, i2, l0, l1, l2)
             row = 2 * (v * W + u)
             idx = (i0, i1, i2)
             lam = (l0, l1, l2)
