@@ -61,6 +61,13 @@ def down_region(lo, hi, n_out):
     return a, b
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _source_rows(r0, r1, n):
+    """Rows ``[a, b)`` of a level of ``n`` rows that the 5 taps of the next level's rows
+    ``[r0, r1)`` reach (before reflection at the borders): ``[2 r0 - 2, 2 r1 + 1)``, clipped."""
+    return max(0, 2 * r0 - 2), min(n, 2 * (r1 - 1) + 3)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def pyr_down_region(src, dst, tmp, r0, r1, c0, c1):
     """``dst[r0:r1, c0:c1] = pyrDown(src)[r0:r1, c0:c1]``.
@@ -70,8 +77,7 @@ def pyr_down_region(src, dst, tmp, r0, r1, c0, c1):
     H, W, C = src.shape
     if r1 <= r0 or c1 <= c0:
         return
-    ra = max(0, 2 * r0 - 2)
-    rb = min(H, 2 * (r1 - 1) + 3)
+    ra, rb = _source_rows(r0, r1, H)
     for r in range(ra, rb):
         for j in range(c0, c1):
             x = 2 * j
@@ -113,8 +119,7 @@ def pyr_down_adjoint_region(adst, asrc, tmp, r0, r1, c0, c1):
     H, W, C = asrc.shape
     if r1 <= r0 or c1 <= c0:
         return
-    ra = max(0, 2 * r0 - 2)
-    rb = min(H, 2 * (r1 - 1) + 3)
+    ra, rb = _source_rows(r0, r1, H)
     for r in range(ra, rb):
         for j in range(c0, c1):
             for c in range(C):
