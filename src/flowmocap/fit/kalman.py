@@ -370,6 +370,23 @@ def _mat(state: dict, key: str, shape: tuple[int, ...], owner: str) -> np.ndarra
     return _array(state[key], shape, f"{owner} state {key!r}")
 
 
+#: The constructor settings that RotationEKF and TranslationKF keep in their state dicts.
+_SETTINGS = ("dt", "accel_noise", "meas_noise", "init_vel_std")
+
+
+def _settings(filt: Any) -> dict[str, float]:
+    """``filt``'s :data:`_SETTINGS`, the first entries of its ``state_dict()``."""
+    return {key: getattr(filt, key) for key in _SETTINGS}
+
+
+def _settings_from(state: Any, owner: str) -> dict[str, Any]:
+    """The :data:`_SETTINGS` of a ``state_dict()`` as constructor keyword arguments."""
+    if not isinstance(state, dict):
+        raise InputError(f"{owner} state must be the dict state_dict() returned")
+    _require(state, _SETTINGS, owner)
+    return {key: state[key] for key in _SETTINGS}
+
+
 # -------------------------------------------------------------------------- RotationEKF
 
 
@@ -460,10 +477,7 @@ class RotationEKF:
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume exactly, as JSON-serialisable lists and floats."""
         return {
-            "dt": self.dt,
-            "accel_noise": self.accel_noise,
-            "meas_noise": self.meas_noise,
-            "init_vel_std": self.init_vel_std,
+            **_settings(self),
             "R": self._R.tolist(),
             "omega": self._w.tolist(),
             "P": self._P.tolist(),
@@ -473,13 +487,9 @@ class RotationEKF:
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> "RotationEKF":
         """Rebuild a filter from :meth:`state_dict` (also after a JSON round trip)."""
-        if not isinstance(state, dict):
-            raise InputError("RotationEKF state must be the dict state_dict() returned")
-        _require(state, ("dt", "accel_noise", "meas_noise", "init_vel_std"), "RotationEKF")
+        settings = _settings_from(state, "RotationEKF")
         R = _mat(state, "R", (3, 3), "RotationEKF")
-        f = cls(R, _mat(state, "omega", (3,), "RotationEKF"), dt=state["dt"],
-                accel_noise=state["accel_noise"], meas_noise=state["meas_noise"],
-                init_vel_std=state["init_vel_std"])
+        f = cls(R, _mat(state, "omega", (3,), "RotationEKF"), **settings)
         f._R = R
         f._P = _mat(state, "P", (6, 6), "RotationEKF")
         f._ref = _mat(state, "ref", (3,), "RotationEKF")
@@ -561,10 +571,7 @@ class TranslationKF:
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume exactly, as JSON-serialisable lists and floats."""
         return {
-            "dt": self.dt,
-            "accel_noise": self.accel_noise,
-            "meas_noise": self.meas_noise,
-            "init_vel_std": self.init_vel_std,
+            **_settings(self),
             "x": self.kf.x[:, 0].tolist(),
             "P": self.kf.P.tolist(),
         }
@@ -572,12 +579,9 @@ class TranslationKF:
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> "TranslationKF":
         """Rebuild a filter from :meth:`state_dict` (also after a JSON round trip)."""
-        if not isinstance(state, dict):
-            raise InputError("TranslationKF state must be the dict state_dict() returned")
-        _require(state, ("dt", "accel_noise", "meas_noise", "init_vel_std"), "TranslationKF")
+        settings = _settings_from(state, "TranslationKF")
         x = _mat(state, "x", (6,), "TranslationKF")
-        f = cls(x[:3], x[3:], dt=state["dt"], accel_noise=state["accel_noise"],
-                meas_noise=state["meas_noise"], init_vel_std=state["init_vel_std"])
+        f = cls(x[:3], x[3:], **settings)
         f.kf.P = _mat(state, "P", (6, 6), "TranslationKF")
         return f
 
