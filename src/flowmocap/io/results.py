@@ -14,28 +14,12 @@ frame numbers).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the result a normal file's mode
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def write_motion(out_dir: Path, arrays: dict) -> None:
@@ -45,7 +29,7 @@ def write_motion(out_dir: Path, arrays: dict) -> None:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
 
-    _atomic_write(Path(out_dir) / "motion.npz", write)
+    atomic_write(Path(out_dir) / "motion.npz", write)
 
 
 def write_run(out_dir: Path, info: dict) -> None:
@@ -54,7 +38,7 @@ def write_run(out_dir: Path, info: dict) -> None:
     def write(tmp):
         Path(tmp).write_text(json.dumps(info, indent=2, default=_json_default))
 
-    _atomic_write(Path(out_dir) / "run.json", write)
+    atomic_write(Path(out_dir) / "run.json", write)
 
 
 def _json_default(x):

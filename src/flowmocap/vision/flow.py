@@ -37,8 +37,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Callable
@@ -46,6 +44,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
+from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError, InputError
 
 __all__ = ["FLOW_METHODS", "DIS_PRESETS", "observed_flow", "FlowCache"]
@@ -226,15 +225,12 @@ class FlowCache:
         if flow.ndim != 3 or flow.shape[2] != 2:
             raise InputError(f"flow must have shape (H, W, 2), got {flow.shape}")
         p = self.path(index)
-        fd, tmp = tempfile.mkstemp(prefix=p.stem + ".", suffix=".tmp", dir=self.folder)
-        try:
-            with os.fdopen(fd, "wb") as fh:
+
+        def write(tmp):
+            with open(tmp, "wb") as fh:
                 np.savez(fh, flow=flow)
-            os.replace(tmp, p)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+
+        atomic_write(p, write)
         return p
 
     def flow(self, index: int, frame_cur: Any, frame_prev: Any) -> np.ndarray:
