@@ -16,6 +16,18 @@ def test_help_lists_commands():
         assert cmd in out.stdout
 
 
+def test_every_command_has_a_description_and_every_flag_a_help_text():
+    import argparse
+
+    from flowmocap.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    missing = [f"{name}: description" for name, p in sub.choices.items() if not p.description]
+    missing += [f"{name} {a.option_strings or a.dest}" for name, p in sub.choices.items()
+                for a in p._actions if a.help is None]
+    assert not missing, missing
+
+
 def test_demo_tracks_scores_and_points_to_the_next_commands(tmp_path, capsys):
     import imageio.v3 as iio
 
