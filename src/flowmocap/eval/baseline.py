@@ -47,14 +47,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flowmocap.version import __version__
 from flowmocap.body import JOINT_INDEX, BodyModel
+from flowmocap.body.capsules import pose_capsules, rest_capsules
+from flowmocap.body.lbs import rigid_transforms
 from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import INIT_JOINTS, InitSpec, fit_frame0, guess_translation
+from flowmocap.fit.lbfgs import minimise
 from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.geometry.rotations import axis_angle_to_matrix
 from flowmocap.io.results import read_result, write_motion, write_run
+from flowmocap.version import __version__
 
 #: The joints a 2D detector gives (LSP / DeepCut's 14), as SMPL joint names.
 KEYPOINT_JOINTS = INIT_JOINTS + ("neck", "head")
@@ -170,8 +174,6 @@ class Skeleton:
     """
 
     def __init__(self, model: BodyModel, betas: torch.Tensor):
-        from flowmocap.body.capsules import rest_capsules
-
         with torch.no_grad():
             out = model(betas=betas)
             self.rest_joints = out.rest_joints.detach()
@@ -180,9 +182,6 @@ class Skeleton:
 
     def __call__(self, pose: torch.Tensor, trans: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``pose (72,)``, ``trans (3,)`` -> ``joints (24, 3)``, ``transforms (1, 24, 4, 4)``."""
-        from flowmocap.body.lbs import rigid_transforms
-        from flowmocap.geometry.rotations import axis_angle_to_matrix
-
         rot = axis_angle_to_matrix(pose.reshape(1, 24, 3))
         joints, tf = rigid_transforms(rot, self.rest_joints, self.parents)
         top = torch.cat([tf[..., :3, :3], tf[..., :3, 3:] + trans.reshape(1, 1, 3, 1)], -1)
@@ -206,9 +205,6 @@ def fit_frame(skeleton: Skeleton, camera: PinholeCamera, start_pose: torch.Tenso
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final weighted energy terms.
     """
-    from flowmocap.body.capsules import pose_capsules
-    from flowmocap.fit.tracker import minimise
-
     ok = np.isfinite(keypoints).all(-1) & (confidence > 0)
     if ok.sum() < 4:
         raise InputError("fewer than 4 keypoints in this frame; the baseline needs at least hips and shoulders.")
