@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -30,6 +32,7 @@ def test_bench_quick_on_a_tiny_clip_writes_table_and_json(tmp_path, capsys):
         for k in ("local_cm", "global_cm", "mpjpe_cm", "accel_mm", "px2d", "s_per_frame"):
             assert row[k] is not None and row[k] >= 0, (method, k)
         assert row["local_cm"] < 30 and row["frames"] == 4
+    assert "detector3d" in entry  # None where MediaPipe sees no one in the tiny render
     md = (out / "bench.md").read_text()
     assert "| flowmocap |" in md and "| baseline |" in md and data["commit"] in md
     assert "| flowmocap |" in capsys.readouterr().out
@@ -70,3 +73,84 @@ def test_table_shows_null_metrics_as_dashes():
 def test_peak_memory_is_measured():
     mb, how = bench.peak_rss_mb()
     assert 10 < mb < 1e6 and how
+
+
+needs_prior_data = pytest.mark.skipif(not (bench.PRIOR_DATA / "index.csv").exists(),
+                                      reason=f"the diverse suite's clips are not here ({bench.PRIOR_DATA})")
+
+
+@needs_prior_data
+def test_diverse_suite_is_held_out_varied_and_seeded():
+    import csv
+
+    specs = bench.suite("diverse")
+    with (bench.PRIOR_DATA / "index.csv").open(newline="") as f:
+        rows = {r["file"]: r for r in csv.DictReader(f)}
+    assert len(specs) >= 16 and len({s.kind for s in specs}) >= 6
+    for s in specs:
+        rel = Path(s.motion).relative_to(bench.PRIOR_DATA).as_posix()
+        assert rows[rel]["split"] == "test" and int(rows[rel]["subject"]) in (2, 8, 13, 61)
+        assert 0.0 <= s.azimuth < 360.0 and s.fps == 60.0 and s.frames == 100 and s.size == "640x480"
+        # the window lies inside the clip (at 60 fps: twice its 30 fps frames, less one)
+        assert s.start == 0 or s.start + s.frames <= 2 * int(rows[rel]["frames"]) - 1
+    assert len({s.azimuth for s in specs}) == len(specs) and len({s.seed for s in specs}) == len(specs)
+    assert [s.name for s in bench.suite("diverse")] == [s.name for s in specs]  # deterministic
+
+
+@needs_prior_data
+def test_most_active_window_finds_the_motion(tmp_path):
+    from flowmocap.io.mocap import read_mocap, write_bvh
+
+    clip = read_mocap(bench.PRIOR_DATA / "cmu_mb" / "02_01.bvh")
+    # freeze every joint (root excluded) outside frames 40..59: the most active window is there
+    rot = clip.rotations.copy()
+    rot[:40, 1:] = rot[40, 1:]
+    rot[60:, 1:] = rot[59, 1:]
+    still = replace(clip, rotations=rot)
+    path = tmp_path / "still.bvh"
+    write_bvh(still, path)
+    start = bench.most_active_window(path, 20, 30.0)
+    assert 38 <= start <= 42
+    assert bench.most_active_window(path, 10_000, 30.0) == 0
+
+
+def test_summary_gives_medians_kinds_and_ratios():
+    def row(local, glob):
+        return {"local_cm": local, "global_cm": glob, "px2d": 1.0, "accel_mm": 2.0}
+
+    seqs = {f"c{i}": {"settings": {"kind": "walk" if i < 2 else "jump"},
+                      "flowmocap": row(2.0 + i, 3.0 + i), "baseline": row(8.0, 10.0 + 2 * i),
+                      "detector3d": {"local_cm": 4.0 + i, "global_cm": None, "px2d": None, "accel_mm": None}}
+            for i in range(3)}
+    s = bench.summarise({"sequences": seqs})
+    assert s["sequences"] == 3
+    assert s["median"]["flowmocap"]["local_cm"] == 3.0 and s["mean"]["baseline"]["global_cm"] == 12.0
+    assert s["ratios"]["global_vs_baseline"] == pytest.approx(4.0 / 12.0)
+    assert s["ratios"]["local_vs_detector3d"] == pytest.approx(3.0 / 5.0)
+    assert s["per_kind"]["walk"]["clips"] == 2 and s["per_kind"]["walk"]["flowmocap_local_cm"] == 2.5
+    assert s["median"]["detector3d"]["global_cm"] is None
+    md = "\n".join(bench.format_summary(s))
+    assert "| walk | 2 | 2.5 |" in md and "0.33" in md
+    assert bench.summarise({"sequences": {"c0": seqs["c0"]}}) == {}
+
+
+def test_detector_joints3d_maps_keypoints_and_puts_the_head_between_the_ears():
+    import numpy as np
+
+    from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.eval.scoring import detector_joints3d
+    from flowmocap.vision.auto import PersonTrack
+    from flowmocap.vision.detect import KEYPOINT_NAMES
+
+    T, K = 2, len(KEYPOINT_NAMES)
+    world = np.random.default_rng(0).normal(size=(T, K, 3))
+    conf = np.ones((T, K))
+    conf[0, KEYPOINT_NAMES.index("left_knee")] = 0.1  # unsure: left out
+    track = PersonTrack(np.zeros((T, K, 2)), conf, np.array([True, False]), [], {}, world)
+    j = detector_joints3d(track)
+    assert j.shape == (T, 24, 3)
+    assert np.allclose(j[0, JOINT_INDEX["right_wrist"]], world[0, KEYPOINT_NAMES.index("right_wrist")])
+    ears = world[0, [KEYPOINT_NAMES.index("left_ear"), KEYPOINT_NAMES.index("right_ear")]].mean(0)
+    assert np.allclose(j[0, JOINT_INDEX["head"]], ears)
+    assert np.isnan(j[0, JOINT_INDEX["left_knee"]]).all() and np.isnan(j[0, JOINT_INDEX["pelvis"]]).all()
+    assert np.isnan(j[1]).all()  # frame without the person

@@ -43,7 +43,7 @@ from flowmocap.body import JOINT_INDEX, load_body_model
 from flowmocap.errors import DataError, InputError
 from flowmocap.eval.baseline import KEYPOINT_JOINTS, BaselineConfig, detector_keypoints, run_baseline
 from flowmocap.eval.protocol import noisy_init
-from flowmocap.eval.scoring import COLUMNS, score_result
+from flowmocap.eval.scoring import COLUMNS, score_detector3d, score_result
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import parse_init
 from flowmocap.io.results import read_result, write_run
@@ -58,7 +58,21 @@ ROOT = Path(__file__).resolve().parents[3]
 SHARED = ROOT.parent / "shared" / "data"
 CMU_35_01 = SHARED / "mocap" / "cmu" / "35_01.amc"
 DAVIS = SHARED / "video" / "davis-dance-twirl"
-METHODS = ("flowmocap", "baseline")
+PRIOR_DATA = SHARED / "mocap" / "prior"
+METHODS = ("flowmocap", "baseline", "detector3d")
+
+#: The diverse suite: held-out CMU clips of ``mocap/prior`` (test subjects 2, 8, 13, 61,
+#: never used for training or tuning) and the kind of motion each shows. Chosen to
+#: cover every kind of motion the test split has, not by results.
+DIVERSE_CLIPS: tuple[tuple[str, str], ...] = (
+    ("cmu_mb/02_01.bvh", "walk"), ("cmu_mb/08_04.bvh", "walk"), ("cmu_mb/08_07.bvh", "walk"),
+    ("cmu_mb/02_03.bvh", "run"),
+    ("cmu_daz/13_11.bvh", "jump"), ("cmu_daz/13_39.bvh", "jump"), ("cmu_daz/13_42.bvh", "jump"),
+    ("cmu_mb/02_04.bvh", "balance"), ("cmu_daz/13_10.bvh", "reach"),
+    ("cmu_mb/02_05.bvh", "combat"), ("cmu_mb/02_07.bvh", "combat"),
+    ("cmu_mb/02_06.bvh", "bend"), ("cmu_mb/02_10.bvh", "everyday"),
+    ("cmu_daz/61_01.bvh", "dance"), ("cmu_daz/61_05.bvh", "dance"), ("cmu_daz/61_10.bvh", "dance"),
+)
 #: Keys of a method's entry in bench.json that are always present (None = not applicable).
 METRICS = ("local_cm", "global_cm", "mpjpe_cm", "accel_mm", "px2d", "iou", "s_per_frame")
 
@@ -75,6 +89,8 @@ class SyntheticSpec:
     azimuth: float         # degrees; 0 = front, 90 = side-on (body's left)
     seed: int = 0
     distance: float | None = None
+    start: int = 0         # first frame (at fps) of the motion
+    kind: str = ""         # kind of motion (the diverse suite's per-kind summary)
 
 
 @dataclass(frozen=True)
@@ -94,9 +110,57 @@ def suite(name: str, frames: int | None = None, size: str | None = None) -> list
         specs = [SyntheticSpec("cmu35_01-side", str(CMU_35_01), 130, "640x480", 60.0, 90.0, seed=0),
                  SyntheticSpec("cmu35_01-45deg", str(CMU_35_01), 130, "640x480", 60.0, 45.0, seed=0),
                  RealSpec("davis-dance-twirl", str(DAVIS / "JPEGImages"), str(DAVIS / "Annotations"))]
+    elif name == "diverse":
+        return diverse_specs(frames=frames or 100, size=size or "640x480")
     else:
-        raise InputError(f"unknown suite {name!r}; use 'quick' or 'full'.")
+        raise InputError(f"unknown suite {name!r}; use 'quick', 'full' or 'diverse'.")
     return [_override(s, frames, size) for s in specs]
+
+
+def most_active_window(path: str | Path, frames: int, fps: float) -> int:
+    """First frame (at ``fps``) of the ``frames``-frame window of a mocap clip in which
+    its joints move most relative to the root (sum of root-relative joint speeds), so a
+    short window of a long clip shows its motion rather than a pause; 0 when the clip is
+    not longer than the window."""
+    from flowmocap.io.mocap import read_mocap, resample
+
+    clip = resample(read_mocap(path), fps)
+    if clip.num_frames <= frames:
+        return 0
+    rel = clip.positions - clip.positions[:, :1]
+    speed = np.linalg.norm(np.diff(rel, axis=0), axis=-1).sum(-1)
+    total = np.convolve(speed, np.ones(frames - 1), mode="valid")
+    return int(np.argmax(total))
+
+
+def diverse_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0,
+                  data: str | Path | None = None) -> list:
+    """The ``diverse`` suite: :data:`DIVERSE_CLIPS` (held-out CMU clips of
+    ``mocap/prior``), each its most active ``frames``-frame window
+    (:func:`most_active_window`) at ``fps``, on a random body seen from a seeded random
+    azimuth (uniform in [0, 360) degrees; seed = the clip's position in the list).
+
+    Raises:
+        DataError: the data folder or a clip is missing, or a clip is not in the test split.
+    """
+    import csv
+
+    data = Path(data) if data is not None else PRIOR_DATA
+    index = data / "index.csv"
+    if not index.exists():
+        raise DataError(f"the diverse suite needs {index} (../shared/data/mocap/prior next to the repository).")
+    with index.open(newline="") as f:
+        split = {row["file"]: row.get("split", "") for row in csv.DictReader(f)}
+    specs = []
+    for seed, (rel, kind) in enumerate(DIVERSE_CLIPS):
+        if split.get(rel) != "test":
+            raise DataError(f"{rel} is not a test clip of {index}; the diverse suite uses held-out clips only.")
+        path = data / rel
+        azimuth = float(np.random.default_rng(seed).uniform(0.0, 360.0))
+        start = most_active_window(path, frames, fps)
+        specs.append(SyntheticSpec(f"{Path(rel).stem}-{kind}", str(path), frames, size, fps, round(azimuth, 1),
+                                   seed=seed, start=start, kind=kind))
+    return specs
 
 
 def mocap_specs(files: list[str], frames: int = 130, size: str = "640x480", fps: float = 60.0,
@@ -228,7 +292,7 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
         log(f"[{spec.name}] synthesising {spec.frames} frames {spec.size} at {spec.fps:g} fps, "
             f"azimuth {spec.azimuth:g}")
         kw = dict(fps=spec.fps, size=spec.size, betas="random", seed=spec.seed, azimuth=spec.azimuth,
-                  distance=spec.distance, flow=False, overwrite=True)
+                  distance=spec.distance, flow=False, overwrite=True, start=spec.start)
         try:
             synthesize(spec.motion, seq_dir, frames=spec.frames, **kw)
         except InputError as e:
@@ -240,7 +304,7 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
     init = noisy_init(seq.gt, frame=0, seed=spec.seed)
     (d / "init.json").write_text(json.dumps(init, indent=2))
     entry = {"settings": {**asdict(spec), "frames": len(seq), "baseline_keypoint_seed": spec.seed + 1}}
-    for method in METHODS:
+    for method in ("flowmocap", "baseline"):
         res = d / method
         if _finished(res):
             log(f"[{spec.name}] {method}: finished result found in {res}, not recomputed")
@@ -255,6 +319,10 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
         scores.pop("local_cm_per_frame", None)
         scores.pop("iou_per_frame", None)
         entry[method] = {**{k: scores.get(k) for k in METRICS}, **{k: v for k, v in scores.items() if k not in METRICS}}
+    det = score_detector3d(d / "flowmocap", seq)
+    if det is not None:
+        det.pop("local_cm_per_frame", None)
+    entry["detector3d"] = det
     return entry
 
 
@@ -353,10 +421,82 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
                                   tracker_config=tracker_config, baseline_config=baseline_config)
         entry["wall_s"] = round(time.perf_counter() - t0, 1)
         result["sequences"][spec.name] = entry
+        result["summary"] = summarise(result)
         _write(out_dir, result)
     log(format_table(result))
     _write(out_dir, result)
     return result
+
+
+#: Metrics summarised over a suite's synthetic sequences.
+SUMMARY_METRICS = ("local_cm", "global_cm", "px2d", "accel_mm")
+
+
+def summarise(result: dict) -> dict:
+    """Suite-level figures over the synthetic sequences of bench.json's ``sequences``:
+    per method, the median and mean of :data:`SUMMARY_METRICS`; per kind of motion, the
+    mean; and the ratios the generalisation targets are stated in (ours / baseline
+    global, ours / detector-3D local, each a ratio of medians). Empty when fewer than
+    two sequences have scores."""
+    rows = {n: e for n, e in result.get("sequences", {}).items()
+            if isinstance(e, dict) and isinstance(e.get("flowmocap"), dict) and e["flowmocap"].get("local_cm") is not None}
+    if len(rows) < 2:
+        return {}
+
+    def values(method, key, names=None):
+        v = [rows[n][method].get(key) for n in (names or rows) if isinstance(rows[n].get(method), dict)]
+        return np.array([x for x in v if x is not None], np.float64)
+
+    out: dict = {"sequences": len(rows), "median": {}, "mean": {}, "per_kind": {}}
+    for method in METHODS:
+        out["median"][method] = {k: (float(np.median(values(method, k))) if values(method, k).size else None)
+                                 for k in SUMMARY_METRICS}
+        out["mean"][method] = {k: (float(values(method, k).mean()) if values(method, k).size else None)
+                               for k in SUMMARY_METRICS}
+    kinds: dict[str, list[str]] = {}
+    for n, e in rows.items():
+        kinds.setdefault(e.get("settings", {}).get("kind") or "-", []).append(n)
+    for kind, names in kinds.items():
+        out["per_kind"][kind] = {"clips": len(names), **{
+            f"{method}_{k}": (float(values(method, k, names).mean()) if values(method, k, names).size else None)
+            for method in METHODS for k in ("local_cm", "global_cm")}}
+    med = out["median"]
+
+    def ratio(a, b):
+        return None if a is None or not b else a / b
+
+    out["ratios"] = {
+        "global_vs_baseline": ratio(med["flowmocap"]["global_cm"], med["baseline"]["global_cm"]),
+        "local_vs_detector3d": ratio(med["flowmocap"]["local_cm"], med["detector3d"]["local_cm"]),
+    }
+    return out
+
+
+def format_summary(summary: dict) -> list[str]:
+    """:func:`summarise`'s figures as Markdown lines (empty for no summary)."""
+    if not summary:
+        return []
+
+    def f(v, spec=".1f"):
+        return "--" if v is None else format(v, spec)
+
+    lines = [f"## Summary over {summary['sequences']} sequences", "",
+             "| method | median local cm | median global cm | mean local cm | mean global cm | median 2D px |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for method in METHODS:
+        md, mn = summary["median"][method], summary["mean"][method]
+        lines.append(f"| {method} | {f(md['local_cm'])} | {f(md['global_cm'])} | {f(mn['local_cm'])} | "
+                     f"{f(mn['global_cm'])} | {f(md['px2d'])} |")
+    r = summary["ratios"]
+    lines += ["", f"ours / baseline, median global: {f(r['global_vs_baseline'], '.2f')}; "
+              f"ours / detector-3D, median local: {f(r['local_vs_detector3d'], '.2f')}", "",
+              "| kind | clips | flowmocap local | flowmocap global | baseline local | baseline global | "
+              "detector-3D local |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for kind, k in sorted(summary["per_kind"].items()):
+        lines.append(f"| {kind} | {k['clips']} | {f(k['flowmocap_local_cm'])} | {f(k['flowmocap_global_cm'])} | "
+                     f"{f(k['baseline_local_cm'])} | {f(k['baseline_global_cm'])} | {f(k['detector3d_local_cm'])} |")
+    lines.append("")
+    return lines
 
 
 def _write(out_dir: Path, result: dict) -> None:
@@ -383,11 +523,13 @@ def _fmt(v, key) -> str:
 def format_table(result: dict) -> str:
     """bench.json as Markdown: one table per sequence (rows: methods), plus skips."""
     lines = [f"# flowmocap bench: suite `{result['suite']}`, commit `{result['commit']}`", ""]
+    lines += format_summary(result.get("summary") or {})
     for name, entry in result["sequences"].items():
         s = entry.get("settings", {})
         if "motion" in s:
-            desc = (f"{Path(s['motion']).name}, {s['frames']} frames, {s['size']}, {s['fps']:g} fps, "
-                    f"azimuth {s['azimuth']:g} deg, seed {s['seed']}")
+            desc = (f"{Path(s['motion']).name}, {s['frames']} frames from {s.get('start', 0)}, {s['size']}, "
+                    f"{s['fps']:g} fps, azimuth {s['azimuth']:g} deg, seed {s['seed']}"
+                    + (f", {s['kind']}" if s.get("kind") else ""))
         else:
             desc = s.get("frames_dir", "")
         lines.append(f"## {name} ({desc})")
@@ -399,6 +541,8 @@ def format_table(result: dict) -> str:
         lines.append("|---|" + "---:|" * len(COLUMNS))
         for method in METHODS:
             row = entry.get(method)
+            if row is None and method == "detector3d":
+                continue
             if row is None:
                 lines.append(f"| {method} | " + " | ".join("--" for _ in COLUMNS) + " |")
                 continue
@@ -407,6 +551,8 @@ def format_table(result: dict) -> str:
     lines.append("local/global: mean 3D error on 13 joints after per-frame / per-sequence similarity Procrustes; "
                  "MPJPE: root-relative, no alignment; accel: acceleration error (world frame, at the clip's fps); "
                  "2D px: projected joints vs ground truth; IoU: fitted silhouette vs mask; s/frame: median per "
-                 "tracked frame (flowmocap: observed flow included; init excluded). `--` = not applicable. "
+                 "tracked frame (flowmocap: observed flow included; init excluded). detector3d: MediaPipe's own "
+                 "3D joints (world landmarks) of the rendered frames, head = middle of the ears, scored on the frames "
+                 "where it gives all 13 joints (per-frame alignment only). `--` = not applicable. "
                  "Settings in bench.json.")
     return "\n".join(lines)

@@ -115,6 +115,72 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     return out
 
 
+def detector_joints3d(track) -> np.ndarray:
+    """The detector's own 3D joints of every frame in SMPL joint order.
+
+    Args:
+        track: a :class:`~flowmocap.vision.auto.PersonTrack` with ``world`` keypoints
+            (MediaPipe's world landmarks, metres, hip-centred, in the detector's axes).
+
+    Returns:
+        ``(T, 24, 3)`` metres: the 12 limb joints the detector names, and SMPL's ``head``
+        as the middle of the two ears; NaN for every other joint, for keypoints with
+        confidence < 0.3 and for frames without the person.
+    """
+    from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS
+
+    T = len(track.found)
+    out = np.full((T, 24, 3), np.nan)
+    if track.world is None:
+        return out
+    world = np.asarray(track.world, np.float64)
+    ok = (np.asarray(track.confidence) >= 0.3) & np.asarray(track.found)[:, None]
+    for k, name in enumerate(SMPL_KEYPOINTS):
+        out[:, JOINT_INDEX[name]] = np.where(ok[:, k, None], world[:, k], np.nan)
+    ears = [KEYPOINT_NAMES.index("left_ear"), KEYPOINT_NAMES.index("right_ear")]
+    both = ok[:, ears].all(1)
+    out[:, JOINT_INDEX["head"]] = np.where(both[:, None], world[:, ears].mean(1), np.nan)
+    return out
+
+
+def score_detector3d(result: str | Path, seq) -> dict | None:
+    """The detector-3D row: the detector's own 3D joints stored with a result
+    (``result/detections``, e.g. for ``E_d``) scored against the sequence's ground truth
+    like a fit, on the frames where the detector gives all 13 evaluation joints.
+
+    Returns:
+        dict with ``local_cm`` (per-frame similarity Procrustes, 13 joints, cm),
+        ``frames`` (frames scored), ``coverage`` (their share of the result's frames),
+        ``local_cm_per_frame``; the other headline metrics ``None`` (the detector gives
+        no trajectory, no body, and its 2D joints are scored elsewhere); or None when the
+        result has no stored 3D detections.
+    """
+    from flowmocap.body.skeleton import EVAL_JOINTS
+    from flowmocap.io.sequence import Sequence, load_sequence
+    from flowmocap.vision.auto import load_detections
+
+    track = load_detections(result)
+    if track is None or track.world is None:
+        return None
+    if not isinstance(seq, Sequence):
+        seq = load_sequence(seq)
+    if "joints3d" not in seq.gt:
+        return None
+    det = detector_joints3d(track)
+    T = min(len(det), len(seq))
+    det = det[:T]
+    ref = np.asarray(seq.gt["joints3d"], np.float64)[:T]
+    use = np.isfinite(det[:, list(EVAL_JOINTS)]).all(axis=(1, 2))
+    out: dict = {k: None for k, _ in COLUMNS}
+    out.update(frames=int(use.sum()), coverage=float(use.mean()) if T else 0.0, local_cm_per_frame=[])
+    if use.any():
+        local = m.local_procrustes_error(det[use], ref[use])
+        out["local_cm"] = 100 * _mean(local)
+        out["local_cm_per_frame"] = (100 * local).round(2).tolist()
+    return out
+
+
 def format_scores(scores: dict) -> str:
     """The headline metrics as aligned ``name value`` lines."""
     lines = []
