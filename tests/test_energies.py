@@ -488,3 +488,103 @@ def test_pose_prior_on_joints_without_the_root():
     w = torch.rand(23, generator=g, dtype=torch.float64)
     torch.testing.assert_close(pose_prior_energy(pose[:, 3:], ref[3:], w),
                                pose_prior_energy(pose, ref, torch.cat([torch.zeros(1, dtype=torch.float64), w])))
+
+
+# ------------------------------------------------------------ E_3d: detector 3D joints
+
+
+def _similar(x, scale=0.7, angle=0.9, shift=(0.3, -1.0, 2.0)):
+    """``x (24, 3)`` under a similarity: scaled, rotated about (1, 2, 3), moved."""
+    from scipy.spatial.transform import Rotation
+
+    R = torch.as_tensor(Rotation.from_rotvec(angle * np.array([1.0, 2.0, 3.0]) / math.sqrt(14)).as_matrix())
+    return scale * x @ R.T + torch.tensor(shift, dtype=x.dtype)
+
+
+def test_pseudo_huber_is_quadratic_near_zero_and_linear_far_away():
+    from flowmocap.fit.energies import pseudo_huber
+
+    s = 0.1
+    r = torch.tensor([1e-4, 0.01, 0.1, 1.0, 10.0, 100.0], dtype=torch.float64)
+    rho = pseudo_huber(r * r, s)
+    torch.testing.assert_close(rho, 2 * s * s * (torch.sqrt(1 + (r / s) ** 2) - 1))  # the textbook form
+    assert abs(rho[0] / r[0] ** 2 - 1) < 1e-6  # ~ r^2 below the scale
+    torch.testing.assert_close(rho[-1] / (2 * s * r[-1]), torch.tensor(1.0, dtype=torch.float64), rtol=2e-3, atol=0)
+    # the slope never vanishes: d rho / d r -> 2 s (Geman-McClure's -> 0)
+    x = r.clone().requires_grad_()
+    pseudo_huber(x * x, s).sum().backward()
+    assert (x.grad[2:] > s).all() and abs(float(x.grad[-1]) - 2 * s) < 1e-3
+
+
+def test_detector_joints_residuals_closed_form():
+    """Zero for any similarity image of the model's joints; otherwise the pseudo-Huber
+    cost of each joint's distance after the weighted similarity alignment of the
+    detector onto the model; joints with confidence 0 (or NaN) take no part."""
+    from flowmocap.fit.energies import detector_joints_energy, detector_joints_residuals, pseudo_huber
+    from flowmocap.geometry.procrustes import similarity_procrustes
+
+    g = torch.Generator().manual_seed(21)
+    model = torch.randn(1, 24, 3, generator=g, dtype=torch.float64)
+    conf = torch.rand(24, generator=g, dtype=torch.float64) * 0.5 + 0.5
+    obs = _similar(model[0])
+    assert detector_joints_residuals(model, obs, conf).abs().max() < 1e-10
+    bent = obs.clone()
+    bent[J["left_ankle"]] += torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64)  # an ankle moved in depth
+    r = detector_joints_residuals(model, bent, conf, scale=0.1)
+    assert r.shape == (1, 72)
+    aligned = similarity_procrustes(bent, model[0], weights=conf)[0]
+    d2 = ((model[0] - aligned) ** 2).sum(-1)
+    expected = (conf * pseudo_huber(d2, 0.1)).sum()
+    torch.testing.assert_close(detector_joints_energy(model, bent, conf, 0.1)[0], expected)
+    torch.testing.assert_close((r ** 2).sum(), expected)
+    per_joint = (r.reshape(24, 3) ** 2).sum(-1)
+    torch.testing.assert_close(per_joint, conf * pseudo_huber(d2, 0.1))
+    # a joint the detector does not give (confidence 0, or NaN) changes nothing
+    off, junk = conf.clone(), bent.clone()
+    off[J["right_wrist"]] = 0.0
+    junk[J["right_wrist"]] = torch.tensor([5.0, float("nan"), 1.0])
+    torch.testing.assert_close(detector_joints_energy(model, junk, off), detector_joints_energy(model, bent, off))
+    # fewer than MIN_DETECTOR_JOINTS confident joints: nothing to align, no term
+    few = torch.zeros(24, dtype=torch.float64)
+    few[:3] = 1.0
+    assert (detector_joints_residuals(model, bent, few) == 0).all()
+
+
+def test_detector_joints_term_keeps_pulling_a_flipped_limb_where_limb_depth_lets_go(body):
+    """The ankle of a shin swung ever further out of place: E_d's cost saturates at
+    c sigma^2 and its gradient vanishes, E_3d's cost keeps growing about linearly."""
+    from flowmocap.fit.energies import detector_joints_energy, limb_depth_energy
+
+    truth = body(pose=_pose(("left_knee", 0, 20.0))).joints  # (1, 24, 3), a slightly bent knee
+    conf = torch.ones(24, dtype=torch.float64)
+    e3, ed = [], []
+    for deg in (40, 80, 120, 160):
+        x = body(pose=_pose(("left_knee", 0, 20.0 - deg))).joints
+        e3.append(float(detector_joints_energy(x, truth[0], conf, 0.1)))
+        ed.append(float(limb_depth_energy(x, truth[0], conf, 0.3)))
+    steps3 = np.diff(e3)
+    assert (steps3 > 0).all() and steps3[-1] > 0.3 * steps3[0]  # still climbing at the end
+    assert max(ed) <= 0.3 ** 2 + 1e-9  # one limb moved: E_d never exceeds c sigma^2
+
+
+def test_detector_joints_gradient_matches_finite_differences():
+    from flowmocap.fit.energies import detector_joints_residuals
+
+    g = torch.Generator().manual_seed(22)
+    joints = torch.randn(2, 24, 3, generator=g, dtype=torch.float64).requires_grad_()
+    obs = torch.randn(24, 3, generator=g, dtype=torch.float64)
+    conf = torch.rand(24, generator=g, dtype=torch.float64)
+    conf[[0, 3, 9]] = 0.0
+    # through the similarity alignment (its SVD) as well as the robust cost
+    assert torch.autograd.gradcheck(lambda j: detector_joints_residuals(j, obs, conf, 0.2), (joints,))
+
+
+def test_detector_joints_input_errors():
+    from flowmocap.fit.energies import detector_joints_residuals
+
+    x = torch.zeros(1, 24, 3, dtype=torch.float64)
+    obs, conf = torch.zeros(24, 3), torch.ones(24)
+    for args, kw in (((x[0], obs, conf), {}), ((x, obs[:12], conf), {}), ((x, obs, conf[:5]), {}),
+                     ((x, obs, -conf), {}), ((x, obs, conf), {"scale": 0.0}), ((x, obs, conf), {"scale": float("nan")})):
+        with pytest.raises(InputError):
+            detector_joints_residuals(*args, **kw)

@@ -70,6 +70,8 @@ _RANGES: dict[str, str] = {
     "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
+    "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
+    "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
@@ -107,11 +109,17 @@ class TrackerConfig:
     limb_depth_sigma: float = 0.3      # its Geman-McClure scale (a difference of sines)
     capsule_grid_step: int = 8         # px between exact samples of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c: "capsules" (paper) or the "mesh" itself
+    detector3d_weight: float = 0.0     # lambda_3d, E_3d: detector's 3D joints after a similarity; 0: off
+    detector3d_scale: float = 0.1      # its pseudo-Huber scale, m: quadratic below, linear above
+    flip_test: bool = False            # per frame, try each limb mirrored in depth; keep it if E is lower
+    flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
     reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
     reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
+    reinit_max_joint3d_error: float = 0.0  # m: a frame is 3D-bad above this aligned joint error; 0: off
+    reinit_3d_patience: int = 5        # 3D-bad frames in a row before a refit
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"      # flowmocap.vision.FLOW_METHODS; DIS refined to full resolution
     flow_in_mask: bool = True          # E_f only on mask pixels: the background's flow is not the body's

@@ -14,6 +14,8 @@ E_sp interpenetration        sum_pairs max(r_a + r_b - d_ab - tol, 0)^2      m^2
 E_c  silhouette coverage     sum_p (a S_M C_I + (1-a) S_I C_M)^2 / |S_I|     px^2
 E_c  (mesh form)             a mean_v C_I(x_v)^2 + (1-a) mean_p C_M(p)^2     px^2
 keypoints (init)             sum_j c_j GM_sigma(x_j - x_obs_j)                px^2
+E_d  limb depth              sum_l c_l GM_sigma(u_z,l - o_z,l)                --
+E_3d detector 3D joints      sum_j c_j PH_s(|x_j - (s R o_j + t)|)          m^2
 pose prior (init)            sum_i w_i (theta_i - theta_ref_i)^2             rad^2
 shape prior (init)           ||beta||^2                                      --
 E_theta                      sum_i w_i (theta_i - theta_prev_i)^2            rad^2 (root:
@@ -42,6 +44,7 @@ from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import rotation_terms as rt
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from flowmocap.render.capsules import capsule_signed_distance, project_capsules
 from flowmocap.vision.masks import chamfer_map
@@ -66,6 +69,11 @@ __all__ = [
     "limb_depth_residuals",
     "limb_depth_energy",
     "world_limb_depth_energy",
+    "MIN_DETECTOR_JOINTS",
+    "pseudo_huber",
+    "detector_joints_residuals",
+    "detector_joints_energy",
+    "world_detector_joints_energy",
     "pose_prior_residuals",
     "pose_prior_energy",
     "shape_prior_residuals",
@@ -810,6 +818,107 @@ def world_limb_depth_energy(joints_world: torch.Tensor, camera: PinholeCamera, j
     3), conf (24,))`` in the camera's axes; ``(B,)``."""
     rot = torch.tensor(np.asarray(camera.R), dtype=joints_world.dtype, device=joints_world.device)
     return limb_depth_energy(joints_world @ rot.T, *joints3d, sigma=sigma)
+
+
+# ------------------------------------------------------- 3D joints of a detector
+
+#: Fewest confident detected joints :func:`detector_joints_residuals` aligns and compares
+#: (a similarity in 3D needs 3 points off one line; 4 keep it from a near-degenerate fit).
+MIN_DETECTOR_JOINTS = 4
+
+
+def pseudo_huber(r2: torch.Tensor, scale: float) -> torch.Tensor:
+    """The pseudo-Huber (Charbonnier) cost of squared distances ``r2``:
+    ``rho = 2 s^2 (sqrt(1 + r2 / s^2) - 1)``, ``~ r2`` for ``r << s``, ``~ 2 s r`` for
+    ``r >> s`` (unit of ``r2``; ``scale`` s in the unit of ``r``). Unlike Geman-McClure it
+    never saturates: its slope tends to ``2 s`` per unit of distance, so a large error
+    keeps a pull."""
+    return r2 * (2.0 / (1.0 + torch.sqrt(1.0 + r2 / (scale * scale))))
+
+
+def detector_joints_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any,
+                              scale: float = 0.1) -> torch.Tensor:
+    """Residuals between the model's joints and a detector's 3D joints after a per-frame
+    similarity alignment, with a robust cost that keeps pulling when the error is large
+    (an extension of the paper, against the monocular depth ambiguity).
+
+    The detected joints ``o_j`` are aligned onto the model's ``x_j`` by the
+    confidence-weighted similarity (scale, rotation, translation; Umeyama's closed form,
+    :func:`flowmocap.geometry.procrustes.similarity_procrustes`) that minimises
+    ``sum_j c_j |x_j - (s R o_j + t)|^2``: the comparison is root-relative (translation
+    free: centred on the confident joints' weighted mean rather than on one joint),
+    free of the detector's scale and of its global orientation, so it says only how
+    the body is bent, e.g. a knee or elbow bent towards the camera instead of away. The
+    alignment is part of the function and is differentiated through (exact gradient;
+    the 3x3 SVD is taken in float64). The cost of each joint's error ``d_j = x_j - (s R
+    o_j + t)`` is ``c_j rho(|d_j|)`` with ``rho`` the pseudo-Huber cost
+    :func:`pseudo_huber` at ``scale`` (quadratic below ``scale``, linear above, never
+    saturating: unlike ``E_d`` it still pulls a limb that has flipped). The residual of
+    a joint is the 3-vector ``sqrt(c_j) d_j sqrt(rho / |d_j|^2)``, smooth through 0,
+    whose squared norm is ``c_j rho(|d_j|)``.
+
+    Args:
+        joints_cam: ``(B, 24, 3)`` model joints in the camera's axes (metres; any origin:
+            the alignment's translation absorbs it; world joints work alike when the
+            detector's joints are in world axes).
+        joints3d_obs: ``(24, 3)`` detected joints in the camera's axes (any origin, any
+            scale); non-finite joints count as missing.
+        confidence: ``(24,)`` per joint, clipped to ``[0, 1]`` (0: not detected).
+        scale: pseudo-Huber scale in metres: errors below it cost their square, errors
+            above it about ``2 scale |d|``.
+
+    Returns:
+        ``(B, 72)`` residuals in metres, ``[x0, y0, z0, x1, ...]``; all zero when fewer
+        than :data:`MIN_DETECTOR_JOINTS` joints are confident (nothing to align).
+
+    Raises:
+        InputError: wrong shapes, negative or non-finite confidences, ``scale <= 0``.
+    """
+    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
+        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
+    obs = torch.as_tensor(np.asarray(joints3d_obs, np.float64) if not isinstance(joints3d_obs, torch.Tensor)
+                          else joints3d_obs, dtype=torch.float64)
+    conf = torch.as_tensor(np.asarray(confidence, np.float64) if not isinstance(confidence, torch.Tensor)
+                           else confidence, dtype=torch.float64)
+    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
+        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {tuple(obs.shape)}, "
+                         f"{tuple(conf.shape)}")
+    if not torch.isfinite(conf).all() or (conf < 0).any():
+        raise InputError("confidence must be finite and non-negative (0: joint not detected)")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise InputError(f"scale must be a positive number of metres; got {scale!r}")
+    B = joints_cam.shape[0]
+    ok = torch.isfinite(obs).all(-1)
+    c = torch.where(ok, conf.clamp(0.0, 1.0), torch.zeros_like(conf))
+    if int((c > 0).sum()) < MIN_DETECTOR_JOINTS:
+        return joints_cam.new_zeros(B, 3 * NUM_JOINTS) * joints_cam.reshape(B, -1)
+    obs = torch.where(ok[:, None], obs, torch.zeros_like(obs))
+    x = joints_cam.to(torch.float64)
+    aligned = similarity_procrustes(obs.expand(B, NUM_JOINTS, 3), x, weights=c)[0]
+    d = x - aligned
+    r2 = (d * d).sum(-1, keepdim=True)
+    res = torch.sqrt(c)[:, None] * d * torch.sqrt(2.0 / (1.0 + torch.sqrt(1.0 + r2 / (scale * scale))))
+    return res.reshape(B, 3 * NUM_JOINTS).to(joints_cam.dtype)
+
+
+def detector_joints_energy(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any,
+                           scale: float = 0.1) -> torch.Tensor:
+    """Sum of squared :func:`detector_joints_residuals`, ``(B,)`` in m^2:
+    ``sum_j c_j rho(|d_j|)``."""
+    return _sum_sq(detector_joints_residuals(joints_cam, joints3d_obs, confidence, scale))
+
+
+def world_detector_joints_energy(joints_world: torch.Tensor, camera: PinholeCamera, joints3d: tuple,
+                                 scale: float = 0.1) -> torch.Tensor:
+    """The per-frame term ``E_3d``: :func:`detector_joints_energy` of world joints ``(B, 24,
+    3)`` turned into the camera's axes (its rotation; the alignment absorbs any
+    translation) against ``joints3d = (j3d (24, 3), conf (24,))`` in the camera's axes,
+    divided by the number of joints with ``conf > 0`` (m^2 per detected joint); ``(B,)``."""
+    rot = torch.tensor(np.asarray(camera.R), dtype=joints_world.dtype, device=joints_world.device)
+    j3d, conf = joints3d
+    n = max(int((torch.as_tensor(np.asarray(conf, np.float64) if not isinstance(conf, torch.Tensor) else conf)
+                 > 0).sum()), 1)
+    return detector_joints_energy(joints_world @ rot.T, j3d, conf, scale) / n
 
 
 # ---------------------------------------------------------------------------- priors

@@ -1,6 +1,7 @@
 """The per-frame objective (paper Eq. 4 plus our extensions) and what it is evaluated on.
 
     E = l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j] [+ l_a E_a] [+ l_d E_d]
+        [+ l_3d E_3d]
 
 ``E_f`` compares the observed backward flow F_o(i, i-1) with the flow rendered from the
 model at frame i (the variables) to the model at frame i-1 (fixed); ``E_c`` the body's
@@ -9,7 +10,9 @@ interpenetration; ``E_theta`` closeness to a reference pose (the Kalman predicti
 tracking). Not in the paper: ``E_j`` pulls the projected joints towards a detector's 2D
 joints (real video), ``E_a`` every joint but the root towards its rotation in the
 track's first frame, ``E_d`` each limb's direction in depth towards a detector's 3D
-joints. :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
+joints, ``E_3d`` the model's joints towards a detector's 3D joints after a per-frame
+similarity alignment, with a cost that keeps pulling a limb that has flipped in depth
+(where ``E_d`` saturates). :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
 faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observations.
 """
 
@@ -30,7 +33,7 @@ from flowmocap.render import flow_loss, flow_target, prepare_faces
 
 #: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
-                "limb_depth")
+                "limb_depth", "detector3d")
 
 
 @dataclass
@@ -83,7 +86,7 @@ class FrameData:
     targets: list = field(default_factory=list)  # one FlowTarget per stage
     keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
     anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a, or None
-    joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d, or None
+    joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d and E_3d, or None
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
@@ -173,6 +176,9 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.joints3d is not None and cfg.limb_depth_weight > 0:
         terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
             out.joints, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
+    if data.joints3d is not None and cfg.detector3d_weight > 0:
+        terms["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(
+            out.joints, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
