@@ -186,12 +186,14 @@ def test_the_depth_ambiguity_settings_default_to_off_and_are_checked():
     """E_3d, the depth-flip test and the 3D re-initialisation criterion are off unless
     asked for, so results are those of before; their values are checked like the others."""
     cfg = TrackerConfig()
-    assert (cfg.detector3d_weight, cfg.flip_test, cfg.flip_iterations, cfg.reinit_max_joint3d_error) == (0.0, False, 0, 0.0)
+    assert (cfg.detector3d_weight, cfg.init_detector3d_weight, cfg.flip_test, cfg.flip_iterations,
+            cfg.reinit_max_joint3d_error) == (0.0, 0.0, False, 0, 0.0)
     assert TrackerConfig.load({"detector3d_weight": 50, "detector3d_scale": 0.05, "flip_test": True,
                                "flip_iterations": 3, "reinit_max_joint3d_error": 0.1,
                                "reinit_3d_patience": 2}).flip_iterations == 3
     for bad, pattern in (({"detector3d_weight": -1.0}, r"'detector3d_weight' must be a number >= 0"),
                          ({"detector3d_scale": 0.0}, r"'detector3d_scale' must be a number > 0"),
+                         ({"init_detector3d_weight": True}, r"'init_detector3d_weight' must be a finite number"),
                          ({"flip_test": 1}, r"'flip_test' must be true or false"),
                          ({"flip_iterations": -1}, r"'flip_iterations' must be an integer >= 0"),
                          ({"flip_iterations": 2.0}, r"'flip_iterations' must be an integer >= 0"),

@@ -116,3 +116,90 @@ def test_a_refit_must_not_lose_the_silhouette_for_the_joints():
     assert not _better(before, {"iou": 0.77, "joint_error": 0.30})
     assert _better({"iou": None, "joint_error": 0.2}, {"iou": None, "joint_error": 0.1})
     assert not _better({"iou": None, "joint_error": 0.1}, {"iou": None, "joint_error": 0.2})
+
+
+# ------------------------------------------------------------- the 3D criterion
+
+
+def test_joint3d_disagreement_closed_form():
+    """Zero for any similarity image of the model's joints; one joint moved by d among n
+    confident ones gives a mean between d / n and a few d / n (the alignment, fitted with
+    it, spreads its error over the others); too few confident joints give None."""
+    from scipy.spatial.transform import Rotation
+
+    from flowmocap.fit.reinit import joint3d_disagreement
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(24, 3)) * 0.3
+    conf = np.zeros(24)
+    conf[[1, 2, 4, 5, 7, 8, 16, 17, 18, 19, 20, 21]] = 0.9  # the 12 joints a detector gives
+    obs = 0.6 * x @ Rotation.from_rotvec([0.3, -1.0, 0.4]).as_matrix().T + [1.0, 2.0, 3.0]
+    assert joint3d_disagreement(x, obs, conf) < 1e-9
+    moved = obs.copy()
+    moved[7] += [0.0, 0.0, 0.6 * 0.5]  # the ankle half a metre (model scale) out in depth
+    err = joint3d_disagreement(x, moved, conf)
+    assert 0.5 / 12 < err < 0.5 / 12 * 2.5
+    low = conf.copy()
+    low[7] = 0.2  # below the confidence threshold: not compared
+    assert joint3d_disagreement(x, moved, low) < err
+    few = np.zeros(24)
+    few[[1, 2, 4]] = 1.0
+    assert joint3d_disagreement(x, obs, few) is None
+
+
+def test_the_3d_criterion_is_off_by_default(setup):
+    seq, track, scene = setup
+    mon = ReinitMonitor(track, TrackerConfig())
+    assert mon.max_joint3d_error == 0.0
+    mon(2, _state(seq, 2), scene, seq.mask(2))
+    assert "joint3d_error" not in mon.scores[2] and mon.verdicts3d[2] is None
+
+
+def _crouched(seq, i):
+    """Frame ``i``'s truth with both thighs raised and both knees bent (a crouch), the body
+    lowered to keep the feet where they were roughly."""
+    from flowmocap.body import JOINT_INDEX as J
+    from flowmocap.fit.objective import FrameState
+
+    pose = torch.as_tensor(seq.gt["poses"][i]).clone()
+    for side in ("left", "right"):
+        pose[3 * J[f"{side}_hip"]] -= 1.3
+        pose[3 * J[f"{side}_knee"]] += 1.6
+    return FrameState(pose, torch.as_tensor(seq.gt["trans"][i]) + torch.tensor([0.0, -0.25, 0.0]))
+
+
+def test_a_run_of_3d_bad_frames_is_reinitialised(setup, monkeypatch):
+    """The detector's 3D joints are the truth; the tracked frames are crouched. With the
+    3D criterion on, ``patience3d`` such frames in a row are refitted (the 2D criteria's
+    patience is out of reach here), and the refit's 3D joints are closer."""
+    seq, track, scene = setup
+    truth = {i: (np.asarray(seq.gt["joints3d"][i]) @ np.asarray(seq.camera.R).T, np.full(24, 0.9))
+             for i in range(len(seq))}
+    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None: truth[i])
+    cfg = TrackerConfig(reinit_max_joint3d_error=0.08, reinit_3d_patience=2, reinit_patience=10,
+                        reinit_iterations=15, init_detector3d_weight=1e5)
+    mon = ReinitMonitor(track, cfg)
+    assert mon(2, _state(seq, 2), scene, seq.mask(2)) is None
+    assert mon.scores[2]["joint3d_error"] < 0.02 and mon.verdicts3d[2] is False
+    assert mon(3, _crouched(seq, 3), scene, seq.mask(3)) is None  # one 3D-bad frame: patience 2
+    assert mon.verdicts3d[3] is True  # (the 2D criteria's patience, 10, is not reached)
+    res = mon(4, _crouched(seq, 4), scene, seq.mask(4))
+    assert res is not None
+    state, info = res
+    assert "3D joints" in info["why"]
+    assert info["after"]["joint3d_error"] < 0.5 * info["before"]["joint3d_error"]
+    assert "bad3d" not in info["after"]
+
+
+def test_a_3d_refit_must_still_fit_the_image():
+    from flowmocap.fit.reinit import _better_3d
+
+    before = {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.15}
+    assert _better_3d(before, {"iou": 0.79, "joint_error": 0.06, "joint3d_error": 0.05}, 0.15)
+    assert not _better_3d(before, {"iou": 0.79, "joint_error": 0.06, "joint3d_error": 0.16}, 0.15)  # no closer
+    assert not _better_3d(before, {"iou": 0.70, "joint_error": 0.04, "joint3d_error": 0.05}, 0.15)  # lost IoU
+    assert not _better_3d(before, {"iou": 0.85, "joint_error": 0.20, "joint3d_error": 0.05}, 0.15)  # 2D off
+    assert _better_3d({"iou": None, "joint_error": None, "joint3d_error": 0.2},
+                      {"iou": None, "joint_error": None, "joint3d_error": 0.1}, 0.15)
+    assert not _better_3d({"iou": 0.8, "joint_error": 0.05, "joint3d_error": None},
+                          {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.1}, 0.15)

@@ -561,3 +561,37 @@ def test_limb_depth_term_in_the_frame_energy(clip, model, tmp_path):
                              joints3d=joints3d)
     assert sorted(asked) == [2, 3]
     assert len(terms) == 2 and all(np.isfinite(t["limb_depth"]) for t in terms)  # frames 2 and 3 have the term
+
+
+def test_the_tracker_flips_a_limb_back_when_asked(clip, model):
+    """``flip_test``: a track whose previous frame has the left shin mirrored in depth (as
+    after a depth flip; same 2D points) gets it flipped back on the next frame where the
+    detector's 3D joints (E_3d) say so, and records the flip; without ``flip_test`` the
+    step is that of before (no flip events)."""
+    from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.fit.flip import flipped_pose, limb_name
+
+    seq = load_sequence(clip)
+    gt = seq.gt
+    scene = Scene(model, _f32(gt["betas"])[None], seq.camera)
+    shin = (JOINT_INDEX["left_knee"], JOINT_INDEX["left_ankle"])
+    first = FrameState(_f32(gt["poses"][0]), _f32(gt["trans"][0]))
+    second = FrameState(_f32(gt["poses"][1]), _f32(gt["trans"][1]))
+    second.pose = flipped_pose(scene, second.pose, second.trans, shin)
+    found = {}
+    for flip in (False, True):
+        cfg = TrackerConfig(kalman=False, flip_test=flip, detector3d_weight=50.0, iterations=5, limb_depth_weight=0.0)
+        tracker = SequenceTracker(scene, cfg)
+        tracker.start(first, second, anchored=False)
+        data = frame_data(seq.mask(2), None, cfg, float("nan"))
+        data.joints3d = _camera_joints3d(seq, 2)
+        res = tracker.step(2, seq.mask(2), data)
+        found[flip] = [e for e in res.events if e["event"] == "limb flipped in depth"]
+        with torch.no_grad():
+            j = scene.camera.to_camera(scene.forward(res.state.pose, res.state.trans)[0].joints[0]).numpy()
+        true = np.asarray(gt["joints3d"][2]) @ np.asarray(seq.camera.R).T
+        d, t = j[shin[1]] - j[shin[0]], true[shin[1]] - true[shin[0]]
+        found[flip, "cos"] = float(d @ t / np.linalg.norm(d) / np.linalg.norm(t))
+    assert found[False] == []
+    assert [e["limb"] for e in found[True]] == [limb_name(shin)] and found[True][0]["frame"] == 2
+    assert found[True, "cos"] > 0.95 and found[True, "cos"] > found[False, "cos"]

@@ -76,7 +76,7 @@ _RANGES: dict[str, str] = {
     "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
     "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
-    "init_shape_prior_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
+    "init_shape_prior_weight": _AT_LEAST_0, "init_detector3d_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
     "init_flow_iterations": _AT_LEAST_1,
 }
 _CHOICES: dict[str, tuple[str, ...]] = {
@@ -133,6 +133,7 @@ class TrackerConfig:
     init_pose_prior_weight: float = 200.0  # towards the start pose when the init states no pose
     init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
+    init_detector3d_weight: float = 0.0   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
     init_iterations: int = 60          # L-BFGS iterations per init step
     init_flow_iterations: int = 30     # L-BFGS iterations of the init's flow step (frames 0 and 1)
 

@@ -202,8 +202,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
             for every joint but the root.
         joints3d: the detector's 3D joints of the frame, ``(j3d (24, 3) metres in the
             camera's axes, conf (24,))``, for ``E_d`` (``cfg.limb_depth_weight``) and
-            ``E_3d`` (``cfg.detector3d_weight``, as in the per-frame objective) in every
-            step after the translation alone; None for none.
+            ``E_3d`` (``cfg.init_detector3d_weight``: this fit's 2D-joint term is in px^2
+            summed over the joints, hundreds of times the per-frame objective's scale,
+            so ``E_3d`` has its own weight here) in every step; None for none.
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
@@ -235,9 +236,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         if joints3d is not None and cfg.limb_depth_weight > 0:
             t["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(out.joints, camera, joints3d,
                                                                                  cfg.limb_depth_sigma)[0]
-        if joints3d is not None and cfg.detector3d_weight > 0:
-            t["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(out.joints, camera, joints3d,
-                                                                                      cfg.detector3d_scale)[0]
+        if joints3d is not None and cfg.init_detector3d_weight > 0:
+            t["detector3d"] = cfg.init_detector3d_weight * en.world_detector_joints_energy(
+                out.joints, camera, joints3d, cfg.detector3d_scale)[0]
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:

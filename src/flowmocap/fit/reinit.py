@@ -15,10 +15,23 @@ alone are misled by a detector's glitch). The thresholds are the config's ``rein
 settings. Frames without the person (no mask, too few confident joints) are neither good
 nor bad: they end a run of bad frames.
 
+A second, 3D criterion (off by default; ``reinit_max_joint3d_error`` > 0 turns it on): a
+frame is *3D-bad* when the model's joints and the detector's 3D joints, the detector's
+aligned onto the model by a confidence-weighted similarity, are further apart than that
+many metres (mean over the confident joints, :func:`joint3d_disagreement`: the fit
+has slid into a pose the detector does not see, e.g. a crouch whose 2D overlay still
+matches). After ``reinit_3d_patience`` 3D-bad frames in a row the frame is refitted the
+same way, always also from the upright body (the tracked pose is the one in doubt),
+with ``E_d`` and ``E_3d`` (when their weights are on) pulling towards the detector's 3D;
+the refit is kept when its 3D joints are closer to the detector's, at a silhouette IoU
+no more than 0.02 lower and 2D joints no worse than before or within
+``reinit_max_joint_error`` (:func:`_better_3d`).
+
 Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
 a resume it re-judges the frames before the resumed one by their stored 2D joints
 (``stored_joints2d``) against the detector's (the silhouette test needs the body
-rendered and is skipped for them), so a run of bad frames is not forgotten.
+rendered and is skipped for them), so a run of bad frames is not forgotten. The 3D
+criterion has no stored verdicts: a resume ends a run of 3D-bad frames.
 """
 
 from __future__ import annotations
@@ -33,11 +46,12 @@ from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import InitSpec, fit_to_joints, guess_translation
 from flowmocap.fit.objective import FrameState, Scene
+from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.render import body_mask
 from flowmocap.vision.auto import CONFIDENT, MIN_INIT_JOINTS, PersonTrack, facing_rotvec
 from flowmocap.vision.masks import mask_iou
 
-__all__ = ["body_silhouette", "joint_disagreement", "fit_to_detection", "ReinitMonitor"]
+__all__ = ["body_silhouette", "joint_disagreement", "joint3d_disagreement", "fit_to_detection", "ReinitMonitor"]
 
 
 def body_silhouette(scene: Scene, pose: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
@@ -58,6 +72,26 @@ def joint_disagreement(joints2d: np.ndarray, j2d: np.ndarray, conf: np.ndarray,
     p = j2d[ok]
     height = max(float(p[:, 1].max() - p[:, 1].min()), float(p[:, 0].max() - p[:, 0].min()), 1.0)
     return float(np.median(np.linalg.norm(joints2d[ok] - p, axis=1)) / height)
+
+
+def joint3d_disagreement(joints_cam: np.ndarray, j3d: np.ndarray, conf: np.ndarray,
+                         min_confidence: float = CONFIDENT) -> float | None:
+    """Mean distance in metres between the model's joints ``joints_cam (24, 3)`` and
+    the detector's 3D joints ``j3d (24, 3)`` (both in the camera's axes; any origin and,
+    for the detector, any scale) over the joints with ``conf >= min_confidence``, after
+    the detector's joints are aligned onto the model's by the confidence-weighted
+    similarity (scale, rotation, translation) of least squares: a per-frame PA-MPJPE
+    against the detector (a mean, not a median: one flipped limb moves only one or two
+    of the 12 joints a detector gives). None with fewer than
+    :data:`~flowmocap.fit.energies.MIN_DETECTOR_JOINTS` such joints."""
+    j3d = np.asarray(j3d, np.float64).reshape(-1, 3)
+    conf = np.asarray(conf, np.float64).reshape(-1)
+    ok = (conf >= min_confidence) & np.isfinite(j3d).all(1) & np.isfinite(conf)
+    if ok.sum() < en.MIN_DETECTOR_JOINTS:
+        return None
+    x = np.asarray(joints_cam, np.float64).reshape(-1, 3)[ok]
+    aligned = similarity_procrustes(j3d[ok], x, weights=conf[ok])[0]
+    return float(np.mean(np.linalg.norm(aligned - x, axis=1)))
 
 
 def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarray, mask: np.ndarray | None,
@@ -100,22 +134,33 @@ class ReinitMonitor:
         max_joint_error: median joint distance (fraction of the person's height) above which
             a frame is bad (default ``cfg.reinit_max_joint_error``).
         patience: bad frames in a row before re-initialising (default ``cfg.reinit_patience``).
+        max_joint3d_error: aligned 3D joint distance (metres, :func:`joint3d_disagreement`)
+            above which a frame is 3D-bad; 0 turns the 3D criterion off (default
+            ``cfg.reinit_max_joint3d_error``).
+        patience3d: 3D-bad frames in a row before re-initialising (default
+            ``cfg.reinit_3d_patience``).
     """
 
     def __init__(self, track: PersonTrack, cfg: TrackerConfig, stored_joints2d: dict | None = None,
-                 min_iou: float | None = None, max_joint_error: float | None = None, patience: int | None = None):
+                 min_iou: float | None = None, max_joint_error: float | None = None, patience: int | None = None,
+                 max_joint3d_error: float | None = None, patience3d: int | None = None):
         self.track = track
         self.cfg = cfg
         self.stored = dict(stored_joints2d or {})
         self.min_iou = cfg.reinit_min_iou if min_iou is None else min_iou
         self.max_joint_error = cfg.reinit_max_joint_error if max_joint_error is None else max_joint_error
         self.patience = max(int(cfg.reinit_patience if patience is None else patience), 1)
+        self.max_joint3d_error = float(cfg.reinit_max_joint3d_error if max_joint3d_error is None
+                                       else max_joint3d_error)
+        self.patience3d = max(int(cfg.reinit_3d_patience if patience3d is None else patience3d), 1)
         self.verdicts: dict[int, bool | None] = {}  # frame -> bad (None: cannot tell)
+        self.verdicts3d: dict[int, bool | None] = {}  # frame -> 3D-bad (None: cannot tell or criterion off)
         self.scores: dict[int, dict] = {}
         self._last_attempt = -(10 ** 9)
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
-        """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections."""
+        """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus
+        ``"joint3d_error"`` (metres or None) and ``"bad3d"`` when the 3D criterion is on."""
         j2d, conf = self.track.smpl_joints(i) if i < len(self.track) else (None, None)
         with torch.no_grad():
             out, _, _ = scene.forward(pose, trans)
@@ -126,7 +171,15 @@ class ReinitMonitor:
             bad = None
         else:
             bad = bool((iou is not None and iou < self.min_iou) or (err is not None and err > self.max_joint_error))
-        return {"iou": iou, "joint_error": err, "bad": bad}
+        s = {"iou": iou, "joint_error": err, "bad": bad}
+        if self.max_joint3d_error > 0:
+            det = self.track.smpl_joints3d(i, scene.camera) if i < len(self.track) else None
+            err3 = None
+            if det is not None:
+                err3 = joint3d_disagreement(scene.camera.to_camera(out.joints[0]).numpy(), *det)
+            s["joint3d_error"] = err3
+            s["bad3d"] = None if err3 is None else bool(err3 > self.max_joint3d_error)
+        return s
 
     def _stored_verdict(self, j: int) -> bool | None:
         """Joint-only verdict of a frame tracked before a resume."""
@@ -145,25 +198,35 @@ class ReinitMonitor:
     def __call__(self, i: int, state, scene, mask: np.ndarray | None):
         s = self.judge(i, scene, state.pose, state.trans, mask)
         self.verdicts[i] = s["bad"]
+        self.verdicts3d[i] = s.get("bad3d")
         self.scores[i] = s
-        if not s["bad"]:
-            return None
+        if s["bad"] and self._due(i, self.patience):
+            self._last_attempt = i
+            return self._reinitialise(i, state, scene, mask, s)
+        if s.get("bad3d") and self._due(i, self.patience3d, in3d=True):
+            self._last_attempt = i
+            return self._reinitialise(i, state, scene, mask, s, in3d=True)
+        return None
+
+    def _due(self, i: int, patience: int, in3d: bool = False) -> bool:
+        """Whether frame ``i`` (bad) ends a run of ``patience`` bad frames (3D-bad with
+        ``in3d``) with a confident detection and no refit tried within the run."""
         run = 1
-        for j in range(i - 1, i - self.patience, -1):
-            v = self.verdicts[j] if j in self.verdicts else self._stored_verdict(j)
+        for j in range(i - 1, i - patience, -1):
+            if in3d:
+                v = self.verdicts3d.get(j)
+            else:
+                v = self.verdicts[j] if j in self.verdicts else self._stored_verdict(j)
             if not v:
                 break
             run += 1
-        if run < self.patience or not self._confident(i) or i - self._last_attempt < self.patience:
-            return None
-        self._last_attempt = i
-        return self._reinitialise(i, state, scene, mask, s)
+        return run >= patience and self._confident(i) and i - self._last_attempt >= patience
 
-    def _reinitialise(self, i: int, state, scene, mask, before: dict):
+    def _reinitialise(self, i: int, state, scene, mask, before: dict, in3d: bool = False):
         j2d, conf = self.track.smpl_joints(i)
         joints3d = self.track.smpl_joints3d(i, scene.camera)
         starts = [(state.pose, state.trans)]
-        if _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
+        if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
             fresh = np.zeros(72)
             fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
             spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
@@ -180,13 +243,18 @@ class ReinitMonitor:
         if best is None:
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
-        if not _better(before, after):
+        if not (_better_3d(before, after, self.max_joint_error) if in3d else _better(before, after)):
             return None
         self.verdicts[i] = after["bad"]
+        self.verdicts3d[i] = after.get("bad3d")
         self.scores[i] = after
-        info = {"why": f"{self.patience} bad frames in a row (silhouette IoU < {self.min_iou} or joint error > "
-                       f"{self.max_joint_error} of the person's height)",
-                "before": _rounded(before), "after": _rounded(after)}
+        if in3d:
+            why = (f"{self.patience3d} frames in a row with the 3D joints more than {self.max_joint3d_error} m from "
+                   f"the detector's (mean, after a similarity alignment)")
+        else:
+            why = (f"{self.patience} bad frames in a row (silhouette IoU < {self.min_iou} or joint error > "
+                   f"{self.max_joint_error} of the person's height)")
+        info = {"why": why, "before": _rounded(before), "after": _rounded(after)}
         return FrameState(best[0], best[1]), info
 
 
@@ -217,5 +285,21 @@ def _better(before: dict, after: dict) -> bool:
     return joints
 
 
+def _better_3d(before: dict, after: dict, max_joint_error: float) -> bool:
+    """Whether a refit after a run of 3D-bad frames beats the tracked frame: its 3D joints
+    closer to the detector's (``joint3d_error``), at a silhouette IoU at most
+    :data:`IOU_TOLERANCE` lower and 2D joints no further than before or than
+    ``max_joint_error`` (the refit must still fit the image)."""
+    if after.get("joint3d_error") is None or before.get("joint3d_error") is None:
+        return False
+    if after["joint3d_error"] >= before["joint3d_error"]:
+        return False
+    if after["iou"] is not None and before["iou"] is not None and after["iou"] < before["iou"] - IOU_TOLERANCE:
+        return False
+    if after["joint_error"] is not None and before["joint_error"] is not None:
+        return after["joint_error"] <= max(before["joint_error"], max_joint_error)
+    return True
+
+
 def _rounded(s: dict) -> dict:
-    return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in s.items() if k != "bad"}
+    return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in s.items() if k not in ("bad", "bad3d")}

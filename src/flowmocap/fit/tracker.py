@@ -4,8 +4,9 @@ For each frame i after the first two: the filters (an error-state EKF on SO(3) p
 a linear one for translation) predict pose and translation; the objective of
 :mod:`flowmocap.fit.objective` is minimised from there, coarse to fine over the flow
 pyramid (the stages of :class:`~flowmocap.fit.config.TrackerConfig`), with the shape
-fixed after initialisation and ``E_theta`` towards the prediction; the result updates
-the filters. :class:`SequenceTracker` holds the state between frames (``start``,
+fixed after initialisation and ``E_theta`` towards the prediction; with ``flip_test``
+each limb's mirror image in depth is then tried (:mod:`flowmocap.fit.flip`) and kept
+where the frame's energy is lower; the result updates the filters. :class:`SequenceTracker` holds the state between frames (``start``,
 ``step``, ``state_dict`` for resuming); :func:`track_frames` runs the loop over a frame
 range, preparing the next frame's observations on a second thread while the current one
 is optimised. Reading inputs and writing results is the caller's job
@@ -25,6 +26,7 @@ from tqdm import tqdm
 
 from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.flip import flip_limbs
 from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
@@ -161,16 +163,24 @@ class SequenceTracker:
             mask = None
         if mask is None:
             data.person_pixels = max(person_pixels(self.scene, prev), 1.0)
+        ref = pred  # E_theta's reference: the start of the optimisation
         try:
             state, terms = track_frame(self.scene, pred, data, self.cfg, prev)
         except OptimizationError as e:
             events.append({"frame": i, "event": "non-finite energy; retried from the previous pose",
                            "detail": str(e)})
             try:
-                state, terms = track_frame(self.scene, prev.clone(), data, self.cfg, prev)
+                ref = prev.clone()
+                state, terms = track_frame(self.scene, ref, data, self.cfg, prev)
             except OptimizationError as e2:
                 events.append({"frame": i, "event": "retry failed; kept the prediction", "detail": str(e2)})
-                state, terms = pred, {"total": float("nan")}
+                state, terms, ref = pred, {"total": float("nan")}, None
+        if self.cfg.flip_test and ref is not None:
+            try:
+                state, terms, flips = flip_limbs(self.scene, state, data, self.cfg, prev, ref.pose, frame=i)
+                events += flips
+            except OptimizationError as e:
+                events.append({"frame": i, "event": "depth-flip test skipped", "detail": str(e)})
         reinit = self.monitor(i, state, self.scene, mask) if self.monitor is not None else None
         if reinit is not None:
             state, info = reinit
