@@ -3,7 +3,8 @@
 Method (per frame, walking down the SMPL tree):
 
 1. Each SMPL joint ``j`` is paired with a mocap joint ``m(j)`` by a joint-name map (CMU
-   ASF, CMU BVH, Mixamo/generic and Biovision-style rigs are known; see :data:`RIGS`).
+   ASF, CMU BVH, cgspeed's DAZ-friendly CMU BVH, Mixamo/generic and Biovision-style rigs
+   are known; see :data:`RIGS`).
 2. Its *primary* direction is a bone: SMPL ``j -> c`` (``c`` the next mapped joint down
    the chain) against the mocap's ``m(j) -> m(c)``, taken from the mocap's global
    joint positions, so bone directions match exactly even where the mocap has extra
@@ -119,6 +120,19 @@ RIGS: dict[str, dict[str, tuple[str, ...]]] = {
         "left_wrist": ("lefthand", "leftwrist"),
         "left_hand": ("lefthandmiddle1", "lefthandindex1"),
     }, "left", "right"),
+    # cgspeed's "DAZ-friendly" BVH conversion of the CMU database (hip, abdomen, chest,
+    # lThigh, lShldr, ...; no toe joint). Its two spine joints sit where the CMU BVH's
+    # LowerBack and Spine do (35 % and 60 % of the way from the hips up to the collars),
+    # so they drive spine1 and spine2 as in "cmu_bvh"; spine3 and the toes follow their
+    # parents (identity local rotations).
+    "daz": _sides({
+        "pelvis": ("hip",), "spine1": ("abdomen",), "spine2": ("chest",),
+        "neck": ("neck",), "head": ("head",),
+        "left_hip": ("lthigh",), "left_knee": ("lshin",), "left_ankle": ("lfoot",),
+        "left_collar": ("lcollar",), "left_shoulder": ("lshldr",),
+        "left_elbow": ("lforearm",), "left_wrist": ("lhand",),
+        "left_hand": ("lmid1", "lindex1"),
+    }, "l", "r"),
 }
 
 # Joints a rig must provide (plus one spine joint and the neck or the head).
@@ -128,7 +142,7 @@ _REQUIRED = (
 )
 # Names a rig's mocap file must contain for that rig to be chosen (beyond _REQUIRED).
 _RIG_MARKERS = {"cmu_asf": ("lfemur", "lowerback"), "cmu_bvh": ("lowerback",),
-                "biovision": ("leftcollar",), "mixamo": ()}
+                "biovision": ("leftcollar",), "mixamo": (), "daz": ("abdomen", "lshldr")}
 
 
 def normalize_joint_name(name: str) -> str:
