@@ -177,7 +177,7 @@ def test_a_run_of_3d_bad_frames_is_reinitialised(setup, monkeypatch):
              for i in range(len(seq))}
     monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None: truth[i])
     cfg = TrackerConfig(reinit_max_joint3d_error=0.08, reinit_3d_patience=2, reinit_patience=10,
-                        reinit_iterations=15, init_detector3d_weight=1e5)
+                        reinit_iterations=10, init_detector3d_weight=1e5)
     mon = ReinitMonitor(track, cfg)
     assert mon(2, _state(seq, 2), scene, seq.mask(2)) is None
     assert mon.scores[2]["joint3d_error"] < 0.02 and mon.verdicts3d[2] is False
