@@ -72,6 +72,7 @@ _RANGES: dict[str, str] = {
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1,
+    "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
@@ -113,6 +114,7 @@ class TrackerConfig:
     detector3d_scale: float = 0.1      # its pseudo-Huber scale, m: quadratic below, linear above
     flip_test: bool = False            # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
+    pose_prior_weight: float = 0.0     # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
@@ -134,6 +136,7 @@ class TrackerConfig:
     init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
     init_detector3d_weight: float = 0.0   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
+    init_learned_prior_weight: float = 0.0  # E_p in the init's and the refits' joint fits (px^2 scale); 0: off
     init_iterations: int = 60          # L-BFGS iterations per init step
     init_flow_iterations: int = 30     # L-BFGS iterations of the init's flow step (frames 0 and 1)
 

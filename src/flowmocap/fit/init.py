@@ -38,7 +38,7 @@ from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.lbfgs import minimise
-from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
+from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy, learned_pose_prior
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import prepare_faces
 
@@ -189,7 +189,10 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
 
     Translation alone first, then pose and translation (and the shape when ``fit_shape``)
     against the robust 2D-joint term with joint limits, interpenetration and a prior
-    towards ``pose0`` (and the mean shape), then the same plus E_c.
+    towards ``pose0`` (and the mean shape), then the same plus E_c. With
+    ``cfg.init_learned_prior_weight`` the learned pose prior
+    (:func:`~flowmocap.fit.objective.learned_pose_prior`) joins the prior towards
+    ``pose0``.
 
     Args:
         joints2d: ``(24, 2)`` pixels; confidence: ``(24,)`` (0 = missing).
@@ -239,6 +242,8 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         if joints3d is not None and cfg.init_detector3d_weight > 0:
             t["detector3d"] = cfg.init_detector3d_weight * en.world_detector_joints_energy(
                 out.joints, camera, joints3d, cfg.detector3d_scale)[0]
+        if cfg.init_learned_prior_weight > 0:
+            t["learned_prior"] = cfg.init_learned_prior_weight * learned_pose_prior().energy(pose[None])[0]
         caps = body_capsules(model, out)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:

@@ -1,7 +1,7 @@
 """The per-frame objective (paper Eq. 4 plus our extensions) and what it is evaluated on.
 
     E = l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j] [+ l_a E_a] [+ l_d E_d]
-        [+ l_3d E_3d]
+        [+ l_3d E_3d] [+ l_p E_p]
 
 ``E_f`` compares the observed backward flow F_o(i, i-1) with the flow rendered from the
 model at frame i (the variables) to the model at frame i-1 (fixed); ``E_c`` the body's
@@ -12,13 +12,16 @@ joints (real video), ``E_a`` every joint but the root towards its rotation in th
 track's first frame, ``E_d`` each limb's direction in depth towards a detector's 3D
 joints, ``E_3d`` the model's joints towards a detector's 3D joints after a per-frame
 similarity alignment, with a cost that keeps pulling a limb that has flipped in depth
-(where ``E_d`` saturates). :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
+(where ``E_d`` saturates), ``E_p`` a pose prior learned from motion capture
+(:mod:`flowmocap.fit.pose_prior`, loaded once by :func:`learned_pose_prior`).
+:class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
 faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observations.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cache
 
 import numpy as np
 import torch
@@ -28,12 +31,24 @@ from flowmocap.body.capsules import rest_capsules
 from flowmocap.errors import InputError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.pose_prior import PosePrior
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import flow_loss, flow_target, prepare_faces
 
 #: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
-                "limb_depth", "detector3d")
+                "limb_depth", "detector3d", "learned_prior")
+
+
+@cache
+def learned_pose_prior() -> PosePrior:
+    """The packaged learned pose prior (:meth:`PosePrior.load`), read once per process.
+
+    Raises:
+        DataError: the packaged prior is missing or unreadable (its message says how to
+            get one); only when a ``*learned_prior*``/``pose_prior_weight`` setting is on.
+    """
+    return PosePrior.load()
 
 
 @dataclass
@@ -179,6 +194,8 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.joints3d is not None and cfg.detector3d_weight > 0:
         terms["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(
             out.joints, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
+    if cfg.pose_prior_weight > 0:
+        terms["learned_prior"] = cfg.pose_prior_weight * learned_pose_prior().energy(state.pose.reshape(1, 72))[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
