@@ -61,7 +61,7 @@ def cmd_track(args) -> int:
     track(args.input, args.out, init=args.init or "auto", masks=args.masks, camera=camera, config=args.config,
           frames=args.frames, resume=args.resume, progress=not args.quiet, profile=args.profile, model=args.model,
           gender=args.gender, flow=args.flow, max_size=args.max_size, reinit=not args.no_reinit,
-          joints3d=args.joints3d)
+          joints3d=args.joints3d, person=args.person)
     return 0
 
 
@@ -130,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--joints3d", default="auto", choices=["auto", "off"], help="'auto' (default): the detector's "
                    "3D joints tell each limb's direction in depth (E_d); with your own init.json and masks the "
                    "detector then runs for them alone (MediaPipe, about 0.05 s per frame). 'off': no E_d")
+    t.add_argument("--person", default="largest", help="who to track when several people are in view: 'largest' "
+                   "(default: the person seen biggest, nearest and longest), N (the N-th by that measure, 0 = the "
+                   "largest) or x,y (a pixel of the video's frames, before --max-size, on the person in the first "
+                   "frame they appear in); recorded in run.json")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"],
                    help="which body of the model file (default neutral)")

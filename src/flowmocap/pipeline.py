@@ -38,6 +38,7 @@ from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
 from flowmocap.vision import FlowCache
 from flowmocap.vision.auto import PersonTrack, auto_init, detect_joints3d, detect_sequence, first_person_frame, frame_runs
+from flowmocap.vision.person import describe_person, parse_person
 
 __all__ = ["Result", "track", "load_result", "parse_frame_range"]
 
@@ -150,7 +151,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           resume: bool = False, progress: bool = True, profile: str | None = None,
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
           max_size: int | None = 1280, reinit: bool = True, joints3d: str = "auto",
-          log: Callable[[str], None] | None = print) -> Result:
+          log: Callable[[str], None] | None = print, person: str | int | tuple = "largest") -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -185,6 +186,13 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             (``E_d``), running the detector for them alone if nothing else needs it;
             ``"off"``: no ``E_d``.
         log: where the one-line messages go (None: nowhere).
+        person: who to track when the detector runs and several people are in view:
+            ``"largest"`` (default: the person seen biggest, nearest and longest), a
+            rank ``N`` (0 = the largest, 1 = the next, ...) or a pixel ``"x,y"`` of the
+            input's frames at their original size (before ``max_size``): the person
+            whose box contains, or lies nearest to, it in the first frame they appear
+            in (:func:`~flowmocap.vision.person.parse_person`). Recorded in ``run.json``
+            (``person``).
 
     Returns:
         the :class:`Result`.
@@ -199,6 +207,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
     if joints3d not in ("auto", "off"):
         raise InputError(f"joints3d must be 'auto' or 'off'; got {joints3d!r}.")
+    choice = parse_person(person)
     if (out / "motion.npz").exists() and not resume:
         raise InputError(f"{out} already holds a result; pass resume=True (--resume) to continue it or choose "
                          "another folder.")
@@ -224,9 +233,17 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
 
     detections = None
+    if choice[0] != "largest" and not (auto_masks or auto_init):
+        raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
+                         "your own init and masks the detector does not choose anyone; leave person at 'largest' "
+                         "(the init and masks say who is tracked).")
+    if choice[0] == "point":  # the user's pixel is in the original frames; the detector sees the scaled ones
+        scale = float(seq.meta.get("scale", 1.0))
+        choice = ("point", (choice[1][0] * scale, choice[1][1] * scale))
     if auto_masks or auto_init:  # the detections also drive re-initialisation
         say(f"finding the person in {len(seq)} frames (MediaPipe pose; stored in {out / 'detections'}) ...")
-        detections = detect_sequence(seq, out, progress=progress)
+        detections = detect_sequence(seq, out, progress=progress,
+                                     person="largest" if choice[0] == "largest" else choice[1])
         if auto_masks:
             seq.masks = list(detections.mask_paths)
     notes: dict = {"camera_source": camera_source,
@@ -242,6 +259,10 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     if detections is not None:
         notes["detections"] = {k: detections.info[k] for k in ("detector", "frames_with_person", "no_person",
                                                                "ignored_people")}
+        notes["person"] = {"asked": describe_person(parse_person(person)),
+                           **detections.info.get("person", {"choice": describe_person(choice)})}
+        if choice[0] == "point":
+            notes["person"]["pixel_in_tracked_frames"] = [round(v, 1) for v in choice[1]]
     if is_video:
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
                                                    "scale", "focal_35mm", "timestamps") if k in seq.meta}

@@ -20,6 +20,17 @@ are split into tracks wherever one does not continue the previous one
 sum over its frames of box height x (box bottom / image height), i.e. the person seen
 biggest, nearest (feet lowest in the image) and longest. The other tracks' frames count
 as "no person" (someone else, e.g. in the background).
+
+Choosing another person (``person=N`` or ``"x,y"``, :func:`~flowmocap.vision.person.parse_person`):
+the tracks are ranked by that score and one is chosen; since the searcher saw that
+person with someone else blanked out (and not in every frame), the tracking detector
+then runs over the video again with every other track's mask blanked
+(:func:`follow_person`), so it locks onto the chosen person and gives them its full
+quality (augmented masks, every frame it can).
+
+The same steps serve the multi-view reference (:mod:`flowmocap.eval.real3d`):
+:func:`find_people` (candidates per frame, up to ``max_people``), :func:`split_tracks`,
+:func:`track_scores` and :func:`follow_person` for each person.
 """
 
 from __future__ import annotations
@@ -28,15 +39,18 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from flowmocap.errors import NoPersonError
 from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetector
-from flowmocap.vision.person import clean_mask, person_box, same_person
+from flowmocap.vision.person import (box_iou, choose_person, clean_mask, describe_person, parse_person, person_box,
+                                     same_person)
 
 __all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "load_detections", "auto_init",
-           "first_person_frame", "frame_runs", "facing_rotvec", "MIN_INIT_JOINTS"]
+           "first_person_frame", "frame_runs", "facing_rotvec", "MIN_INIT_JOINTS", "find_people", "split_tracks",
+           "track_scores", "follow_person", "Candidate"]
 
 #: Confident SMPL keypoints a frame needs to initialise the body on it.
 MIN_INIT_JOINTS = 8
@@ -144,13 +158,14 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
 
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
-                    reuse: bool = True, searcher: PersonDetector | None | str = "default") -> PersonTrack:
+                    reuse: bool = True, searcher: PersonDetector | None | str = "default",
+                    person="largest") -> PersonTrack:
     """Masks and keypoints of one person in every frame of ``seq``, stored in ``out_dir``.
 
     A detector that tracks follows the first person it finds. To find the others, the
     ``searcher`` (a second detector) looks at every frame with the found person's box
     blanked out; all detections are then split into people by continuity and the main
-    person kept (see the module docstring).
+    person kept, or the one ``person`` chooses (see the module docstring).
 
     Args:
         seq: anything with ``len(seq)``, ``seq.frame(i) -> (H, W, 3) uint8 RGB`` and
@@ -158,15 +173,22 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         out_dir: the result folder (detections go to ``out_dir/detections``).
         detector: default :class:`~flowmocap.vision.detect.MediaPipePoseDetector`.
         progress: show a progress bar.
-        reuse: return stored detections made by the same detectors for the same frames.
+        reuse: return stored detections made by the same detectors for the same frames
+            and person.
         searcher: the second detector; ``"default"``: MediaPipe without augmentation when
             ``detector`` is the default, else none; None: look for one person only.
+        person: ``"largest"`` (default), a rank ``N`` or a pixel ``"x,y"`` / ``(x, y)`` of
+            ``seq``'s frames (:func:`~flowmocap.vision.person.parse_person`). ``0`` is
+            the largest. Any other choice runs the detector a second time
+            (:func:`follow_person`).
 
     Raises:
         NoPersonError: no frame shows a person.
+        InputError: a bad ``person``, or a rank beyond the people found.
     """
-    from tqdm import tqdm
-
+    choice = parse_person(person)
+    if choice == ("index", 0):
+        choice = ("largest", None)
     if detector is None:
         from flowmocap.vision.detect import MediaPipePoseDetector
 
@@ -176,6 +198,8 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     if searcher == "default":
         searcher = None
     name = detector.name + (f"+search:{searcher.name}" if searcher is not None else "")
+    if choice[0] != "largest":
+        name += f"+person:{describe_person(choice)}"
     out_dir = Path(out_dir)
     T = len(seq)
     W, H = seq.size
@@ -183,22 +207,8 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         stored = load_detections(out_dir, name, T, (W, H))
         if stored is not None:
             return stored
-    detector.reset()
-    if searcher is not None:
-        searcher.reset()
-    cands: list[list[tuple]] = [[] for _ in range(T)]  # per frame: (box, keypoints, confidence, mask, world)
-    for i in tqdm(range(T), disable=not progress, unit="frame", desc="finding the person"):
-        img = seq.frame(i)
-        det = _usable(detector.detect(img))
-        if det is None:
-            continue
-        cands[i].append(det)
-        if searcher is not None:
-            other = _usable(searcher.detect(_blank(img, det[0])))
-            if other is not None:
-                cands[i].append(other)
-
-    tracks = _split_tracks(cands)
+    cands = find_people(seq, detector, searcher, progress=progress)
+    tracks = split_tracks(cands)
     K = len(KEYPOINT_NAMES)
     kp = np.zeros((T, K, 2))
     conf = np.zeros((T, K))
@@ -206,18 +216,32 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     boxes: list = [None] * T
     masks: list = [None] * T
     ignored = []
+    people: list[dict] = []
+    rank: list[int] = []
     if tracks:
-        # nearer people are taller in the image and, standing on the ground below the
-        # camera's height, have their feet lower in it: box height x feet height / H
-        score = [sum((cands[i][c][0][3] - cands[i][c][0][1]) * cands[i][c][0][3] / H for i, c in t) for t in tracks]
-        main = int(np.argmax(score))
-        for i, c in tracks[main]:
-            boxes[i], kp[i], conf[i], masks[i], w = cands[i][c]
+        score = track_scores(cands, tracks, H)
+        main = choose_person([cands[t[0][0]][t[0][1]].box for t in tracks], score, choice)
+        rank = sorted(range(len(tracks)), key=lambda k: -score[k])
+        people = [{"rank": r, "frames": [tracks[k][0][0], tracks[k][-1][0]], "detections": len(tracks[k]),
+                   "score": round(float(score[k]), 1),
+                   "first_box": [round(float(v), 1) for v in cands[tracks[k][0][0]][tracks[k][0][1]].box]}
+                  for r, k in enumerate(rank)]
+        if choice[0] == "largest":
+            chosen = [cands[i][c] for i, c in tracks[main]]
+            frames = [i for i, _ in tracks[main]]
+        else:
+            followed = follow_person(seq, detector, cands, tracks, main, progress=progress)
+            frames = [i for i in range(T) if followed[i] is not None]
+            chosen = [followed[i] for i in frames]
+        for i, cand in zip(frames, chosen):
+            boxes[i], kp[i], conf[i], masks[i], w = cand
             if w is not None:
                 world[i] = w
+        why = ("another person (smaller or seen for less time)" if choice[0] == "largest"
+               else f"another person (not the one chosen by person={describe_person(choice)})")
         for k, t in enumerate(tracks):
             if k != main and len(t) > 2:
-                ignored.append({"frames": [t[0][0], t[-1][0]], "why": "another person (smaller or seen for less time)"})
+                ignored.append({"frames": [t[0][0], t[-1][0]], "why": why})
     found = np.array([m is not None for m in masks])
     mdir = _mask_dir(out_dir)
     mdir.mkdir(parents=True, exist_ok=True)
@@ -234,6 +258,12 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         "frames_with_person": int(found.sum()),
         "no_person": frame_runs(np.nonzero(~found)[0]),
         "ignored_people": ignored,
+        "person": {"choice": describe_person(choice),
+                   "rank": rank.index(main) if tracks else None,
+                   "people": people,
+                   "note": ("people ranked by the sum over their frames of box height x box bottom / image height; "
+                            "rank 0 is 'largest'" + ("" if choice[0] == "largest" else
+                                                     "; the chosen one re-detected with the others blanked"))},
     }
     box_arr = np.array([b if b is not None else (np.nan,) * 4 for b in boxes], np.float64).reshape(T, 4)
     d = out_dir / "detections"
@@ -244,6 +274,134 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
                             "check that a whole person is visible, or give --init init.json and --masks FOLDER.")
     return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32))
+
+
+class Candidate(NamedTuple):
+    """One detected person in one frame.
+
+    ``box`` ``(x0, y0, x1, y1)`` px; ``keypoints`` ``(K, 2)`` px; ``confidence`` ``(K,)``;
+    ``mask`` ``(H, W)`` bool (cleaned); ``world`` ``(K, 3)`` m or None (the detector's 3D).
+    """
+
+    box: tuple
+    keypoints: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    world: np.ndarray | None
+
+
+def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = True) -> list[list[Candidate]]:
+    """Every person the detectors find in each frame of ``seq``.
+
+    The (tracking) ``detector`` looks at each frame as it is; each of the ``searchers``
+    in turn looks again with the people found so far blanked out (their boxes, grown by
+    10 %), so up to ``1 + len(searchers)`` people per frame are found. Each searcher sees
+    only its own sequence of images (a tracking detector must not jump between them).
+    All detectors are reset first.
+
+    Args:
+        searchers: None, one :class:`~flowmocap.vision.detect.PersonDetector` or a list.
+
+    Returns:
+        per frame, a list of :class:`Candidate` (the detector's first, then the
+        searchers'); empty where nobody is found.
+    """
+    from tqdm import tqdm
+
+    searchers = [] if searchers is None else list(searchers) if isinstance(searchers, (list, tuple)) else [searchers]
+    detector.reset()
+    for s in searchers:
+        s.reset()
+    T = len(seq)
+    cands: list[list[Candidate]] = [[] for _ in range(T)]
+    for i in tqdm(range(T), disable=not progress, unit="frame", desc="finding the person"):
+        img = seq.frame(i)
+        det = _usable(detector.detect(img))
+        if det is None:
+            continue
+        cands[i].append(det)
+        blanked = img
+        for s in searchers:
+            blanked = _blank(blanked, cands[i][-1].box)
+            other = _usable(s.detect(blanked))
+            if other is None:
+                break
+            cands[i].append(other)
+    return cands
+
+
+def track_scores(cands: list[list[Candidate]], tracks: list[list[tuple[int, int]]], height: int) -> list[float]:
+    """Each track's main-person score: the sum over its frames of box height x box
+    bottom / ``height`` (pixels): nearer people are taller in the image and, standing on
+    the ground below the camera's height, have their feet lower in it."""
+    return [sum((cands[i][c].box[3] - cands[i][c].box[1]) * cands[i][c].box[3] / height for i, c in t)
+            for t in tracks]
+
+
+def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], tracks: list[list[tuple[int, int]]],
+                  chosen: int, progress: bool = True, max_gap: int = 15) -> list[Candidate | None]:
+    """The chosen track's person in every frame, re-detected with everyone else blanked.
+
+    The (reset) ``detector`` runs over ``seq`` again; in each frame the bodies of the
+    people of the other tracks that share frames with the chosen one (a track that
+    never does may be the chosen person lost and found again) are filled with the
+    image's mean colour (their detection of that frame, else of their nearest frame
+    within 3: thick limbs, torso and head cut to their dilated mask), so a tracking
+    detector locks onto the chosen person. A detection counts when it
+    continues the chosen person (:func:`~flowmocap.vision.person.same_person` with their
+    box in that frame, else their nearest box within ``max_gap`` frames), is between
+    half and twice that box's height (a partly hidden person can come out as a
+    collapsed skeleton) and overlaps no other person's box more than theirs; otherwise
+    the detector is reset and the chosen track's own candidate (if any) is kept for
+    that frame.
+
+    Returns:
+        per frame, the chosen person's :class:`Candidate` or None.
+    """
+    from tqdm import tqdm
+
+    T = len(seq)
+    own = {i: cands[i][c] for i, c in tracks[chosen]}
+    others = [{i: cands[i][c] for i, c in t} for k, t in enumerate(tracks)
+              if k != chosen and any(i in own for i, _ in t)]
+
+    def nearest(by_frame: dict, i: int, within: int):
+        for d in range(within + 1):
+            for j in (i - d, i + d):
+                if j in by_frame:
+                    return by_frame[j], abs(j - i)
+        return None, None
+
+    detector.reset()
+    out: list[Candidate | None] = [None] * T
+    last = None
+    for i in tqdm(range(T), disable=not progress, unit="frame", desc="following the chosen person"):
+        ref, gap = nearest(own, i, max_gap)
+        if ref is None and last is not None and i - last[1] <= max_gap:
+            ref, gap = last[0], i - last[1]
+        if ref is None:
+            continue  # the chosen person is nowhere near this frame
+        img = seq.frame(i)
+        other_now = [c for c in (nearest(o, i, 3)[0] for o in others) if c is not None]
+        blanked = _blank_people(img, other_now)
+        det = _usable(detector.detect(blanked))
+        ok = det is not None and same_person(ref.box, det.box, max(gap, 1))
+        if ok:  # a person does not halve or double in height from one detection to the next
+            h, h_ref = det.box[3] - det.box[1], ref.box[3] - ref.box[1]
+            ok = 0.5 * h_ref <= h <= 2.0 * h_ref
+        if ok:
+            mine = box_iou(ref.box, det.box)
+            ok = all(box_iou(c.box, det.box) < max(mine, 0.1) for c in other_now)
+        if ok:
+            out[i] = det
+            last = (det, i)
+        else:
+            if det is not None:
+                detector.reset()
+            out[i] = own.get(i)
+            if out[i] is not None:
+                last = (out[i], i)
+    return out
 
 
 def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True) -> tuple:
@@ -268,16 +426,16 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
                                                         f"{track.info['frames_with_person']} frames")
 
 
-def _usable(det) -> tuple | None:
-    """``(box, keypoints, confidence, cleaned mask, world keypoints or None)`` of a
-    detection, or None if it shows no person (empty cleaned mask or fewer than 2
-    confident joints)."""
+def _usable(det) -> Candidate | None:
+    """The :class:`Candidate` of a detection, or None if it shows no person (empty
+    cleaned mask or fewer than 2 confident joints)."""
     if det is None:
         return None
     m = clean_mask(det.mask, det.keypoints, det.confidence)
     if not m.any() or (det.confidence[: len(SMPL_KEYPOINTS)] >= CONFIDENT).sum() < 2:
         return None
-    return person_box(det.keypoints, det.confidence, m), det.keypoints, det.confidence, m, getattr(det, "world", None)
+    return Candidate(person_box(det.keypoints, det.confidence, m), det.keypoints, det.confidence, m,
+                     getattr(det, "world", None))
 
 
 def _blank(img: np.ndarray, box, grow: float = 0.1) -> np.ndarray:
@@ -291,12 +449,78 @@ def _blank(img: np.ndarray, box, grow: float = 0.1) -> np.ndarray:
     return out
 
 
-def _split_tracks(cands: list[list[tuple]], max_gap: int = 15) -> list[list[tuple[int, int]]]:
+#: Segments of the body drawn to blank another person (keypoint names).
+_BONES = (("left_shoulder", "right_shoulder"), ("left_hip", "right_hip"), ("left_shoulder", "left_elbow"),
+          ("left_elbow", "left_wrist"), ("right_shoulder", "right_elbow"), ("right_elbow", "right_wrist"),
+          ("left_hip", "left_knee"), ("left_knee", "left_ankle"), ("right_hip", "right_knee"),
+          ("right_knee", "right_ankle"), ("left_shoulder", "left_hip"), ("right_shoulder", "right_hip"))
+
+
+def _body_region(cand: Candidate, shape: tuple[int, int], width: float = 0.08) -> np.ndarray:
+    """``(H, W)`` bool: the person's body as limbs ``width`` x their box height thick, a
+    filled torso and a head disc, cut to their mask dilated by half that width (a
+    segmentation often joins two people who touch; the limbs say which part is whose)."""
+    import cv2
+
+    H, W = shape
+    b = cand.box
+    t = max(3, int(round(width * (b[3] - b[1]))))
+    kp, cf = np.asarray(cand.keypoints, np.float64), np.asarray(cand.confidence)
+    ok = {n: cf[k] >= 0.3 and np.isfinite(kp[k]).all() for k, n in enumerate(KEYPOINT_NAMES)}
+    pt = {n: tuple(int(round(v)) for v in kp[k]) for k, n in enumerate(KEYPOINT_NAMES) if ok[n]}
+    region = np.zeros((H, W), np.uint8)
+    for a, c in _BONES:
+        if a in pt and c in pt:
+            cv2.line(region, pt[a], pt[c], 1, t)
+    for n in ("left_wrist", "right_wrist", "left_ankle", "right_ankle"):
+        if n in pt:
+            cv2.circle(region, pt[n], int(0.6 * t), 1, -1)
+    torso = [pt[n] for n in ("left_shoulder", "right_shoulder", "right_hip", "left_hip") if n in pt]
+    if len(torso) >= 3:
+        cv2.fillPoly(region, [np.array(torso, np.int32)], 1)
+    face = [kp[KEYPOINT_NAMES.index(n)] for n in ("nose", "left_ear", "right_ear") if ok[n]]
+    if face:
+        centre = np.mean(face, axis=0)
+        cv2.circle(region, tuple(int(round(v)) for v in centre), max(2, int(0.07 * (b[3] - b[1]))), 1, -1)
+        shoulders = [pt[n] for n in ("left_shoulder", "right_shoulder") if n in pt]
+        if shoulders:
+            cv2.line(region, tuple(int(round(v)) for v in np.mean(shoulders, axis=0)),
+                     tuple(int(round(v)) for v in centre), 1, t)
+    if not region.any():  # no confident keypoints: the box
+        region[max(0, int(b[1])):min(H, int(np.ceil(b[3]))), max(0, int(b[0])):min(W, int(np.ceil(b[2])))] = 1
+    m = np.asarray(cand.mask, bool) if cand.mask is not None else None
+    if m is not None and m.shape == (H, W) and m.any():
+        r = max(1, t // 2)
+        grown = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        region &= grown
+    return region > 0
+
+
+def _blank_people(img: np.ndarray, people: list) -> np.ndarray:
+    """A copy of ``img`` with each :class:`Candidate`'s body (:func:`_body_region`)
+    filled with the image's mean colour."""
+    if not people:
+        return img
+    out = img.copy()
+    fill = img.reshape(-1, 3).mean(0).astype(np.uint8)
+    for c in people:
+        out[_body_region(c, img.shape[:2])] = fill
+    return out
+
+
+def split_tracks(cands: list[list[tuple]], max_gap: int = 15) -> list[list[tuple[int, int]]]:
     """People as lists of ``(frame, candidate index)``: a candidate joins the track whose
     last box it continues best (:func:`same_person`, at most ``max_gap`` frames later),
-    each track taking at most one candidate per frame; otherwise it starts a new track."""
-    from flowmocap.vision.person import box_iou
+    each track taking at most one candidate per frame; otherwise it starts a new track.
 
+    Args:
+        cands: per frame, the candidates (:func:`find_people`; anything whose item 0 is
+            the box ``(x0, y0, x1, y1)`` px).
+
+    Returns:
+        the tracks in the order they started (each a list of ``(frame, index into
+        cands[frame])`` in frame order).
+    """
     tracks: list[list[tuple[int, int]]] = []
     for i, frame in enumerate(cands):
         taken: set[int] = set()

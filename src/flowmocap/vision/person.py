@@ -1,7 +1,8 @@
-"""One person's mask and identity over time: mask cleaning and frame-to-frame continuity.
+"""One person's mask and identity over time: mask cleaning, frame-to-frame continuity,
+and choosing one person among several (``person="largest" | N | "x,y"``).
 
 Masks are ``(H, W)`` bool arrays; keypoints ``(K, 2)`` pixels with ``(K,)`` confidences
-(see :mod:`flowmocap.vision.detect`).
+(see :mod:`flowmocap.vision.detect`); boxes ``(x0, y0, x1, y1)`` pixels.
 """
 
 from __future__ import annotations
@@ -9,7 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-__all__ = ["person_box", "clean_mask", "box_iou", "same_person"]
+from flowmocap.errors import InputError
+
+__all__ = ["person_box", "clean_mask", "box_iou", "same_person", "parse_person", "describe_person",
+           "choose_person", "box_distance"]
 
 
 def person_box(keypoints: np.ndarray, confidence: np.ndarray, mask: np.ndarray | None = None,
@@ -108,3 +112,110 @@ def same_person(prev_box, cur_box, frames_apart: int = 1) -> bool:
     c0 = np.array([(prev_box[0] + prev_box[2]) / 2, (prev_box[1] + prev_box[3]) / 2])
     c1 = np.array([(cur_box[0] + cur_box[2]) / 2, (cur_box[1] + cur_box[3]) / 2])
     return float(np.linalg.norm(c1 - c0)) < min(0.5 * frames_apart, 2.0) * h
+
+
+def parse_person(person) -> tuple[str, object]:
+    """Which person to track, from ``--person`` or ``track(person=...)``.
+
+    Args:
+        person: ``"largest"`` (the person seen biggest, nearest and longest: the main
+            track of :func:`flowmocap.vision.auto.detect_sequence`), an int ``N >= 0`` or
+            ``"N"`` (the N-th person by that same score; 0 = the largest), or ``"x,y"`` /
+            ``(x, y)`` pixels (the person whose box contains, or lies nearest to, that
+            point in the first frame they appear in).
+
+    Returns:
+        ``("largest", None)``, ``("index", N)`` or ``("point", (x, y))``.
+
+    Raises:
+        InputError: anything else (the message lists the accepted forms).
+    """
+    forms = "'largest', a rank N >= 0 (0 = the largest person) or a pixel 'x,y' inside the person's box"
+    if person is None or (isinstance(person, str) and person.strip().lower() == "largest"):
+        return "largest", None
+    if isinstance(person, (bool, np.bool_)):
+        raise InputError(f"person must be {forms}; got {person!r}.")
+    if isinstance(person, (int, np.integer)):
+        if person < 0:
+            raise InputError(f"person rank must be >= 0 (0 = the largest person); got {person}.")
+        return "index", int(person)
+    if isinstance(person, (tuple, list, np.ndarray)) and len(person) == 2:
+        try:
+            x, y = (float(v) for v in person)
+        except (TypeError, ValueError):
+            raise InputError(f"person must be {forms}; got {person!r}.") from None
+        if not (np.isfinite(x) and np.isfinite(y)):
+            raise InputError(f"the person's pixel must be finite; got {person!r}.")
+        return "point", (x, y)
+    if isinstance(person, str):
+        text = person.strip()
+        if "," in text:
+            parts = text.split(",")
+            try:
+                xy = tuple(float(v) for v in parts)
+            except ValueError:
+                xy = ()
+            if len(xy) == 2:
+                return parse_person(xy)
+            raise InputError(f"person {person!r}: a pixel must be two numbers 'x,y' (e.g. 540,900); or use {forms}.")
+        try:
+            return parse_person(int(text))
+        except ValueError:
+            pass
+    raise InputError(f"person must be {forms}; got {person!r}.")
+
+
+def describe_person(choice: tuple[str, object]) -> str:
+    """The canonical text of a :func:`parse_person` result (``largest``, ``2``, ``540,900``)."""
+    kind, value = choice
+    if kind == "largest":
+        return "largest"
+    if kind == "index":
+        return str(value)
+    return f"{value[0]:g},{value[1]:g}"
+
+
+def box_distance(box, point) -> float:
+    """Distance in pixels from ``point (x, y)`` to the box (0 inside it)."""
+    x0, y0, x1, y1 = box
+    dx = max(x0 - point[0], 0.0, point[0] - x1)
+    dy = max(y0 - point[1], 0.0, point[1] - y1)
+    return float(np.hypot(dx, dy))
+
+
+def choose_person(first_boxes: list, scores, choice: tuple[str, object]) -> int:
+    """The index of the chosen person among candidate tracks.
+
+    Args:
+        first_boxes: per track, its box ``(x0, y0, x1, y1)`` pixels in the first frame it
+            appears in.
+        scores: per track, the main-person score (larger = seen bigger, nearer, longer).
+        choice: a :func:`parse_person` result. ``largest``: the highest score (the first
+            of equal ones); ``("index", N)``: the N-th by decreasing score; ``("point",
+            (x, y))``: the track whose first box contains the point or lies nearest to it
+            (:func:`box_distance`), ties broken by the distance to the box's centre.
+
+    Raises:
+        InputError: no tracks, or a rank beyond the number of people found.
+    """
+    n = len(first_boxes)
+    if n == 0 or len(scores) != n:
+        raise InputError(f"choose_person needs one score per track; got {n} tracks and {len(scores)} scores.")
+    kind, value = choice
+    order = sorted(range(n), key=lambda k: -float(scores[k]))  # stable: equal scores keep their order
+    if kind == "largest":
+        return order[0]
+    if kind == "index":
+        if value >= n:
+            raise InputError(f"person {value} was asked for but only {n} "
+                             f"{'person was' if n == 1 else 'people were'} found (ranks 0..{n - 1}, 0 = the "
+                             "largest); give a smaller rank or a pixel 'x,y' on the person.")
+        return order[value]
+    if kind == "point":
+        def key(k):
+            b = first_boxes[k]
+            centre = ((b[0] + b[2]) / 2, (b[1] + b[3]) / 2)
+            return (box_distance(b, value), float(np.hypot(centre[0] - value[0], centre[1] - value[1])))
+
+        return min(range(n), key=key)
+    raise InputError(f"unknown person choice {choice!r}; use parse_person.")

@@ -1,0 +1,161 @@
+"""Choosing the person to track (``person="largest" | N | "x,y"``): parsing, choosing among
+candidate tracks, re-detecting the chosen one with the others blanked, and the plumbing
+through ``flowmocap.track`` and ``flowmocap track --person``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flowmocap.errors import InputError
+from flowmocap.vision.auto import detect_sequence
+from flowmocap.vision.detect import Detection
+from flowmocap.vision.person import box_distance, choose_person, describe_person, parse_person
+
+from test_detect import stick_keypoints
+
+
+@pytest.mark.parametrize("value, expected", [
+    ("largest", ("largest", None)), (None, ("largest", None)), (" Largest ", ("largest", None)),
+    (0, ("index", 0)), ("2", ("index", 2)), (np.int64(3), ("index", 3)),
+    ("540,900", ("point", (540.0, 900.0))), (" 12.5 , 7 ", ("point", (12.5, 7.0))), ((3, 4), ("point", (3.0, 4.0))),
+])
+def test_parse_person(value, expected):
+    assert parse_person(value) == expected
+
+
+@pytest.mark.parametrize("value, match", [
+    (-1, ">= 0"), ("-2", ">= 0"), ("tallest", "'largest', a rank"), ("1,2,3", "two numbers"), ("a,b", "two numbers"),
+    (True, "'largest'"), (1.5, "'largest'"), ("nan,3", "finite"),
+])
+def test_bad_person_values_say_what_to_give(value, match):
+    with pytest.raises(InputError, match=match):
+        parse_person(value)
+
+
+def test_describe_person_round_trips():
+    for v in ("largest", "3", "540,900", "12.5,7"):
+        assert describe_person(parse_person(v)) == v
+
+
+def test_choose_person():
+    boxes = [(0, 0, 10, 40), (50, 0, 70, 30), (5, 10, 25, 50)]
+    scores = [30.0, 50.0, 10.0]
+    assert choose_person(boxes, scores, ("largest", None)) == 1
+    assert [choose_person(boxes, scores, ("index", n)) for n in range(3)] == [1, 0, 2]
+    assert choose_person(boxes, scores, ("point", (60, 10))) == 1  # inside
+    assert choose_person(boxes, scores, ("point", (100, 10))) == 1  # outside all: the nearest box
+    assert choose_person(boxes, scores, ("point", (6, 15))) == 0  # inside two: the nearer centre, (5, 20)
+    assert choose_person(boxes, scores, ("point", (9, 35))) == 2  # ... (15, 30)
+    assert choose_person(boxes, [1.0, 1.0, 1.0], ("largest", None)) == 0  # ties: the first, as before
+    with pytest.raises(InputError, match="only 3 people were found"):
+        choose_person(boxes, scores, ("index", 3))
+    assert box_distance((0, 0, 10, 10), (13, 14)) == pytest.approx(5.0)
+
+
+# ------------------------------------------------------------------ detection with a chosen person
+
+
+class People:
+    """Frames with coloured rectangles for people; ``boxes[k][i]`` person k's box in frame i."""
+
+    COLOURS = [(200, 30, 30), (30, 200, 30), (30, 30, 200)]
+
+    def __init__(self, boxes, n=12, size=(128, 128)):
+        self.boxes, self.n, self.size, self.root = boxes, n, size, "people"
+
+    def __len__(self):
+        return self.n
+
+    def frame(self, i):
+        img = np.zeros((self.size[1], self.size[0], 3), np.uint8)
+        for k, b in enumerate(self.boxes):
+            if i in b:
+                x0, y0, x1, y1 = b[i]
+                img[y0:y1, x0:x1] = self.COLOURS[k]
+        return img
+
+
+class ColourDetector:
+    """Finds a person whose colour shows at their box centre; tracks the one it found
+    first while visible (like MediaPipe's tracking mode); misses the frames in ``miss``."""
+
+    name = "colour"
+
+    def __init__(self, scene, miss=()):
+        self.scene, self.miss = scene, set(miss)
+        self.reset()
+
+    def reset(self):
+        self.locked, self.i = None, 0
+
+    def detect(self, img):
+        i = self.i
+        self.i += 1
+        visible = []
+        for k, b in enumerate(self.scene.boxes):
+            if i in b:
+                x0, y0, x1, y1 = b[i]
+                if tuple(img[(y0 + y1) // 2, (x0 + x1) // 2]) == People.COLOURS[k]:
+                    visible.append(k)
+        if i in self.miss or not visible:
+            return None
+        k = self.locked if self.locked in visible else visible[0]
+        self.locked = k
+        x0, y0, x1, y1 = self.scene.boxes[k][i]
+        H, W = img.shape[:2]
+        mask = np.zeros((H, W), bool)
+        mask[y0:y1, x0:x1] = True
+        return Detection(stick_keypoints(x0, y0, x1, y1), np.full(15, 0.9), mask)
+
+
+def two_people():
+    big = {i: (10 + 2 * i, 20, 50 + 2 * i, 126) for i in range(12)}
+    small = {i: (90, 10, 110, 60) for i in range(12)}
+    return People([big, small])
+
+
+def test_largest_and_rank_zero_are_todays_behaviour(tmp_path):
+    scene = two_people()
+    a = detect_sequence(scene, tmp_path / "a", ColourDetector(scene), searcher=ColourDetector(scene), progress=False)
+    b = detect_sequence(scene, tmp_path / "b", ColourDetector(scene), searcher=ColourDetector(scene), progress=False,
+                        person=0)
+    assert a.info["detector"] == b.info["detector"] == "colour+search:colour"
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+    assert a.found.all() and a.keypoints[3, 0, 1] > 60  # the big person's hip
+    assert a.info["person"]["choice"] == "largest" and a.info["person"]["rank"] == 0
+    assert len(a.info["person"]["people"]) == 2 and a.info["ignored_people"][0]["frames"] == [0, 11]
+
+
+@pytest.mark.parametrize("person", [1, "1", "100,30", (95, 50)])
+def test_the_chosen_person_is_followed_in_every_frame(tmp_path, person):
+    """The searcher missed the small person in frames 4-6; re-detecting with the big one
+    blanked finds them there too."""
+    scene = two_people()
+    track = detect_sequence(scene, tmp_path, ColourDetector(scene), searcher=ColourDetector(scene, miss={4, 5, 6}),
+                            progress=False, person=person)
+    assert track.found.all()
+    np.testing.assert_allclose(track.keypoints[5], stick_keypoints(90, 10, 110, 60))
+    assert "+person:" in track.info["detector"]
+    assert track.info["person"]["rank"] == 1 and "not the one chosen" in track.info["ignored_people"][0]["why"]
+    # a stored result for another person is not reused
+    other = detect_sequence(scene, tmp_path, ColourDetector(scene), searcher=ColourDetector(scene), progress=False)
+    assert other.keypoints[5, 0, 1] > 60
+
+
+def test_a_rank_beyond_the_people_found(tmp_path):
+    scene = two_people()
+    with pytest.raises(InputError, match="only 2 people were found"):
+        detect_sequence(scene, tmp_path, ColourDetector(scene), searcher=ColourDetector(scene), progress=False,
+                        person=2)
+
+
+def test_track_and_cli_take_the_person(tmp_path):
+    from flowmocap.cli import build_parser
+    from flowmocap.pipeline import track
+
+    with pytest.raises(InputError, match="'largest', a rank"):
+        track(tmp_path, tmp_path / "out", person="tallest")
+    args = build_parser().parse_args(["track", "v.mp4", "--out", "o", "--person", "540,900"])
+    assert args.person == "540,900"
+    assert build_parser().parse_args(["track", "v.mp4", "--out", "o"]).person == "largest"
