@@ -464,10 +464,10 @@ def _body_region(cand: Candidate, shape: tuple[int, int], width: float = 0.08) -
 
     H, W = shape
     b = cand.box
-    t = max(3, int(round(width * (b[3] - b[1]))))
+    t = max(3, round(width * (b[3] - b[1])))
     kp, cf = np.asarray(cand.keypoints, np.float64), np.asarray(cand.confidence)
     ok = {n: cf[k] >= 0.3 and np.isfinite(kp[k]).all() for k, n in enumerate(KEYPOINT_NAMES)}
-    pt = {n: tuple(int(round(v)) for v in kp[k]) for k, n in enumerate(KEYPOINT_NAMES) if ok[n]}
+    pt = {n: tuple(round(v) for v in kp[k]) for k, n in enumerate(KEYPOINT_NAMES) if ok[n]}
     region = np.zeros((H, W), np.uint8)
     for a, c in _BONES:
         if a in pt and c in pt:
@@ -481,11 +481,11 @@ def _body_region(cand: Candidate, shape: tuple[int, int], width: float = 0.08) -
     face = [kp[KEYPOINT_NAMES.index(n)] for n in ("nose", "left_ear", "right_ear") if ok[n]]
     if face:
         centre = np.mean(face, axis=0)
-        cv2.circle(region, tuple(int(round(v)) for v in centre), max(2, int(0.07 * (b[3] - b[1]))), 1, -1)
+        cv2.circle(region, tuple(round(v) for v in centre), max(2, int(0.07 * (b[3] - b[1]))), 1, -1)
         shoulders = [pt[n] for n in ("left_shoulder", "right_shoulder") if n in pt]
         if shoulders:
-            cv2.line(region, tuple(int(round(v)) for v in np.mean(shoulders, axis=0)),
-                     tuple(int(round(v)) for v in centre), 1, t)
+            cv2.line(region, tuple(round(v) for v in np.mean(shoulders, axis=0)),
+                     tuple(round(v) for v in centre), 1, t)
     if not region.any():  # no confident keypoints: the box
         region[max(0, int(b[1])):min(H, int(np.ceil(b[3]))), max(0, int(b[0])):min(W, int(np.ceil(b[2])))] = 1
     m = np.asarray(cand.mask, bool) if cand.mask is not None else None
