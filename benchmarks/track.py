@@ -81,7 +81,7 @@ def main() -> int:
                     cache.put(int(f.stem), z["flow"])
     t0 = time.perf_counter()
     joints3d, detect_note = None, "E_d off"
-    if cfg.limb_depth_weight > 0:  # timed here; track() below finds the stored detections
+    if cfg.uses_detector3d:  # timed here; track() below finds the stored detections
         joints3d, detect_note = detect_joints3d(seq, res_dir, seq.camera, progress=False)
     detect_s = time.perf_counter() - t0
     result = track(seq_dir, res_dir, init=init, config=args.config, frames=args.track_frames,

@@ -201,3 +201,13 @@ def test_the_depth_ambiguity_settings_default_to_off_and_are_checked():
                          ({"reinit_3d_patience": 0}, r"'reinit_3d_patience' must be an integer >= 1")):
         with pytest.raises(InputError, match=pattern):
             TrackerConfig.load(bad)
+
+
+def test_uses_detector3d_names_every_reader_of_the_3d_joints():
+    from flowmocap.fit.config import TrackerConfig
+
+    off = dict(limb_depth_weight=0.0, detector3d_weight=0.0, init_detector3d_weight=0.0, reinit_max_joint3d_error=0.0)
+    assert not TrackerConfig.load(None, **off).uses_detector3d
+    for k, v in (("limb_depth_weight", 1.0), ("detector3d_weight", 50.0), ("init_detector3d_weight", 1e4),
+                 ("reinit_max_joint3d_error", 0.1)):
+        assert TrackerConfig.load(None, **{**off, k: v}).uses_detector3d, k

@@ -274,7 +274,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None  # noqa: E731
         j3d = lambda i: detections.smpl_joints3d(i, cam)  # noqa: E731
-    elif joints3d == "auto" and cfg.limb_depth_weight > 0:
+    elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
         j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress)
         (out / "input.json").write_text(json.dumps(notes, indent=2))
@@ -435,7 +435,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
         return keypoint_observation(*found) if found is not None else None
 
     def detected3d(i: int) -> tuple | None:
-        return joints3d(i) if (joints3d is not None and cfg.limb_depth_weight > 0) else None
+        return joints3d(i) if (joints3d is not None and cfg.uses_detector3d) else None
 
     def observe(i: int):
         """Mask and observations of frame i (the person-size fallback for a frame without a

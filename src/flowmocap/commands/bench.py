@@ -12,10 +12,12 @@ def register(subparsers) -> None:
         "frame-0 init, fit the per-frame baseline, and write DIR/bench.md and DIR/bench.json. Re-running with "
         "the same --out resumes: finished sequences and results are kept.")
     g = b.add_mutually_exclusive_group()
-    g.add_argument("--suite", choices=["quick", "full", "diverse"], default=None,
+    g.add_argument("--suite", choices=["quick", "full", "diverse", "real3d"], default=None,
                    help="quick: a 20-frame 320x240 built-in walk (< 5 min); full: CMU 35_01 side-on and 45 deg "
                    "(130 frames, 640x480, 60 fps) and DAVIS dance-twirl; diverse: 16 held-out CMU clips of 9 kinds "
-                   "of motion (100 frames each, 640x480, 60 fps, random body and azimuth; ~30 min)")
+                   "of motion (100 frames each, 640x480, 60 fps, random body and azimuth; ~30 min); real3d: the four-camera "
+                   "pose2sim recording, both people tracked from every view, scored against points triangulated "
+                   "from the other three views (~20 min)")
     g.add_argument("--mocap", action="append", metavar="FILE",
                    help="ASF/AMC or BVH clip to run the full protocol on (repeatable)")
     b.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
@@ -36,21 +38,20 @@ def cmd_bench(args) -> int:
 
     if args.num_frames is not None and args.num_frames < 3:
         raise InputError("--num-frames must be at least 3 (the acceleration error needs 3 frames).")
+    if args.suite == "real3d":
+        from flowmocap.eval.real3d import run_real3d
+
+        run_real3d(args.out, frames=args.num_frames, tracker_config=_tracker_overrides(args.config),
+                   progress=not args.quiet)
+        print(f"wrote {args.out}/real3d.md and {args.out}/real3d.json")
+        return 0
     if args.mocap:
         specs = mocap_specs(args.mocap, frames=args.num_frames or 130, size=args.size or "640x480")
         name = "mocap"
     else:
         name = args.suite or "quick"
         specs = suite(name, frames=args.num_frames, size=args.size)
-    tracker = {}
-    if args.config:
-        import json
-        from pathlib import Path
-
-        from flowmocap.fit.config import TrackerConfig
-
-        TrackerConfig.load(args.config)  # refuses a bad file before any work
-        tracker = json.loads(Path(args.config).read_text())
+    tracker = _tracker_overrides(args.config)
     baseline = {}
     if args.baseline_iterations:
         baseline = {"iterations": args.baseline_iterations, "orient_iterations": args.baseline_iterations}
@@ -58,3 +59,17 @@ def cmd_bench(args) -> int:
               tracker_config=tracker, baseline_config=baseline)
     print(f"wrote {args.out}/bench.md and {args.out}/bench.json")
     return 0
+
+
+def _tracker_overrides(path) -> dict:
+    """The tracker settings of a ``--config`` file as a dict ({} without one); a bad file
+    is refused before any work."""
+    if not path:
+        return {}
+    import json
+    from pathlib import Path
+
+    from flowmocap.fit.config import TrackerConfig
+
+    TrackerConfig.load(path)
+    return json.loads(Path(path).read_text())

@@ -221,6 +221,13 @@ class TrackerConfig:
         check_setting_names(given, "config overrides")
         return cls(**{**PROFILES[profile], **(base or {}), **values, **given})
 
+    @property
+    def uses_detector3d(self) -> bool:
+        """Whether any setting reads the detector's 3D joints (``E_d``, ``E_3d`` in the
+        frames or the joint fits, the 3D re-initialisation criterion)."""
+        return (self.limb_depth_weight > 0 or self.detector3d_weight > 0 or self.init_detector3d_weight > 0
+                or self.reinit_max_joint3d_error > 0)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["stages"] = [list(s) for s in self.stages]
