@@ -588,7 +588,9 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         ``detector3d``: ``{"per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm",
         "per_sequence_all_views_mm", "per_frame_curve_mm"}`` (the ``all_views`` ones
         against the reference from every view, the run's own included, on the same
-        frames), ``det2d_px``: median distance between the run's confident 2D
+        frames), ``reference_without_vs_all_mm``: per-frame PA-MPJPE between the
+        reference without the view and with it (how much leaving the view out moves
+        the reference), ``det2d_px``: median distance between the run's confident 2D
         detections and the reference (all views) projected into this view, in
         full-resolution pixels (a check that the run followed the intended person).
     """
@@ -657,6 +659,11 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         pfa, psa, _ = pa_mpjpe(pred, np.asarray(ref_all), np.asarray(ok_all))
         out[name] = {"per_frame_mm": pf, "per_sequence_mm": ps, "per_frame_all_views_mm": pfa,
                      "per_sequence_all_views_mm": psa, "per_frame_curve_mm": np.round(curve, 1).tolist()}
+    # how much the reference itself moves when the view is left out (its noise floor here)
+    both = np.asarray(ok_wo) & np.asarray(ok_all)
+    keep = (both.sum(1) >= MIN_JOINTS) & both[:, hips].all(1)
+    out["reference_without_vs_all_mm"] = (pa_mpjpe(np.asarray(ref)[keep], np.asarray(ref_all)[keep], both[keep])[0]
+                                          if keep.any() else None)
     # the run's 2D detections against the reference projected into this view
     cam = reference["cameras"][view]
     scale = det.info["size"][0] / cam.width
@@ -696,12 +703,12 @@ def format_real3d_table(result: dict) -> str:
              + (f" on the first {s['frames']} frames" if s.get("frames") else "")
              + ("" if not s.get("tracker_config") else f", tracker overrides {s['tracker_config']}") + ".", "",
              "| person | view | frames | flowmocap per-frame mm | flowmocap per-seq mm | detector3d per-frame mm "
-             "| detector3d per-seq mm | ours / det (per-frame) | det 2D px |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "| detector3d per-seq mm | ours / det (per-frame) | det 2D px | ref w/o vs all mm |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     fmt = lambda v: "--" if v is None else f"{v:.1f}"  # noqa: E731
     for r in result["rows"]:
         if r.get("skipped_run"):
-            lines.append(f"| {r['person']} | {r['view']} | -- | {r['skipped_run']} | | | | | |")
+            lines.append(f"| {r['person']} | {r['view']} | -- | {r['skipped_run']} | | | | | | |")
             continue
         a, b = r.get("flowmocap") or {}, r.get("detector3d") or {}
         ratio = (a["per_frame_mm"] / b["per_frame_mm"]) if a and b else None
@@ -709,13 +716,14 @@ def format_real3d_table(result: dict) -> str:
                                             if r.get("failed") else "")
         lines.append(f"| {r['person']} | {r['view']} | {frames} | {fmt(a.get('per_frame_mm'))} | "
                      f"{fmt(a.get('per_sequence_mm'))} | {fmt(b.get('per_frame_mm'))} | {fmt(b.get('per_sequence_mm'))} "
-                     f"| {'--' if ratio is None else f'{ratio:.2f}'} | {fmt(r.get('det2d_px'))} |")
+                     f"| {'--' if ratio is None else f'{ratio:.2f}'} | {fmt(r.get('det2d_px'))} "
+                     f"| {fmt(r.get('reference_without_vs_all_mm'))} |")
     m = result["mean"]
     a, b = m["flowmocap"], m["detector3d"]
     ratio = a["per_frame_mm"] / b["per_frame_mm"] if a["per_frame_mm"] and b["per_frame_mm"] else None
     lines.append(f"| **mean** | {m['person_views']} person-views | {m['frames_scored']} | {fmt(a['per_frame_mm'])} | "
                  f"{fmt(a['per_sequence_mm'])} | {fmt(b['per_frame_mm'])} | {fmt(b['per_sequence_mm'])} | "
-                 f"{'--' if ratio is None else f'{ratio:.2f}'} | |")
+                 f"{'--' if ratio is None else f'{ratio:.2f}'} | | |")
     for r in result["rows"]:
         if r.get("failed"):
             lines.append(f"\n{r['person']}@{r['view']}: the run failed: {r['failed']}")
@@ -725,7 +733,8 @@ def format_real3d_table(result: dict) -> str:
               f"on the same frames and joints (>= {MIN_JOINTS} of the 13 reference joints, hips included; a detection "
               "with 3D landmarks; a fitted body). det 2D px: "
               "median distance of the run's 2D detections to the reference projected into the view (full-resolution "
-              "px; a check that the intended person was tracked). Against all views (the view's own detections "
+              "px; a check that the intended person was tracked). ref w/o vs all: per-frame PA-MPJPE between the "
+              "reference without the view and with it (the reference's own noise there). Against all views (the view's own detections "
               f"included): flowmocap {fmt(a['per_frame_all_views_mm'])} / detector3d "
               f"{fmt(b['per_frame_all_views_mm'])} mm per-frame."]
     return "\n".join(lines)
