@@ -203,3 +203,45 @@ def test_a_3d_refit_must_still_fit_the_image():
                       {"iou": None, "joint_error": None, "joint3d_error": 0.1}, 0.15)
     assert not _better_3d({"iou": 0.8, "joint_error": 0.05, "joint3d_error": None},
                           {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.1}, 0.15)
+
+
+def test_collapsed_detections_are_not_refitted_to():
+    import numpy as np
+
+    from flowmocap.fit.reinit import collapsed_detection
+
+    rng = np.random.default_rng(0)
+    j2d = np.stack([rng.uniform(100, 140, 24), np.linspace(100, 400, 24)], 1)  # 300 px tall
+    conf = np.ones(24)
+    assert not collapsed_detection(j2d, conf, 480)
+    folded = j2d.copy()
+    folded[:, 1] = 200 + (folded[:, 1] - 100) / 30  # 10 px tall: knees and ankles at the hips
+    assert collapsed_detection(folded, conf, 480)
+    few = np.zeros(24)
+    few[:5] = 1.0
+    assert collapsed_detection(j2d, few, 480)
+
+
+def test_minimise_refuses_to_leave_non_finite_parameters():
+    import torch
+
+    from flowmocap.errors import OptimizationError
+    from flowmocap.fit.lbfgs import minimise
+
+    x = torch.tensor([1.0, 2.0], dtype=torch.float64, requires_grad=True)
+
+    class FiniteValueNanGradient(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, v):
+            return torch.nan_to_num((v ** 2).sum(), nan=1.0)  # finite even at NaN parameters
+
+        @staticmethod
+        def backward(ctx, g):
+            return torch.full((2,), float("nan"), dtype=torch.float64)
+
+    def energy():
+        return FiniteValueNanGradient.apply(x)
+
+    with pytest.raises(OptimizationError, match="non-finite"):
+        minimise([x], energy, iterations=5)
+    assert not torch.isfinite(x).all()  # what the check caught

@@ -12,7 +12,7 @@ from flowmocap.errors import InputError, OptimizationError
 
 def minimise(params: list[torch.Tensor], closure_energy: Callable[[], torch.Tensor], iterations: int) -> float:
     """L-BFGS (strong Wolfe) on ``params``, in place; raises OptimizationError on a
-    non-finite energy.
+    non-finite energy or non-finite parameters at the end.
 
     A trial point of the line search where the energy cannot be evaluated (an
     :class:`~flowmocap.errors.InputError`, e.g. a step so long that part of the body
@@ -55,4 +55,6 @@ def minimise(params: list[torch.Tensor], closure_energy: Callable[[], torch.Tens
         return e
 
     opt.step(closure)
+    if not all(bool(torch.isfinite(p).all()) for p in params):
+        raise OptimizationError("the optimiser left non-finite parameters (NaN or inf)")
     return last[0]

@@ -224,6 +224,8 @@ class ReinitMonitor:
 
     def _reinitialise(self, i: int, state, scene, mask, before: dict, in3d: bool = False):
         j2d, conf = self.track.smpl_joints(i)
+        if collapsed_detection(j2d, conf, scene.camera.height):
+            return None  # nothing sound to fit to (a hidden or folded-up person); keep tracking by flow
         joints3d = self.track.smpl_joints3d(i, scene.camera)
         starts = [(state.pose, state.trans)]
         if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
@@ -256,6 +258,29 @@ class ReinitMonitor:
                    f"{self.max_joint_error} of the person's height)")
         info = {"why": why, "before": _rounded(before), "after": _rounded(after)}
         return FrameState(best[0], best[1]), info
+
+
+#: A detection whose confident joints span less than this fraction of the image height
+#: (or that has fewer than :data:`MIN_REFIT_JOINTS` of them) is not refitted to.
+MIN_REFIT_EXTENT = 0.08
+MIN_REFIT_JOINTS = 6
+
+
+def collapsed_detection(j2d: np.ndarray, conf: np.ndarray, image_height: int, min_confidence: float = 0.3) -> bool:
+    """Whether a frame's detected 2D joints are too few or too bunched up to refit the
+    body to: fewer than :data:`MIN_REFIT_JOINTS` with confidence >= ``min_confidence``,
+    or spread over less than :data:`MIN_REFIT_EXTENT` of the image height (the detector's
+    skeleton of a half-hidden or folded-up person, knees and ankles next to the hips; the
+    fit would put the body tens of metres away or fail).
+
+    Args:
+        j2d: ``(24, 2)`` pixels; conf: ``(24,)``; image_height: pixels.
+    """
+    ok = np.asarray(conf) >= min_confidence
+    if ok.sum() < MIN_REFIT_JOINTS:
+        return True
+    extent = float(np.ptp(np.asarray(j2d, np.float64)[ok], axis=0).max())
+    return not extent >= MIN_REFIT_EXTENT * image_height
 
 
 #: A re-initialisation may cost this much silhouette IoU if it brings the 2D joints closer.
