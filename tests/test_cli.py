@@ -43,6 +43,12 @@ def test_demo_tracks_scores_and_points_to_the_next_commands(tmp_path, capsys):
         assert np.isfinite(scores[key])
     assert scores["frames"] == 4
     assert (tmp_path / "result" / "motion.npz").exists()
+    # the demo's own earlier result made with other settings (an older version's defaults) is redone, not refused
+    from flowmocap.eval.demo import run_demo
+
+    again = run_demo(tmp_path, frames=4, size="240x180", progress=False, config={"iterations": 3})
+    assert again["frames"] == 4
+    assert json.loads((tmp_path / "result" / "run.json").read_text())["config"]["iterations"] == 3
 
 
 def test_body_command_errors_cleanly(tmp_path, capsys):

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
+from flowmocap.errors import InputError
 from flowmocap.eval.protocol import evaluate, noisy_init
 from flowmocap.io.sequence import load_sequence
 from flowmocap.pipeline import track
@@ -38,9 +40,15 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "64
     init = noisy_init(seq.gt, frame=0, seed=seed)
     (out_dir / "init.json").write_text(json.dumps(init, indent=2))
     t1 = time.perf_counter()
-    result = track(seq_dir, res_dir, init=init, config=config, resume=(res_dir / "motion.npz").exists(),
-                   gender=str(seq.meta.get("gender", "neutral")),
-                   progress=progress, log=None)
+    kw = dict(init=init, config=config, gender=str(seq.meta.get("gender", "neutral")), progress=progress, log=None)
+    try:
+        result = track(seq_dir, res_dir, resume=(res_dir / "motion.npz").exists(), **kw)
+    except InputError as e:
+        if not str(e).startswith("cannot resume"):
+            raise
+        # the demo's own earlier result, made with other settings (e.g. by an older version): start over
+        shutil.rmtree(res_dir)
+        result = track(seq_dir, res_dir, resume=False, **kw)
     track_s = time.perf_counter() - t1
     run, motion = result.run, result.motion
     scores = evaluate(motion, seq.gt)
