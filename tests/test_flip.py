@@ -11,7 +11,7 @@ import torch
 from flowmocap.body import JOINT_INDEX, load_body_model
 from flowmocap.body.skeleton import PARENTS
 from flowmocap.errors import InputError
-from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.config import DEPTH_CUES_OFF, TrackerConfig
 from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.fit.flip import flip_limbs, flipped_pose, limb_name, limb_rotation, mirror_child
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
@@ -130,7 +130,7 @@ def test_a_flipped_shin_is_flipped_back(scene32, pose, term):
     assert flipped is not None
     weights = {"limb_depth": {"limb_depth_weight": 2.0}, "detector3d": {"limb_depth_weight": 0.0,
                                                                        "detector3d_weight": 50.0}}[term]
-    cfg = TrackerConfig(penetration_weight=0.0, **weights)
+    cfg = TrackerConfig(penetration_weight=0.0, **{**DEPTH_CUES_OFF, **weights})
     data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans))
     prev = FrameState(pose, trans)
     e_true, _ = frame_energy(scene32, FrameState(pose, trans), data, cfg, None, None, None)
@@ -146,7 +146,7 @@ def test_a_flipped_shin_is_flipped_back(scene32, pose, term):
     assert events[0]["energy_after"] < events[0]["energy_before"]
     assert terms["total"] == pytest.approx(float(e_true), rel=1e-4, abs=1e-6) and term in terms
     # nothing in the energy tells the two apart but the temporal term towards the flipped pose
-    blind = TrackerConfig(limb_depth_weight=0.0, penetration_weight=0.0, limit_weight=0.0)
+    blind = TrackerConfig(limb_depth_weight=0.0, penetration_weight=0.0, limit_weight=0.0, **DEPTH_CUES_OFF)
     kept, _, none = flip_limbs(scene32, FrameState(flipped, trans), data, blind, prev, flipped)
     assert none == [] and torch.equal(kept.pose, flipped)
 
@@ -165,7 +165,8 @@ def test_flip_with_a_few_iterations_polishes_the_mirrored_pose(scene32, pose):
         truth = scene32.forward(pose, trans)[0].joints[0]
     data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans),
                      keypoints=(scene32.camera.project(truth), torch.ones(24)))
-    cfg = TrackerConfig(penetration_weight=0.0, limit_weight=0.0, limb_depth_weight=2.0, flip_iterations=3)
+    cfg = TrackerConfig(penetration_weight=0.0, limit_weight=0.0, limb_depth_weight=2.0, flip_iterations=3,
+                        **{**DEPTH_CUES_OFF, "flip_test": True})
     s = FrameState(flipped_pose(scene32, pose, trans, SHIN).requires_grad_(), trans.clone().requires_grad_())
     minimise([s.pose, s.trans], lambda: frame_energy(scene32, s, data, cfg, None, None, None)[0], 60)
     start = s.clone()

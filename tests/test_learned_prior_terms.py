@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from flowmocap.body import JOINT_INDEX, load_body_model
-from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.config import DEPTH_CUES_OFF, TrackerConfig
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy, learned_pose_prior
 from flowmocap.geometry import PinholeCamera, look_at
 from flowmocap.io import walk_poses
@@ -35,10 +35,11 @@ def test_the_prior_is_loaded_once():
     assert learned_pose_prior() is learned_pose_prior()
 
 
-def test_off_by_default_and_weighted_when_on(scene64):
+def test_off_at_weight_zero_and_weighted_when_on(scene64):
     pose = torch.tensor(walk_poses(np.array([0.3]))[0])
     state = FrameState(pose, torch.zeros(3, dtype=torch.float64))
-    _, terms = frame_energy(scene64, state, _data(), TrackerConfig(), None, None, None)
+    assert TrackerConfig().pose_prior_weight > 0  # on by default
+    _, terms = frame_energy(scene64, state, _data(), TrackerConfig(**DEPTH_CUES_OFF), None, None, None)
     assert "learned_prior" not in terms
     cfg = TrackerConfig(pose_prior_weight=0.01, **ALL_OFF)
     total, terms = frame_energy(scene64, state, _data(), cfg, None, None, None)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from flowmocap.errors import InputError
-from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.config import DEPTH_CUES_OFF, TrackerConfig
 from flowmocap.fit.reinit import ReinitMonitor, _better, joint_disagreement
 from flowmocap.vision.auto import detect_sequence
 
@@ -147,9 +147,10 @@ def test_joint3d_disagreement_closed_form():
     assert joint3d_disagreement(x, obs, few) is None
 
 
-def test_the_3d_criterion_is_off_by_default(setup):
+def test_the_3d_criterion_can_be_turned_off(setup):
     seq, track, scene = setup
-    mon = ReinitMonitor(track, TrackerConfig())
+    assert ReinitMonitor(track, TrackerConfig()).max_joint3d_error == 0.1  # on by default
+    mon = ReinitMonitor(track, TrackerConfig(**DEPTH_CUES_OFF))
     assert mon.max_joint3d_error == 0.0
     mon(2, _state(seq, 2), scene, seq.mask(2))
     assert "joint3d_error" not in mon.scores[2] and mon.verdicts3d[2] is None

@@ -15,7 +15,7 @@ import torch
 from flowmocap.body import load_body_model
 from flowmocap.errors import DataError, InputError, NoPersonError, OptimizationError
 from flowmocap.eval.protocol import evaluate, noisy_init
-from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.config import DEPTH_CUES_OFF, TrackerConfig
 from flowmocap.fit.init import parse_init
 from flowmocap.fit.objective import FrameState, Scene, frame_data, keypoint_observation
 from flowmocap.fit.tracker import KnownStart, SequenceTracker, track_frames
@@ -272,7 +272,7 @@ def test_all_weights_zero_keeps_the_prediction(clip, model):
 
     seq = load_sequence(clip)
     cfg = TrackerConfig(flow_weight=0.0, silhouette_weight=0.0, temporal_weight=0.0, limit_weight=0.0,
-                        penetration_weight=0.0)
+                        penetration_weight=0.0, **DEPTH_CUES_OFF)
     scene = Scene(model, torch.as_tensor(seq.gt["betas"])[None], seq.camera)
     state = FrameState(torch.as_tensor(seq.gt["poses"][2]).requires_grad_(), torch.as_tensor(seq.gt["trans"][2]))
     total, terms = frame_energy(scene, state, frame_data(seq.mask(2), None, cfg, 1.0), cfg, 0, None, None)
@@ -457,14 +457,14 @@ def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp
     delta[3 * 4:3 * 4 + 3] = torch.tensor([0.2, -0.1, 0.05])
     state = FrameState(anchor + delta, torch.as_tensor(gt["trans"][0], dtype=torch.float32))
     cfg = TrackerConfig(anchor_weight=3.0, flow_weight=0.0, silhouette_weight=0.0, limit_weight=0.0,
-                        penetration_weight=0.0, temporal_weight=0.0)
+                        penetration_weight=0.0, temporal_weight=0.0, **DEPTH_CUES_OFF)
     _, terms = frame_energy(scene, state, FrameData(None, None, 1.0, anchor=anchor), cfg, None, None, None)
     assert terms["anchor"] == pytest.approx(3.0 * (0.04 + 0.01 + 0.0025), rel=1e-5)
 
     # SequenceTracker: the anchor is the first frame of an anchored start, kept through
     # the frames and a state round trip, dropped for good when the monitor re-initialises
     gts = [FrameState(_f32(p), _f32(t)) for p, t in zip(gt["poses"], gt["trans"])]
-    cfg = TrackerConfig(anchor_weight=0.5, iterations=3)
+    cfg = TrackerConfig(anchor_weight=0.5, iterations=3, **DEPTH_CUES_OFF)
     data = lambda i: frame_data(seq.mask(i), None, cfg, 1.0)  # noqa: E731
     asked = []
 

@@ -91,6 +91,15 @@ def _bad(name: str, value: Any, expected: str) -> InputError:
                       f"{'' if value is None else f' ({type(value).__name__})'}.")
 
 
+#: Settings that turn off the depth cues added for generalisation (issue 18: ``E_3d`` in
+#: the frames and the joint fits, the per-limb flip test, the learned prior ``E_p``, the
+#: 3D re-initialisation criterion), leaving the tracker of before them; e.g.
+#: ``TrackerConfig.load(None, **DEPTH_CUES_OFF)`` or the same as a config file.
+DEPTH_CUES_OFF: dict = {"detector3d_weight": 0.0, "init_detector3d_weight": 0.0, "flip_test": False,
+                        "pose_prior_weight": 0.0, "init_learned_prior_weight": 0.0,
+                        "reinit_max_joint3d_error": 0.0}
+
+
 @dataclass
 class TrackerConfig:
     # --- per-frame objective (paper Eq. 4) --------------------------------------------
@@ -110,18 +119,18 @@ class TrackerConfig:
     limb_depth_sigma: float = 0.3      # its Geman-McClure scale (a difference of sines)
     capsule_grid_step: int = 8         # px between exact samples of the capsule distance map C_M
     silhouette_model: str = "capsules"  # S_M/C_M of E_c: "capsules" (paper) or the "mesh" itself
-    detector3d_weight: float = 0.0     # lambda_3d, E_3d: detector's 3D joints after a similarity; 0: off
+    detector3d_weight: float = 100.0   # lambda_3d, E_3d: detector's 3D joints after a similarity; 0: off
     detector3d_scale: float = 0.1      # its pseudo-Huber scale, m: quadratic below, linear above
-    flip_test: bool = False            # per frame, try each limb mirrored in depth; keep it if E is lower
+    flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
-    pose_prior_weight: float = 0.0     # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
+    pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
     reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
     reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
-    reinit_max_joint3d_error: float = 0.0  # m: a frame is 3D-bad above this aligned joint error; 0: off
-    reinit_3d_patience: int = 5        # 3D-bad frames in a row before a refit
+    reinit_max_joint3d_error: float = 0.1  # m: a frame is 3D-bad above this aligned joint error; 0: off
+    reinit_3d_patience: int = 3        # 3D-bad frames in a row before a refit
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"      # flowmocap.vision.FLOW_METHODS; DIS refined to full resolution
     flow_in_mask: bool = True          # E_f only on mask pixels: the background's flow is not the body's
@@ -135,8 +144,8 @@ class TrackerConfig:
     init_pose_prior_weight: float = 200.0  # towards the start pose when the init states no pose
     init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
-    init_detector3d_weight: float = 0.0   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
-    init_learned_prior_weight: float = 0.0  # E_p in the init's and the refits' joint fits (px^2 scale); 0: off
+    init_detector3d_weight: float = 3e4   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
+    init_learned_prior_weight: float = 5.0  # E_p in the init's and the refits' joint fits (px^2 scale); 0: off
     init_iterations: int = 60          # L-BFGS iterations per init step
     init_flow_iterations: int = 30     # L-BFGS iterations of the init's flow step (frames 0 and 1)
 
