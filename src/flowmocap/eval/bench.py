@@ -46,7 +46,7 @@ from flowmocap.eval.protocol import noisy_init
 from flowmocap.eval.scoring import COLUMNS, score_detector3d, score_result
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import parse_init
-from flowmocap.io.results import read_result, write_run
+from flowmocap.io.results import json_default, read_result, write_run
 from flowmocap.io.sequence import load_sequence
 from flowmocap.pipeline import load_result, track
 from flowmocap.synth import synthesize
@@ -500,18 +500,8 @@ def format_summary(summary: dict) -> list[str]:
 
 
 def _write(out_dir: Path, result: dict) -> None:
-    (out_dir / "bench.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    (out_dir / "bench.json").write_text(json.dumps(result, indent=2, default=json_default))
     (out_dir / "bench.md").write_text(format_table(result) + "\n")
-
-
-def _json_default(x):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
 def _fmt(v, key) -> str:

@@ -60,6 +60,7 @@ from flowmocap.errors import DataError, FlowMocapError, InputError
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.geometry.triangulate import CalibratedCamera, estimate_offsets, offset_cost, triangulate
 from flowmocap.io.calibration import read_qualisys_calibration
+from flowmocap.io.results import json_default
 from flowmocap.pipeline import load_result, track
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
@@ -861,15 +862,5 @@ def _write(out_dir: Path, result: dict) -> None:
     if "mean" not in result:
         result = {**result, "mean": _mean_rows([r for r in result["rows"]
                                                 if not r.get("skipped_run") and not r.get("failed")])}
-    (out_dir / "real3d.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    (out_dir / "real3d.json").write_text(json.dumps(result, indent=2, default=json_default))
     (out_dir / "real3d.md").write_text(format_real3d_table(result) + "\n")
-
-
-def _json_default(x):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")

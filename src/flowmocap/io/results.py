@@ -36,12 +36,14 @@ def write_run(out_dir: Path, info: dict) -> None:
     """Atomically write ``out_dir/run.json``."""
 
     def write(tmp):
-        Path(tmp).write_text(json.dumps(info, indent=2, default=_json_default))
+        Path(tmp).write_text(json.dumps(info, indent=2, default=json_default))
 
     atomic_write(Path(out_dir) / "run.json", write)
 
 
-def _json_default(x):
+def json_default(x):
+    """``json.dumps(default=...)`` for numpy arrays and numbers and paths (lists, Python
+    numbers, strings); TypeError for anything else."""
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, (np.floating, np.integer)):
