@@ -757,6 +757,23 @@ def keypoint_energy(
 DEPTH_LIMBS: tuple[tuple[int, int], ...] = ((16, 18), (17, 19), (18, 20), (19, 21), (1, 4), (2, 5), (4, 7), (5, 8))
 
 
+def _detected_joints(joints_cam: Any, joints3d_obs: Any, confidence: Any,
+                     dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The checked inputs of the terms on a detector's 3D joints: ``joints_cam`` must be a
+    ``(B, 24, 3)`` tensor; returns ``joints3d_obs (24, 3)`` and ``confidence (24,)`` as
+    tensors of ``dtype``. InputError for wrong shapes."""
+    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
+        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
+    obs = torch.as_tensor(np.asarray(joints3d_obs, np.float64) if not isinstance(joints3d_obs, torch.Tensor)
+                          else joints3d_obs, dtype=dtype)
+    conf = torch.as_tensor(np.asarray(confidence, np.float64) if not isinstance(confidence, torch.Tensor)
+                           else confidence, dtype=dtype)
+    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
+        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {tuple(obs.shape)}, "
+                         f"{tuple(conf.shape)}")
+    return obs, conf
+
+
 def limb_depth_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any, sigma: float = 0.3) -> torch.Tensor:
     """Robust residuals between the depth components of the model's and a detector's
     limb directions (``E_d``, an extension of the paper).
@@ -782,15 +799,7 @@ def limb_depth_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confidence
     Returns:
         ``(B, L)`` residuals, ``L = len(DEPTH_LIMBS)``.
     """
-    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
-        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
-    obs = torch.as_tensor(np.asarray(joints3d_obs, np.float64) if not isinstance(joints3d_obs, torch.Tensor)
-                          else joints3d_obs, dtype=joints_cam.dtype)
-    conf = torch.as_tensor(np.asarray(confidence, np.float64) if not isinstance(confidence, torch.Tensor)
-                           else confidence, dtype=joints_cam.dtype)
-    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
-        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {tuple(obs.shape)}, "
-                         f"{tuple(conf.shape)}")
+    obs, conf = _detected_joints(joints_cam, joints3d_obs, confidence, joints_cam.dtype)
     if not sigma > 0:
         raise InputError(f"sigma must be > 0; got {sigma!r}")
     pa = [p for p, _ in DEPTH_LIMBS]
@@ -874,15 +883,7 @@ def detector_joints_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confi
     Raises:
         InputError: wrong shapes, negative or non-finite confidences, ``scale <= 0``.
     """
-    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
-        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
-    obs = torch.as_tensor(np.asarray(joints3d_obs, np.float64) if not isinstance(joints3d_obs, torch.Tensor)
-                          else joints3d_obs, dtype=torch.float64)
-    conf = torch.as_tensor(np.asarray(confidence, np.float64) if not isinstance(confidence, torch.Tensor)
-                           else confidence, dtype=torch.float64)
-    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
-        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {tuple(obs.shape)}, "
-                         f"{tuple(conf.shape)}")
+    obs, conf = _detected_joints(joints_cam, joints3d_obs, confidence, torch.float64)
     if not torch.isfinite(conf).all() or (conf < 0).any():
         raise InputError("confidence must be finite and non-negative (0: joint not detected)")
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
