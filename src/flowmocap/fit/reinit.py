@@ -27,11 +27,12 @@ the refit is kept when its 3D joints are closer to the detector's, at a silhouet
 no more than 0.02 lower and 2D joints no worse than before or within
 ``reinit_max_joint_error`` (:func:`_better_3d`).
 
-Resuming: the monitor keeps the verdicts of the frames it has checked in memory; after
-a resume it re-judges the frames before the resumed one by their stored 2D joints
-(``stored_joints2d``) against the detector's (the silhouette test needs the body
-rendered and is skipped for them), so a run of bad frames is not forgotten. The 3D
-criterion has no stored verdicts: a resume ends a run of 3D-bad frames.
+Resuming: :meth:`ReinitMonitor.state_dict` holds the verdicts of the last frames and the
+last refit attempt (what the next frames' decisions depend on), and the tracker stores
+it with its own state at every frame, so a resumed run decides exactly as an
+uninterrupted one. A run written without it re-judges the frames before the resumed one
+by their stored 2D joints (``stored_joints2d``) against the detector's (the silhouette
+test needs the body rendered and is skipped for them).
 """
 
 from __future__ import annotations
@@ -157,6 +158,21 @@ class ReinitMonitor:
         self.verdicts3d: dict[int, bool | None] = {}  # frame -> 3D-bad (None: cannot tell or criterion off)
         self.scores: dict[int, dict] = {}
         self._last_attempt = -(10 ** 9)
+
+    def state_dict(self) -> dict:
+        """JSON-serialisable state the next frames' decisions depend on: the verdicts of
+        the last ``max(patience, patience3d)`` frames and the frame of the last refit
+        attempt (:meth:`load_state_dict` continues from it)."""
+        keep = sorted(self.verdicts)[-max(self.patience, self.patience3d):]
+        return {"verdicts": [[j, self.verdicts[j], self.verdicts3d.get(j)] for j in keep],
+                "last_attempt": self._last_attempt}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
+        for j, bad, bad3d in state["verdicts"]:
+            self.verdicts[int(j)] = bad
+            self.verdicts3d[int(j)] = bad3d
+        self._last_attempt = int(state["last_attempt"])
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
         """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus

@@ -135,6 +135,7 @@ class SequenceTracker:
             "prev": {"pose": self.prev.pose.tolist(), "trans": self.prev.trans.tolist()},
             "anchor": None if self.anchor is None else self.anchor.pose.tolist(),
             "kalman": None if self.kf is None else self.kf.state_dict(),
+            "monitor": self.monitor.state_dict() if hasattr(self.monitor, "state_dict") else None,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -143,6 +144,8 @@ class SequenceTracker:
         anchor = state.get("anchor")
         self.anchor = None if anchor is None else FrameState(_tensor(anchor), torch.zeros(3))
         self.kf = PoseFilter.from_state_dict(state["kalman"]) if self.cfg.kalman and state.get("kalman") else None
+        if state.get("monitor") is not None and hasattr(self.monitor, "load_state_dict"):
+            self.monitor.load_state_dict(state["monitor"])
 
     def predict(self) -> FrameState:
         """The Kalman prediction of the next frame (the previous frame without filters)."""
