@@ -73,6 +73,7 @@ _RANGES: dict[str, str] = {
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
+    "depth_temporal_weight": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
@@ -124,6 +125,8 @@ class TrackerConfig:
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
+    depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards the
+    #                                    Kalman prediction (m^2); 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

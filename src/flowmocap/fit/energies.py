@@ -20,6 +20,7 @@ pose prior (init)            sum_i w_i (theta_i - theta_ref_i)^2             rad
 shape prior (init)           ||beta||^2                                      --
 E_theta                      sum_i w_i (theta_i - theta_prev_i)^2            rad^2 (root:
                                                                              geodesic)
+E_z  root depth              ((sigma - sigma_ref) . u)^2                     m^2
 ==========================  =============================================  ===========
 
 E_sp and E_c take the capsules of :func:`flowmocap.body.body_capsules`; compute them
@@ -58,6 +59,9 @@ __all__ = [
     "interpenetration_energy",
     "SilhouetteTarget",
     "silhouette_target",
+    "camera_ray",
+    "depth_temporal_residuals",
+    "depth_temporal_energy",
     "capsule_signed_distance",
     "silhouette_residuals",
     "silhouette_energy",
@@ -1046,3 +1050,52 @@ def temporal_residuals(
 def temporal_energy(pose: torch.Tensor, prev_pose: Any, weights: Any = None, include_root: bool = True) -> torch.Tensor:
     """E_theta: sum of squared :func:`temporal_residuals`, ``(B,)`` in rad^2."""
     return _sum_sq(temporal_residuals(pose, prev_pose, weights, include_root))
+
+
+def camera_ray(camera: PinholeCamera, point: Any) -> torch.Tensor:
+    """Unit direction ``(3,)`` (world axes) from the camera's centre to ``point`` ``(3,)``
+    metres (world): the direction in which a monocular camera cannot see a point move.
+
+    Raises:
+        InputError: ``point`` is not 3 finite numbers or lies at the camera's centre.
+    """
+    p = torch.as_tensor(np.asarray(point, np.float64)).reshape(-1)
+    if p.numel() != 3 or not torch.isfinite(p).all():
+        raise InputError(f"point must be 3 finite numbers (metres); got {tuple(p.shape)}.")
+    R = torch.tensor(np.array(camera.R, np.float64))
+    centre = -R.T @ torch.tensor(np.array(camera.t, np.float64))
+    d = p - centre
+    n = torch.linalg.norm(d)
+    if not n > 1e-9:
+        raise InputError("the point lies at the camera's centre; it has no viewing ray.")
+    return (d / n).to(torch.float32)
+
+
+def depth_temporal_residuals(trans: torch.Tensor, ref_trans: Any, ray: Any) -> torch.Tensor:
+    """Residual of ``E_z``, the root's motion along the camera ray away from a reference:
+    ``r = (sigma - sigma_ref) . u`` (metres), with ``u`` the unit viewing ray through the
+    reference root (:func:`camera_ray`). Motion across the ray (which the image sees) is
+    free; only the component along it (which flow and silhouette barely see) costs.
+
+    Args:
+        trans: ``(3,)`` or ``(B, 3)`` translations, metres (the variables).
+        ref_trans: ``(3,)`` reference translation, metres (a constant, e.g. the Kalman
+            prediction).
+        ray: ``(3,)`` unit viewing direction, world axes.
+
+    Returns:
+        ``(B, 1)`` residuals in metres.
+    """
+    if not isinstance(trans, torch.Tensor) or trans.shape[-1:] != (3,) or trans.dim() not in (1, 2):
+        raise InputError(f"trans must be a (3,) or (B, 3) tensor, got {getattr(trans, 'shape', None)}")
+    t = trans if trans.dim() == 2 else trans[None]
+    ref = _like(ref_trans, t).reshape(-1)
+    u = _like(ray, t).reshape(-1)
+    if ref.numel() != 3 or u.numel() != 3:
+        raise InputError(f"ref_trans and ray must have 3 values each; got {ref.numel()} and {u.numel()}.")
+    return ((t - ref) * u).sum(-1, keepdim=True)
+
+
+def depth_temporal_energy(trans: torch.Tensor, ref_trans: Any, ray: Any) -> torch.Tensor:
+    """``E_z``: squared :func:`depth_temporal_residuals`, ``(B,)`` in m^2."""
+    return _sum_sq(depth_temporal_residuals(trans, ref_trans, ray))

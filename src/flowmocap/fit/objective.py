@@ -1,7 +1,7 @@
 """The per-frame objective (paper Eq. 4 plus our extensions) and what it is evaluated on.
 
     E = l_f E_f + l_c E_c + l_b E_b + l_sp E_sp + l_theta E_theta [+ l_j E_j] [+ l_a E_a] [+ l_d E_d]
-        [+ l_3d E_3d] [+ l_p E_p]
+        [+ l_3d E_3d] [+ l_p E_p] [+ l_z E_z]
 
 ``E_f`` compares the observed backward flow F_o(i, i-1) with the flow rendered from the
 model at frame i (the variables) to the model at frame i-1 (fixed); ``E_c`` the body's
@@ -13,7 +13,9 @@ track's first frame, ``E_d`` each limb's direction in depth towards a detector's
 joints, ``E_3d`` the model's joints towards a detector's 3D joints after a per-frame
 similarity alignment, with a cost that keeps pulling a limb that has flipped in depth
 (where ``E_d`` saturates), ``E_p`` a pose prior learned from motion capture
-(:mod:`flowmocap.fit.pose_prior`, loaded once by :func:`learned_pose_prior`).
+(:mod:`flowmocap.fit.pose_prior`, loaded once by :func:`learned_pose_prior`), ``E_z`` the
+root's motion along the camera ray away from the Kalman prediction (the depth a single
+camera barely sees).
 :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
 faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observations.
 """
@@ -37,7 +39,7 @@ from flowmocap.render import flow_loss, flow_target, prepare_faces
 
 #: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
-                "limb_depth", "detector3d", "learned_prior")
+                "limb_depth", "detector3d", "learned_prior", "depth_temporal")
 
 
 @cache
@@ -102,6 +104,7 @@ class FrameData:
     keypoints: tuple | None = None  # detected (j2d (24, 2) px, conf (24,)) tensors for E_j, or None
     anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a, or None
     joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d and E_3d, or None
+    depth_ref: tuple | None = None  # (ref_trans (3,) m, unit viewing ray (3,)) for E_z, or None
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
@@ -196,6 +199,9 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
             out.joints, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
     if cfg.pose_prior_weight > 0:
         terms["learned_prior"] = cfg.pose_prior_weight * learned_pose_prior().energy(state.pose.reshape(1, 72))[0]
+    if data.depth_ref is not None and cfg.depth_temporal_weight > 0:
+        terms["depth_temporal"] = cfg.depth_temporal_weight * en.depth_temporal_energy(
+            state.trans.reshape(1, 3), *data.depth_ref)[0]
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 

@@ -4,7 +4,8 @@ For each frame i after the first two: the filters (an error-state EKF on SO(3) p
 a linear one for translation) predict pose and translation; the objective of
 :mod:`flowmocap.fit.objective` is minimised from there, coarse to fine over the flow
 pyramid (the stages of :class:`~flowmocap.fit.config.TrackerConfig`), with the shape
-fixed after initialisation and ``E_theta`` towards the prediction; with ``flip_test``
+fixed after initialisation, ``E_theta`` towards the predicted pose and ``E_z`` (when on)
+the root's depth towards the predicted translation; with ``flip_test``
 each limb's mirror image in depth is then tried (:mod:`flowmocap.fit.flip`) and kept
 where the frame's energy is lower; the result updates the filters. :class:`SequenceTracker` holds the state between frames (``start``,
 ``step``, ``state_dict`` for resuming); :func:`track_frames` runs the loop over a frame
@@ -25,6 +26,7 @@ import torch
 from tqdm import tqdm
 
 from flowmocap.errors import InputError, OptimizationError
+from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.flip import flip_limbs
 from flowmocap.fit.kalman import PoseFilter
@@ -89,6 +91,15 @@ def person_pixels(scene: Scene, state: FrameState) -> float:
     with torch.no_grad():
         _, px, d = scene.forward(state.pose, state.trans)
     return float(body_mask(px.numpy(), d.numpy(), scene.faces, scene.camera.height, scene.camera.width).sum())
+
+
+def depth_reference(scene: Scene, ref: FrameState) -> tuple[torch.Tensor, torch.Tensor]:
+    """``E_z``'s reference: ``ref``'s translation ``(3,)`` metres and the unit viewing ray
+    ``(3,)`` (world axes) through ``ref``'s root joint."""
+    with torch.no_grad():
+        out, _, _ = scene.forward(ref.pose, ref.trans)
+        root = out.joints[0, 0].double().numpy()
+    return ref.trans.detach().clone().float(), en.camera_ray(scene.camera, root)
 
 
 def _tensor(x) -> torch.Tensor:
@@ -161,6 +172,7 @@ class SequenceTracker:
         prev = self.prev
         pred = self.predict()
         data.anchor = self.anchor.pose if (self.anchor is not None and self.cfg.anchor_weight > 0) else None
+        data.depth_ref = depth_reference(self.scene, pred) if self.cfg.depth_temporal_weight > 0 else None
         if mask is not None and not mask.any():
             events.append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
             mask = None
