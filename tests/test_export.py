@@ -1,4 +1,9 @@
-"""flowmocap export: BVH, glb, OBJ, JSON and AMASS npz from a result folder."""
+"""flowmocap export: BVH, glb, OBJ, JSON and AMASS npz from a result folder.
+
+Most tests here compare with the result's own joints, so they export in the ``"up"`` frame
+(a pure rotation of the result's world); the ground frame (the default) is tested in
+tests/test_ground.py, the skinned glb in tests/test_export_gltf.py.
+"""
 
 from __future__ import annotations
 
@@ -105,7 +110,7 @@ def _fk_from_bvh_package(path: Path) -> tuple[list[str], np.ndarray]:
 
 def test_bvh_joint_positions_reproduce_the_fit_within_1mm(posed_result, tmp_path):
     folder, truth = posed_result
-    path = export_result(folder, "bvh", tmp_path / "m.bvh")
+    path = export_result(folder, "bvh", tmp_path / "m.bvh", frame="up")
     names, pos = _fk_from_bvh_package(path)
     assert set(JOINT_NAMES) <= set(names)
     idx = [names.index(n) for n in JOINT_NAMES]
@@ -119,7 +124,7 @@ def test_bvh_bones_have_the_fitted_shapes_lengths(posed_result, tmp_path):
     from flowmocap.io.mocap import read_bvh
 
     folder, truth = posed_result
-    clip = read_bvh(export_result(folder, "bvh", tmp_path / "m.bvh"), scale=1.0)
+    clip = read_bvh(export_result(folder, "bvh", tmp_path / "m.bvh", frame="up"), scale=1.0)
     model = load_body_model("default", gender=truth["gender"])
     with torch.no_grad():
         rest_fit = model(betas=torch.as_tensor(truth["betas"])).rest_joints[0].numpy()
@@ -135,7 +140,7 @@ def test_bvh_in_centimetres_and_read_by_our_reader(posed_result, tmp_path):
 
     folder, truth = posed_result
     assert main([
-        "export", str(folder), "--format", "bvh", "--out", str(tmp_path / "cm.bvh"), "--bvh-unit", "cm", "--quiet",
+        "export", str(folder), "--format", "bvh", "--out", str(tmp_path / "cm.bvh"), "--bvh-unit", "cm", "--quiet", "--frame", "up",
     ]) == 0
     clip = read_bvh(tmp_path / "cm.bvh")  # the unit is guessed from the skeleton's height
     assert clip.info["unit"] == "cm"
@@ -146,24 +151,24 @@ def test_bvh_in_centimetres_and_read_by_our_reader(posed_result, tmp_path):
 
 def test_camera_frame_results_are_turned_upright(camera_frame_result, tmp_path):
     folder, truth = camera_frame_result
-    up = load_fitted_motion(folder)
+    up = load_fitted_motion(folder, frame="up")
     np.testing.assert_allclose(up.rotation, CAMERA_TO_Y_UP)
     expect = truth["joints3d"] @ CAMERA_TO_Y_UP.T
     np.testing.assert_allclose(up.joints(), expect, atol=1e-5)
     # head above the pelvis in the export (it was below in the y-down camera frame)
     assert (up.joints()[:, 15, 1] > up.joints()[:, 0, 1]).all()
-    names, pos = _fk_from_bvh_package(export_result(folder, "bvh", tmp_path / "up.bvh"))
+    names, pos = _fk_from_bvh_package(export_result(folder, "bvh", tmp_path / "up.bvh", frame="up"))
     idx = [names.index(n) for n in JOINT_NAMES]
     assert np.abs(pos[:, idx] - expect).max() < 1e-3
     world = load_fitted_motion(folder, frame="world")
     np.testing.assert_allclose(world.joints(), truth["joints3d"], atol=1e-5)
 
 
-def test_glb_loads_with_trimesh_with_one_mesh_per_frame(posed_result, tmp_path):
+def test_glb_frames_loads_with_trimesh_with_one_mesh_per_frame(posed_result, tmp_path):
     import trimesh
 
     folder, truth = posed_result
-    path = export_result(folder, "glb", tmp_path / "m.glb")
+    path = export_result(folder, "glb-frames", tmp_path / "m.glb", frame="up")
     scene = trimesh.load(path)
     assert len(scene.geometry) == T
     model = load_body_model("default")
@@ -182,11 +187,11 @@ def test_glb_loads_with_trimesh_with_one_mesh_per_frame(posed_result, tmp_path):
     assert last["max"][0] == pytest.approx((T - 1) / 25.0)
 
 
-def test_glb_vertices_are_the_fitted_body(posed_result, tmp_path):
+def test_glb_frames_vertices_are_the_fitted_body(posed_result, tmp_path):
     import trimesh
 
     folder, truth = posed_result
-    scene = trimesh.load(export_result(folder, "glb", tmp_path / "m.glb"))
+    scene = trimesh.load(export_result(folder, "glb-frames", tmp_path / "m.glb", frame="up"))
     mesh = scene.geometry["frame_000002"]
     model = load_body_model("default", gender=truth["gender"])
     with torch.no_grad():
@@ -199,7 +204,7 @@ def test_amass_npz_round_trips_through_our_loader(posed_result, camera_frame_res
     from flowmocap.io.amass import read_amass_npz
 
     for k, (folder, truth) in enumerate((posed_result, camera_frame_result)):
-        path = export_result(folder, "npz", tmp_path / f"amass{k}.npz")
+        path = export_result(folder, "npz", tmp_path / f"amass{k}.npz", frame="up")
         with np.load(path) as z:
             assert z["poses"].shape == (T, 156)
             assert z["trans"].shape == (T, 3)
@@ -214,7 +219,7 @@ def test_amass_npz_round_trips_through_our_loader(posed_result, camera_frame_res
         with torch.no_grad():
             j = model(betas=torch.as_tensor(motion.betas), pose=torch.as_tensor(motion.poses),
                       trans=torch.as_tensor(motion.trans)).joints.numpy()
-        expect = load_fitted_motion(folder).joints()  # y up
+        expect = load_fitted_motion(folder, frame="up").joints()  # y up
         assert np.abs(j - expect).max() < 1e-4
         np.testing.assert_allclose(motion.poses[:, 3:], truth["poses"][:, 3:], atol=1e-5)
 
@@ -244,7 +249,7 @@ def test_obj_and_json(posed_result, tmp_path):
     model = load_body_model("default", gender=truth["gender"])
     assert verts.shape == (model.num_vertices, 3) and faces.min() == 1
     np.testing.assert_array_equal(faces - 1, model.faces_np)
-    doc = json.loads(export_result(folder, "json", tmp_path / "m.json").read_text())
+    doc = json.loads(export_result(folder, "json", tmp_path / "m.json", frame="up").read_text())
     assert doc["joint_names"] == list(JOINT_NAMES) and len(doc["frames"]) == T
     assert doc["frames"][0]["index"] == 3
     np.testing.assert_allclose(np.array(doc["frames"][4]["joints3d"]), truth["joints3d"][4], atol=1e-5)

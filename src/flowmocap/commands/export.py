@@ -4,9 +4,10 @@ from __future__ import annotations
 
 FORMAT_HELP = {
     "bvh": "skeleton with the fitted bone lengths (Blender, Maya, MotionBuilder, Unity)",
-    "glb": "animated mesh sequence, glTF binary (Blender, three.js, web viewers)",
+    "glb": "glTF binary: one skinned mesh, 24-joint rig, keyframed joint rotations (Blender, three.js, engines)",
+    "glb-frames": "glTF binary flipbook: one full mesh per frame (exact vertices, about 190 kB per frame)",
     "obj": "one .obj mesh per frame in a folder",
-    "json": "per-frame joints (3D, 2D) and parameters",
+    "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
 }
 
@@ -15,15 +16,20 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "export", help="write a result as BVH, glTF (.glb), OBJ, JSON or AMASS .npz",
         description="Export a result folder of `flowmocap track` (or demo's result/). 3D output is in "
-        "metres with y up (a result tracked with only --focal lives in the camera frame and is turned "
-        "upright); --frame world keeps the result's own world frame. Formats: "
+        "metres in the ground frame: gravity up (+y), the floor at y = 0, estimated from the fitted feet "
+        "(cached in RESULT/world.json with per-frame foot contacts); --frame up only turns the result "
+        "y up, --frame world keeps the result's own world frame. Formats: "
         + "; ".join(f"{k}: {v}" for k, v in FORMAT_HELP.items()) + ".")
     p.add_argument("result", help="result folder (motion.npz, run.json)")
     p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT",
                    help="one of: " + ", ".join(FORMAT_HELP))
     p.add_argument("--out", "-o", help="output file (a folder for obj); default RESULT/export/motion.<ext>")
-    p.add_argument("--frame", default="up", choices=["up", "world"],
-                   help="up: y up (default); world: the result's own world frame")
+    p.add_argument("--frame", default="ground", choices=["ground", "up", "world"],
+                   help="ground: y up, floor at 0 (default); up: turned y up only; world: the result's own frame")
+    p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
+                   help="smooth the motion offline first (Savitzky-Golay on SO(3), flowmocap.fit.smooth); "
+                   "optional window length in seconds (default 0.2)")
+    p.add_argument("--smooth-order", type=int, default=2, help="polynomial degree of --smooth (default 2)")
     p.add_argument("--model", default=None,
                    help="body model (default: the one recorded in run.json, else the bundled default)")
     p.add_argument("--bvh-unit", default="m", choices=["m", "cm"], help="BVH length unit (default m)")
@@ -31,10 +37,28 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_export)
 
 
+def smooth_option(text: str | None, order: int) -> dict | bool:
+    """``--smooth [SECONDS]`` and ``--smooth-order`` as the ``smooth`` argument of the API."""
+    from flowmocap.errors import InputError
+    from flowmocap.fit.smooth import DEFAULT_WINDOW_S
+
+    if text is None:
+        return False
+    try:
+        window = DEFAULT_WINDOW_S if text == "default" else float(text)
+    except ValueError:
+        raise InputError(f"--smooth takes a window length in seconds, e.g. 0.2; got {text!r}.") from None
+    return {"window_s": window, "order": order}
+
+
 def run_export(args) -> int:
     from flowmocap.export import export_result
 
     path = export_result(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
-                         units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet)
-    print(f"wrote {path} ({args.fmt}: {FORMAT_HELP.get(args.fmt, '')})")
+                         units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
+                         smooth=smooth_option(args.smooth, args.smooth_order))
+    size = ""
+    if path.is_file():
+        size = f", {path.stat().st_size / 1e6:.2f} MB"
+    print(f"wrote {path} ({args.fmt}: {FORMAT_HELP.get(args.fmt, '')}{size})")
     return 0

@@ -1,10 +1,13 @@
 """Exports of a result folder to animation and research formats (``flowmocap export``).
 
 Formats (:data:`FORMATS`): ``bvh`` (skeleton with the fitted bone lengths),
-``glb`` (animated mesh sequence), ``obj`` (one mesh per frame in a folder), ``json``
-(per-frame joints and parameters), ``npz`` (AMASS layout). All 3D output is in metres,
-in the y-up export frame of :mod:`flowmocap.export.motion` unless ``frame="world"``
-(the AMASS file is z up, as AMASS's own).
+``glb`` (one skinned mesh, a 24-joint rig and keyframed joint rotations,
+:mod:`flowmocap.export.gltf_skin`), ``glb-frames`` (a flipbook: one full mesh per frame,
+exact vertices, large), ``obj`` (one mesh per frame in a folder), ``json`` (per-frame
+joints and parameters), ``npz`` (AMASS layout). All 3D output is in metres, by default in
+the ground frame of :mod:`flowmocap.export.world` (gravity up, y up, the floor at 0);
+see :mod:`flowmocap.export.motion` for the other frames (the AMASS file is z up, as
+AMASS's own). ``smooth=True`` smooths the motion first (:mod:`flowmocap.fit.smooth`).
 """
 
 from __future__ import annotations
@@ -17,13 +20,14 @@ import numpy as np
 from flowmocap.errors import InputError
 from flowmocap.export.motion import FRAMES, FittedMotion, load_fitted_motion, rotate_motion, up_rotation
 
-__all__ = ["FORMATS", "export_result", "default_output", "write_json", "FittedMotion", "load_fitted_motion",
+__all__ = ["FORMATS", "export_result", "write_motion_glb", "default_output", "write_json", "FittedMotion", "load_fitted_motion",
            "rotate_motion", "up_rotation", "FRAMES"]
 
 #: format name -> default output name inside the result folder.
 FORMATS: dict[str, str] = {
     "bvh": "motion.bvh",
     "glb": "motion.glb",
+    "glb-frames": "motion_frames.glb",
     "obj": "obj",
     "json": "motion.json",
     "npz": "motion_amass.npz",
@@ -66,12 +70,14 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
         "trans": r(motion.trans[k]),
         "joints3d": r(j3d[k]),
         "joints2d": r(motion.joints2d[k], 3),
+        **({"contact": [bool(c) for c in motion.world.contacts[k]]} if motion.world is not None else {}),
     } for k in range(motion.num_frames)]
     doc = {
         "format": "flowmocap-motion", "version": 1, "fps": motion.fps, "gender": motion.gender,
         "betas": r(motion.betas), "joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
         "frame": motion.frame,
-        "rotation": r(motion.rotation, 9), "camera": motion.camera.to_dict(),
+        "rotation": r(motion.rotation, 9), "offset": r(motion.offset, 9), "camera": motion.camera.to_dict(),
+        "smoothed": motion.smoothed,
         "units": "metres, radians, pixels (joints2d); y up unless frame is 'world'",
         "frames": frames,
     }
@@ -81,15 +87,40 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     return path
 
 
-def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "up",
-                  model=None, units_per_metre: float = 1.0, progress: bool = False) -> Path:
+def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
+    """A :class:`FittedMotion` as a skinned, animated ``.glb``
+    (:func:`flowmocap.export.gltf_skin.write_skinned_glb`); the scene's ``extras`` hold the
+    camera in the motion's frame, the frame's name, the input's frame numbers and, in the
+    ground frame, the floor and the per-frame foot contacts."""
+    import torch
+
+    from flowmocap.export.gltf_skin import write_skinned_glb
+
+    with torch.no_grad():
+        out = motion.model(betas=torch.as_tensor(motion.betas[None], dtype=motion.model.v_template.dtype))
+    extras = {"frame": motion.frame, "camera": motion.camera.to_dict(),
+              "frame_index": [int(i) for i in motion.frame_index], "smoothed": motion.smoothed}
+    if motion.world is not None:
+        extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
+        extras["contacts"] = motion.world.contacts.astype(int).tolist()
+    return write_skinned_glb(path, motion.poses, motion.trans, out.rest_vertices[0].double().numpy(),
+                             out.rest_joints[0].double().numpy(), motion.model.faces_np,
+                             motion.model.weights.double().numpy(), motion.fps, extras=extras)
+
+
+def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground",
+                  model=None, units_per_metre: float = 1.0, progress: bool = False,
+                  smooth: bool | dict = False) -> Path:
     """Export a result folder.
 
     Args:
         result_dir: the result folder (``motion.npz``, ``run.json``).
         fmt: one of :data:`FORMATS`.
         out: output file (a folder for ``obj``); default :func:`default_output`.
-        frame: ``"up"`` (y up) or ``"world"`` (the result's own world frame).
+        frame: ``"ground"`` (y up, floor at 0; writes ``RESULT/world.json``), ``"up"`` (y
+            up) or ``"world"`` (the result's own world frame).
+        smooth: False, True or a dict of :func:`flowmocap.fit.smooth.smooth_motion`'s
+            keyword arguments (``window_s``, ``order``).
         model: body model override (default: the one recorded in ``run.json``).
         units_per_metre: BVH length unit (1 = metres, 100 = centimetres).
         progress: progress bars for the per-frame formats.
@@ -102,13 +133,15 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     """
     _check_format(fmt)
     out = Path(out) if out is not None else default_output(result_dir, fmt)
-    motion = load_fitted_motion(result_dir, frame=frame, model=model)
+    motion = load_fitted_motion(result_dir, frame=frame, model=model, smooth=smooth)
     rest = motion.rest_joints()
     if fmt == "bvh":
         from flowmocap.export.bvh import write_motion_bvh
 
         return write_motion_bvh(out, motion.poses, motion.trans, rest, motion.fps, units_per_metre=units_per_metre)
     if fmt == "glb":
+        return write_motion_glb(out, motion)
+    if fmt == "glb-frames":
         from flowmocap.export.glb import write_mesh_sequence_glb
 
         return write_mesh_sequence_glb(out, _vertex_frames(motion), motion.model.faces_np, motion.fps,
@@ -123,7 +156,7 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         return write_json(out, motion)
     from flowmocap.io.amass import write_amass_npz
 
-    if frame != "up":
-        raise InputError("the AMASS layout is always z up; use the default frame ('up') for --format npz.")
+    if frame == "world":
+        raise InputError("the AMASS layout is always z up; use --frame ground (the default) or up for --format npz.")
     return write_amass_npz(out, motion.poses, motion.trans, motion.betas, motion.gender, motion.fps, rest[0],
                            frame_index=motion.frame_index)

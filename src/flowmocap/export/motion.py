@@ -4,9 +4,16 @@ A result's 3D quantities live in the world frame of its camera (``X_cam = R X + 
 Synthetic sequences and cameras placed with :func:`flowmocap.geometry.look_at` have a
 y-up world; a result tracked with only a focal length has ``R = I``, so its world *is*
 the camera frame (x right, y down, z forward) and a person standing in the video stands
-upside down there. Animation tools expect y up, so the exports turn the motion by
-:func:`up_rotation` first (``frame="up"``, the default); ``frame="world"`` keeps the
-result's own world frame.
+upside down there, under a floor tilted by the camera's pitch. Export frames
+(:data:`FRAMES`):
+
+- ``"ground"`` (the default): gravity up (+y), the floor at y = 0, estimated from the
+  fitted feet (:mod:`flowmocap.export.world`, cached in ``RESULT/world.json``);
+- ``"up"``: only turned y up by :func:`up_rotation` (no floor estimate);
+- ``"world"``: the result's own world frame.
+
+In every frame :attr:`FittedMotion.camera` is the result's camera moved along, so it
+projects the exported body onto the input pixels exactly as the fit did.
 """
 
 from __future__ import annotations
@@ -22,8 +29,9 @@ from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "up_rotation", "rotate_motion", "FRAMES"]
 
-#: Export frames: ``"up"`` (y up; see :func:`up_rotation`) or ``"world"`` (the result's own).
-FRAMES = ("up", "world")
+#: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
+#: ``"world"`` (the result's own).
+FRAMES = ("ground", "up", "world")
 
 #: 180 degrees about x: the camera frame (y down, z forward) to y up, z towards the camera.
 CAMERA_TO_Y_UP = np.diag([1.0, -1.0, -1.0])
@@ -41,12 +49,17 @@ class FittedMotion:
         fps: frames per second (Hz).
         frame_index: ``(T,)`` int64 frame numbers in the input video.
         rotation: ``(3, 3)`` the rotation applied to the result's world frame
-            (``x_export = rotation @ x_world``).
+            (``x_export = rotation @ x_world + offset``).
         model: the :class:`~flowmocap.body.BodyModel` (float64) the motion was fitted with.
         joints2d: ``(T, 24, 2)`` float64 projected joints in input-image pixels.
-        camera: the result's :class:`~flowmocap.geometry.PinholeCamera` (world frame).
+        camera: the result's :class:`~flowmocap.geometry.PinholeCamera`, re-expressed in the
+            export frame (it projects the exported joints onto ``joints2d``).
         run: the result's ``run.json``.
-        frame: ``"up"`` or ``"world"``, the frame the motion is in.
+        frame: one of :data:`FRAMES`, the frame the motion is in.
+        offset: ``(3,)`` metres, see ``rotation``.
+        world: the :class:`~flowmocap.export.world.WorldFrame` (floor, foot contacts) for
+            ``frame="ground"``, else None.
+        smoothed: the smoothing applied (``{"window_s", "order", "window_frames"}``) or None.
     """
 
     poses: np.ndarray
@@ -60,7 +73,14 @@ class FittedMotion:
     joints2d: np.ndarray
     camera: object
     run: dict
-    frame: str = "up"
+    frame: str = "ground"
+    offset: np.ndarray = None
+    world: object = None
+    smoothed: dict | None = None
+
+    def __post_init__(self):
+        if self.offset is None:
+            self.offset = np.zeros(3)
 
     @property
     def num_frames(self) -> int:
@@ -130,15 +150,22 @@ def _model_for(run: dict, gender: str, model):
     return load_body_model(name, gender=gender, dtype=torch.float64)
 
 
-def load_fitted_motion(result_dir: str | Path, frame: str = "up", model=None) -> FittedMotion:
+def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None, smooth: bool | dict = False,
+                       cache_world: bool = True) -> FittedMotion:
     """Read a result folder's ``motion.npz`` and ``run.json`` for export.
 
     Args:
         result_dir: the result folder written by ``flowmocap track`` / ``demo``.
-        frame: ``"up"`` (turn to y up, see :func:`up_rotation`) or ``"world"``.
+        frame: ``"ground"`` (y up, floor at 0), ``"up"`` (turned y up, see
+            :func:`up_rotation`) or ``"world"`` (see the module docstring).
         model: the body model: ``None`` for the one recorded in ``run.json`` (or the
             default body when that path is gone), a name/path for
             :func:`~flowmocap.body.load_body_model`, or a ``BodyModel``.
+        smooth: False, True (the defaults of :func:`flowmocap.fit.smooth.smooth_motion`) or
+            a dict of its keyword arguments (``window_s``, ``order``): smooth the motion
+            offline; ``joints2d`` are then re-projected from the smoothed body. The floor
+            is always estimated from the unsmoothed fit.
+        cache_world: write the ground frame to ``RESULT/world.json`` (``frame="ground"``).
 
     Raises:
         DataError: not a result folder, or a result without frames.
@@ -171,10 +198,32 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "up", model=None) ->
         raise DataError(f"{result_dir} records no camera (motion.npz 'camera' or run.json 'camera').")
     camera = PinholeCamera.from_dict(cam_dict)
     body = _model_for(run, gender, model)
-    W = up_rotation(camera) if frame == "up" else np.eye(3)
+    world = None
+    offset = np.zeros(3)
+    if frame == "ground":
+        from flowmocap.export.world import load_world_frame
+
+        world = load_world_frame(result_dir, poses, trans, betas, body, camera, fps, frame_index=index,
+                                 cache=cache_world)
+        W, offset = world.rotation, world.offset
+    else:
+        W = up_rotation(camera) if frame == "up" else np.eye(3)
+    smoothed = None
+    if smooth:
+        from flowmocap.fit.smooth import DEFAULT_ORDER, DEFAULT_WINDOW_S, smooth_motion, window_frames
+
+        kw = {"window_s": DEFAULT_WINDOW_S, "order": DEFAULT_ORDER, **(smooth if isinstance(smooth, dict) else {})}
+        poses, trans = smooth_motion(poses, trans, fps, **kw)
+        smoothed = {**kw, "window_frames": window_frames(kw["window_s"], fps, kw["order"])}
+    from flowmocap.export.world import camera_in_frame
+
     fm = FittedMotion(poses=poses, trans=trans, betas=betas, gender=gender, fps=fps, frame_index=index,
-                      rotation=W, model=body, camera=camera, run=run, frame=frame,
-                      joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64))
-    if not np.allclose(W, np.eye(3)):
-        fm.poses, fm.trans = rotate_motion(poses, trans, fm.rest_joints()[0], W)
+                      rotation=W, model=body, camera=camera_in_frame(camera, W, offset), run=run, frame=frame,
+                      joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64),
+                      offset=offset, world=world, smoothed=smoothed)
+    if not np.allclose(W, np.eye(3)) or np.any(offset != 0):
+        p, t = rotate_motion(poses, trans, fm.rest_joints()[0], W)
+        fm.poses, fm.trans = p, t + offset
+    if smoothed is not None:
+        fm.joints2d = fm.camera.project(fm.joints()).astype(np.float64)
     return fm

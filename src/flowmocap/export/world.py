@@ -1,0 +1,219 @@
+"""The world frame of a result: gravity up, the floor at height 0, computed from the fit.
+
+:func:`world_frame` looks at the fitted feet over the whole sequence (the lowest vertex of
+each foot per frame), labels the frames where a foot stands still
+(:func:`flowmocap.geometry.ground.foot_contacts`), fits the floor through those points
+robustly (:func:`flowmocap.geometry.ground.fit_ground_plane`) and builds a y-up frame on it
+(:func:`flowmocap.geometry.ground.ground_frame`): origin under the first frame's pelvis,
+``+z`` towards the camera. The expected up direction before the fit is the body's own
+(mean direction from the ankles to the neck), or the camera's (image up) where the body
+lies down; with no still foot the floor goes through the lowest foot point of the
+sequence.
+
+The frame is a function of ``motion.npz`` (poses, trans, betas) and the body model;
+:func:`load_world_frame` caches it as ``RESULT/world.json`` (written atomically) with a
+fingerprint of those inputs, so a result that is resumed or re-tracked gets a new one.
+``world.json``: ``{"format": "flowmocap-world", "version": 1, "fingerprint", "rotation"
+(3x3), "offset" (3, metres; x_world = rotation @ x_result + offset), "up" (3, the floor's
+normal in the result's frame), "floor_height_m" (along "up", from the result's origin),
+"method" ("contacts" | "fallback"), "contact_points", "residual_mm", "prior_up",
+"camera" (the result's camera re-expressed in the world frame: overlays stay exact),
+"frame_index" (T), "contacts" (T x 2, left/right foot on the ground, 0/1)}``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.geometry.ground import GroundPlane, fit_ground_plane, foot_contacts, ground_frame
+
+__all__ = ["WorldFrame", "world_frame", "load_world_frame", "foot_vertex_sets", "camera_in_frame",
+           "WORLD_FILE"]
+
+WORLD_FILE = "world.json"
+
+_LEFT_FOOT, _RIGHT_FOOT = (7, 10), (8, 11)  # ankle, foot (toes) joints of SMPL
+
+
+@dataclass
+class WorldFrame:
+    """Where a result's motion stands: ``x_world = rotation @ x_result + offset``.
+
+    Attributes:
+        rotation: ``(3, 3)`` float64 rotation from the result's frame to the world (y up).
+        offset: ``(3,)`` metres.
+        plane: the fitted floor in the result's frame.
+        contacts: ``(T, 2)`` bool, left/right foot standing on the floor per frame.
+        prior_up: ``(3,)`` the up direction expected before the fit (result's frame).
+        camera: the result's camera in the world frame (``PinholeCamera``).
+        fingerprint: hash of the inputs the frame was computed from.
+    """
+
+    rotation: np.ndarray
+    offset: np.ndarray
+    plane: GroundPlane
+    contacts: np.ndarray
+    prior_up: np.ndarray
+    camera: object
+    fingerprint: str
+
+    def to_dict(self, frame_index=None) -> dict:
+        """The ``world.json`` document (see the module docstring)."""
+        r = lambda a, n=9: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
+        return {
+            "format": "flowmocap-world", "version": 1, "fingerprint": self.fingerprint,
+            "rotation": r(self.rotation), "offset": r(self.offset), "up": r(self.plane.normal),
+            "floor_height_m": round(float(self.plane.height), 9), "method": self.plane.method,
+            "contact_points": self.plane.inliers,
+            "residual_mm": None if not np.isfinite(self.plane.residual_m) else round(1000 * self.plane.residual_m, 3),
+            "prior_up": r(self.prior_up), "camera": self.camera.to_dict(),
+            "frame_index": [] if frame_index is None else [int(i) for i in frame_index],
+            "contacts": self.contacts.astype(int).tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "WorldFrame":
+        from flowmocap.geometry.camera import PinholeCamera
+
+        res = doc.get("residual_mm")
+        plane = GroundPlane(normal=np.asarray(doc["up"], np.float64), height=float(doc["floor_height_m"]),
+                            inliers=int(doc["contact_points"]), method=str(doc["method"]),
+                            residual_m=float("nan") if res is None else res / 1000.0)
+        return cls(rotation=np.asarray(doc["rotation"], np.float64), offset=np.asarray(doc["offset"], np.float64),
+                   plane=plane, contacts=np.asarray(doc["contacts"], bool).reshape(-1, 2),
+                   prior_up=np.asarray(doc["prior_up"], np.float64), camera=PinholeCamera.from_dict(doc["camera"]),
+                   fingerprint=str(doc["fingerprint"]))
+
+
+def camera_in_frame(camera, rotation: np.ndarray, offset: np.ndarray):
+    """The camera re-expressed in a frame ``x_new = rotation @ x_old + offset``.
+
+    ``X_cam = R x_old + t = (R rotation^T) x_new + (t - R rotation^T offset)``, so it
+    projects the moved points to the same pixels.
+    """
+    from flowmocap.geometry.camera import PinholeCamera
+
+    W = np.asarray(rotation, np.float64)
+    Rn = camera.R @ W.T
+    return PinholeCamera(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
+                         height=camera.height, R=Rn, t=camera.t - Rn @ np.asarray(offset, np.float64))
+
+
+def foot_vertex_sets(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex indices of the left and right foot: vertices skinned mostly to the ankle or toes.
+
+    Args:
+        weights: ``(V, 24)`` skinning weights.
+    """
+    top = np.argmax(np.asarray(weights), axis=1)
+    return np.flatnonzero(np.isin(top, _LEFT_FOOT)), np.flatnonzero(np.isin(top, _RIGHT_FOOT))
+
+
+#: Bump when :func:`world_frame` changes, so cached ``world.json`` files are recomputed.
+ALGORITHM = "ground-v2"
+
+
+def _fingerprint(poses, trans, betas, model) -> str:
+    h = hashlib.sha1(ALGORITHM.encode())
+    for a in (poses, trans, betas):
+        h.update(np.ascontiguousarray(np.asarray(a, np.float64)).tobytes())
+    h.update(str(getattr(model, "source", "")).encode())
+    h.update(str(getattr(model, "gender", "")).encode())
+    return h.hexdigest()[:16]
+
+
+def _camera_up(camera) -> np.ndarray:
+    """Image up (camera ``-y``) in the result's frame; the world's ``+y`` for a posed camera
+    (synthetic worlds and :func:`~flowmocap.geometry.look_at` are y up)."""
+    if np.allclose(camera.R, np.eye(3), atol=1e-9):
+        return -camera.R.T @ np.array([0.0, 1.0, 0.0])
+    return np.array([0.0, 1.0, 0.0])
+
+
+def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, camera, fps: float,
+                chunk: int = 64) -> WorldFrame:
+    """Estimate the floor and the world frame of a fitted motion (see the module docstring).
+
+    Args:
+        poses: ``(T, 72)`` axis-angle radians; trans: ``(T, 3)`` metres; betas: ``(10,)``;
+            all in the result's frame (the camera's world).
+        model: the :class:`~flowmocap.body.BodyModel` of the fit.
+        camera: the result's ``PinholeCamera``.
+        fps: frames per second (Hz).
+
+    Returns:
+        :class:`WorldFrame`.
+    """
+    import torch
+
+    poses = np.asarray(poses, np.float64).reshape(-1, 72)
+    trans = np.asarray(trans, np.float64).reshape(-1, 3)
+    T = poses.shape[0]
+    left, right = foot_vertex_sets(model.weights.cpu().numpy())
+    dt = model.v_template.dtype
+    b = torch.as_tensor(np.asarray(betas, np.float64)[None], dtype=dt)
+    foot_pts, joints = [], []
+    cam_up = _camera_up(camera)
+    with torch.no_grad():
+        for s in range(0, T, chunk):
+            out = model(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=dt),
+                        trans=torch.as_tensor(trans[s:s + chunk], dtype=dt))
+            foot_pts.append((out.vertices[:, left].double().numpy(), out.vertices[:, right].double().numpy()))
+            joints.append(out.joints.double().numpy())
+    feet_v = [np.concatenate([f[k] for f in foot_pts]) for k in range(2)]  # 2 x (T, n_k, 3)
+    joints = np.concatenate(joints)
+    body_up = joints[:, 12] - 0.5 * (joints[:, 7] + joints[:, 8])
+    body_up = body_up / np.linalg.norm(body_up, axis=1, keepdims=True)
+    prior = body_up.mean(0)
+    prior = prior / np.linalg.norm(prior)
+    if prior @ cam_up < np.cos(np.radians(45)):  # lying or upside down: trust the camera
+        prior = cam_up
+
+    def lowest(up):  # (T, 2, 3): the lowest vertex of each foot along up
+        return np.stack([np.take_along_axis(f, np.argmin(f @ up, axis=1)[:, None, None], axis=1)[:, 0]
+                         for f in feet_v], 1)
+
+    low = lowest(prior)  # (T, 2, 3)
+    still = foot_contacts(low, fps, prior)
+    plane = fit_ground_plane(low[still], prior, fallback_points=low.reshape(-1, 3))
+    low = lowest(plane.normal)
+    contacts = foot_contacts(low, fps, plane.normal) & (np.abs(plane.elevation(low)) < 0.05)
+    rotation, offset = ground_frame(plane, joints[0, 0], camera.center)
+    return WorldFrame(rotation=rotation, offset=offset, plane=plane, contacts=contacts, prior_up=prior,
+                      camera=camera_in_frame(camera, rotation, offset),
+                      fingerprint=_fingerprint(poses, trans, betas, model))
+
+
+def load_world_frame(result_dir: str | Path, poses, trans, betas, model, camera, fps: float,
+                     frame_index=None, cache: bool = True) -> WorldFrame:
+    """:func:`world_frame` of a result folder, cached in ``RESULT/world.json``.
+
+    With ``cache``, a cached file is used when its fingerprint matches the inputs (and this
+    version of the estimate); otherwise the frame is computed and written atomically. A
+    result folder that cannot be written to still gets its frame. ``cache=False`` neither
+    reads nor writes the file.
+    """
+    from flowmocap.atomic import atomic_write
+
+    path = Path(result_dir) / WORLD_FILE
+    fp = _fingerprint(poses, trans, betas, model)
+    if cache and path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("fingerprint") == fp and doc.get("format") == "flowmocap-world":
+                return WorldFrame.from_dict(doc)
+        except (ValueError, KeyError, TypeError):
+            pass
+    wf = world_frame(poses, trans, betas, model, camera, fps)
+    if cache:
+        text = json.dumps(wf.to_dict(frame_index), indent=1)
+        try:
+            atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+        except OSError:
+            pass
+    return wf

@@ -1,0 +1,169 @@
+"""Offline smoothing of a fitted motion: Savitzky-Golay filtering done on SO(3).
+
+The tracker fits frame by frame, so its curves carry frame-to-frame jitter. This pass
+looks at the whole sequence afterwards. For each frame ``t`` it fits a polynomial of
+degree ``order`` by least squares to the frames of a window of ``window`` frames around
+``t`` and keeps the polynomial's value at ``t`` (Savitzky & Golay 1964). Near the ends the
+window is the first (last) ``window`` frames, as ``scipy.signal.savgol_filter`` does with
+``mode="interp"``; the weights of every frame are exactly those.
+
+Translations are filtered as they are. Rotations are not vectors, so each joint's
+rotations are filtered in the tangent space of the current estimate ``R_c`` of frame t:
+``R_c <- R_c exp(sum_k w_tk log(R_c^T R_k))`` with the Savitzky-Golay weights ``w_tk``
+(they sum to 1), repeated a few times (a weighted Karcher mean with signed weights). The
+result does not depend on the frame the rotations are expressed in (left-multiplying
+all ``R_k`` by one rotation rotates the result the same way), and a rotation at constant
+angular velocity (``R_k = R_0 exp(k w)``) is reproduced exactly, as a straight line is by
+the Euclidean filter.
+
+Units: radians, metres, frames (``window``) or seconds (``window_s``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flowmocap.errors import InputError
+
+__all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
+           "DEFAULT_WINDOW_S", "DEFAULT_ORDER"]
+
+#: Default window length in seconds and polynomial degree (measured on the CMU protocol;
+#: see the README's "Smoothing" section).
+DEFAULT_WINDOW_S = 0.2
+DEFAULT_ORDER = 2
+
+
+def window_frames(window_s: float, fps: float, order: int = DEFAULT_ORDER) -> int:
+    """The odd number of frames closest to ``window_s`` seconds at ``fps``, at least ``order + 2``."""
+    if not np.isfinite(window_s) or window_s <= 0:
+        raise InputError(f"the smoothing window must be a positive number of seconds, got {window_s}.")
+    if not np.isfinite(fps) or fps <= 0:
+        raise InputError(f"fps must be positive, got {fps}.")
+    n = int(round(window_s * fps))
+    n = n + 1 if n % 2 == 0 else n
+    m = order + 2 if (order + 2) % 2 == 1 else order + 3
+    return max(n, m)
+
+
+def savgol_weights(num_frames: int, window: int, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky-Golay weights of every frame, ends included (scipy's ``mode="interp"``).
+
+    Args:
+        num_frames: T. window: odd window length in frames, ``order < window <= T``.
+        order: polynomial degree.
+
+    Returns:
+        ``index (T, window)`` int64 frames each output frame reads, and ``weights (T,
+        window)`` float64 (each row sums to 1): ``y_t = sum_k weights[t, k] x[index[t, k]]``.
+    """
+    T = int(num_frames)
+    if window % 2 != 1 or window < 1:
+        raise InputError(f"the smoothing window must be an odd number of frames, got {window}.")
+    if not 0 <= order < window:
+        raise InputError(f"the polynomial order must be below the window ({window} frames), got {order}.")
+    if window > T:
+        raise InputError(f"the smoothing window ({window} frames) is longer than the motion ({T} frames).")
+    half = window // 2
+    start = np.clip(np.arange(T) - half, 0, T - window)
+    index = start[:, None] + np.arange(window)[None]
+    offsets = np.arange(window, dtype=np.float64) - half
+    V = np.vander(offsets, order + 1, increasing=True)  # (window, order+1)
+    P = np.linalg.pinv(V)  # coefficients = P @ x
+    at = (np.arange(T) - start - half).astype(np.float64)  # where frame t sits in its window
+    basis = at[:, None] ** np.arange(order + 1)[None]  # (T, order+1)
+    return index, basis @ P
+
+
+def _check(window: int, order: int, T: int) -> tuple[int, int] | None:
+    """The window actually used for T frames (shrunk to T), or None when T is too short."""
+    if window > T:
+        window = T if T % 2 == 1 else T - 1
+    if window <= order:
+        return None
+    return window, order
+
+
+def smooth_translations(trans: np.ndarray, window: int, order: int = DEFAULT_ORDER) -> np.ndarray:
+    """Savitzky-Golay filter along time of ``(T, ...)`` values (metres, or anything linear).
+
+    A window longer than the motion shrinks to it; a motion of at most ``order`` frames is
+    returned unchanged. Returns float64 of the input's shape.
+    """
+    x = np.asarray(trans, np.float64)
+    used = _check(window, order, x.shape[0])
+    if used is None:
+        return x.copy()
+    index, w = savgol_weights(x.shape[0], *used)
+    return np.einsum("tk,tk...->t...", w, x[index])
+
+
+def smooth_rotations(rotvecs: np.ndarray, window: int, order: int = DEFAULT_ORDER,
+                     iterations: int = 3) -> np.ndarray:
+    """Savitzky-Golay filter on SO(3) (see the module docstring).
+
+    Args:
+        rotvecs: ``(T, J, 3)`` or ``(T, 3)`` axis-angle in radians.
+        window: odd window in frames (shrunk to T when longer). order: polynomial degree.
+        iterations: tangent-space updates per frame (3 converge to about 1e-9 rad for
+            window-sized rotation changes under a radian).
+
+    Returns:
+        float64 axis-angle of the input's shape.
+    """
+    from scipy.spatial.transform import Rotation
+
+    r = np.asarray(rotvecs, np.float64)
+    single = r.ndim == 2
+    if single:
+        r = r[:, None]
+    if r.ndim != 3 or r.shape[2] != 3:
+        raise InputError(f"rotations must have shape (T, J, 3) axis-angle; got {np.shape(rotvecs)}.")
+    if not np.all(np.isfinite(r)):
+        raise InputError("the rotations to smooth contain NaN or infinite values.")
+    T, J = r.shape[:2]
+    used = _check(window, order, T)
+    if used is None:
+        return np.asarray(rotvecs, np.float64).copy()
+    index, w = savgol_weights(T, *used)
+    n = index.shape[1]
+    R = Rotation.from_rotvec(r.reshape(-1, 3))  # (T*J)
+    # neighbours of (t, j): frame index[t, k], joint j -> flat (index * J + j)
+    nb = (index[:, None, :] * J + np.arange(J)[None, :, None]).reshape(-1)  # (T*J*n)
+    Rk = R[nb]
+    est = R
+    for _ in range(iterations):
+        rel = (est[np.repeat(np.arange(T * J), n)].inv() * Rk).as_rotvec().reshape(T, J, n, 3)
+        step = np.einsum("tk,tjkd->tjd", w, rel).reshape(-1, 3)
+        est = est * Rotation.from_rotvec(step)
+    out = est.as_rotvec().reshape(T, J, 3)
+    return out[:, 0] if single else out
+
+
+def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: float = DEFAULT_WINDOW_S,
+                  order: int = DEFAULT_ORDER) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth a fitted SMPL motion offline: every joint's rotation on SO(3), and the translation.
+
+    Args:
+        poses: ``(T, 72)`` axis-angle in radians, SMPL joint order.
+        trans: ``(T, 3)`` metres.
+        fps: frames per second (Hz).
+        window_s: window length in seconds (:func:`window_frames` turns it into an odd
+            number of frames). order: polynomial degree (2 keeps accelerations' shape; 1
+            is a moving average on SO(3) that flattens peaks more).
+
+    Returns:
+        ``poses (T, 72)``, ``trans (T, 3)``, float64.
+    """
+    poses = np.asarray(poses, np.float64)
+    trans = np.asarray(trans, np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 72:
+        raise InputError(f"poses must have shape (T, 72); got {poses.shape}.")
+    if trans.shape != (poses.shape[0], 3):
+        raise InputError(f"trans must have shape ({poses.shape[0]}, 3); got {trans.shape}.")
+    if not isinstance(order, (int, np.integer)) or order < 0:
+        raise InputError(f"the smoothing order must be a whole number >= 0, got {order!r}.")
+    window = window_frames(window_s, fps, order)
+    T = poses.shape[0]
+    p = smooth_rotations(poses.reshape(T, 24, 3), window, order).reshape(T, 72)
+    return p, smooth_translations(trans, window, order)
