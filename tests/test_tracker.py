@@ -127,28 +127,36 @@ def test_interrupted_run_resumes_to_the_same_result(clip, model, tmp_path, monke
     with pytest.raises(KeyboardInterrupt):
         _track(seq, tmp_path / "run", model, frames="0:6")
     partial, run = read_result(tmp_path / "run")
-    assert len(partial["poses"]) == 4 and run["status"] == "running"
+    assert len(partial["poses"]) == 4 and run["status"] == "interrupted" and run["error"] == "KeyboardInterrupt"
     monkeypatch.setattr(tracker, "track_frame", original)
     with pytest.raises(InputError, match="already holds a result"):
         _track(seq, tmp_path / "run", model, frames="0:6")
     resumed, run = _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
-    assert run["status"] == "finished"
+    assert run["status"] == "finished" and "error" not in run
     assert run["model"] == "default" and "anny" in run["model_source"]  # loadable again, and described
-    np.testing.assert_array_equal(resumed["poses"], ref["poses"])
-    np.testing.assert_array_equal(resumed["trans"], ref["trans"])
-    with pytest.raises(InputError, match="cannot resume"):
+    for key in ("poses", "trans", "joints3d", "joints2d", "frame_index"):
+        np.testing.assert_array_equal(resumed[key], ref[key], err_msg=key)
+    np.testing.assert_array_equal(resumed["energies"], ref["energies"])
+    assert not (tmp_path / "run" / "progress.json").exists()  # a finished run keeps motion.npz alone
+    with pytest.raises(InputError, match="cannot resume.*options"):
         _track(seq, tmp_path / "run", model, frames="0:5", resume=True)
-    with pytest.raises(InputError, match="config differs"):
+    with pytest.raises(InputError, match="the config differs"):
         _track(seq, tmp_path / "run", model, TrackerConfig(flow_weight=2.0), frames="0:6", resume=True)
-    # a run written by an older version holds no tracker state to continue exactly from: refused
+
+
+def test_a_run_written_by_an_older_flowmocap_is_not_resumed(clip, model, tmp_path):
+    """Before the frame log, an interrupted run was motion.npz + run.json with the tracker's
+    state in it, written one after the other: nothing to continue exactly from."""
     from flowmocap.io.results import write_run
 
-    _, old = read_result(tmp_path / "run")
-    assert set(old["tracker"]) == {"prev", "anchor", "kalman"}
-    del old["tracker"]
-    write_run(tmp_path / "run", old)
+    seq = load_sequence(clip)
+    out = tmp_path / "old"
+    _track(seq, out, model, frames="0:4")
+    _, old = read_result(out)
+    old["status"] = "running"
+    write_run(out, old)
     with pytest.raises(InputError, match="older flowmocap"):
-        _track(seq, tmp_path / "run", model, frames="0:6", resume=True)
+        _track(seq, out, model, frames="0:4", resume=True)
 
 
 def test_non_finite_energy_is_rolled_back_and_recorded(clip, model, tmp_path, monkeypatch):
@@ -364,28 +372,6 @@ def test_keypoint_observation_checks():
     assert keypoint_observation(j, c) is None  # fewer than 4 confident joints: no term
     with pytest.raises(InputError, match="differ"):
         keypoint_observation(j, c[:12])
-
-
-def test_a_result_from_an_older_version_resumes_with_its_energy_columns(clip, model, tmp_path):
-    """Runs written before a term existed lack its energy column; resuming maps columns by name."""
-    seq = load_sequence(clip)
-    out = tmp_path / "old"
-    _track(seq, out, model, frames="0:4")
-    with np.load(out / "motion.npz") as z:
-        old = {k: z[k] for k in z.files}
-    names = [str(n) for n in old["energy_names"]]
-    keep = [k for k, n in enumerate(names) if n != "keypoints"]
-    old["energies"] = old["energies"][:, keep]
-    old["energy_names"] = np.array([names[k] for k in keep])
-    motion = {k: old[k] for k in old}
-    motion["poses"], motion["trans"] = motion["poses"][:3], motion["trans"][:3]
-    for k in ("joints3d", "joints2d", "energies", "frame_index"):
-        motion[k] = motion[k][:3]
-    np.savez(out / "motion.npz", **motion)
-    resumed, _ = _track(seq, out, model, frames="0:4", resume=True)
-    assert resumed["energies"].shape == (4, len(names))
-    assert list(resumed["energy_names"]) == names
-    np.testing.assert_allclose(resumed["energies"][:3, keep], old["energies"][:3], equal_nan=True)
 
 
 def test_rough_pose_weights_follow_the_joints_the_init_states(clip, model):

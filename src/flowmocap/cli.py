@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from flowmocap.commands import register_all
-from flowmocap.errors import FlowMocapError, InputError
+from flowmocap.errors import FlowMocapError, InputError, OutputError
 from flowmocap.eval.demo import run_demo
 from flowmocap.pipeline import track
 from flowmocap.synth import synthesize
@@ -61,7 +61,7 @@ def cmd_track(args) -> int:
     track(args.input, args.out, init=args.init or "auto", masks=args.masks, camera=camera, config=args.config,
           frames=args.frames, resume=args.resume, progress=not args.quiet, profile=args.profile, model=args.model,
           gender=args.gender, flow=args.flow, max_size=args.max_size, reinit=not args.no_reinit,
-          joints3d=args.joints3d, person=args.person)
+          joints3d=args.joints3d, person=args.person, force=args.force)
     return 0
 
 
@@ -142,7 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", help="JSON file of tracker settings over the profile's (fields of "
                    "flowmocap.fit.config.TrackerConfig; see docs/settings.md)")
     t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
-    t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same input and "
+                   "set-up only; it ends exactly as an uninterrupted run would)")
+    t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
+                   "holds no flowmocap result, or start the result in it over")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.set_defaults(func=cmd_track)
 
@@ -196,7 +199,14 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except FlowMocapError as e:
         print(f"flowmocap: error: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("flowmocap: interrupted; finished frames are kept (track --resume continues)", file=sys.stderr)
+        return 130
+    except OSError as e:  # a file the command writes outside the result folder's own handling
+        where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+        print(f"flowmocap: error: could not read or write a file{where}: {e.strerror or e}", file=sys.stderr)
+        return OutputError.exit_code
 
 
 if __name__ == "__main__":

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 
 class FlowMocapError(Exception):
-    """Base class of every error flowmocap raises on purpose."""
+    """Base class of every error flowmocap raises on purpose. ``exit_code`` is the
+    command line's exit status for it (see :data:`EXIT_CODES`)."""
+
+    exit_code = 2
 
 
 class InputError(FlowMocapError, ValueError):
@@ -31,6 +34,34 @@ class NoPersonError(FlowMocapError):
 class OptimizationError(FlowMocapError):
     """The optimiser produced non-finite values or failed to make progress."""
 
+    exit_code = 3
+
+
+class FolderBusyError(FlowMocapError):
+    """Another run holds the result folder (its lock)."""
+
+    exit_code = 4
+
+
+class OutputError(FlowMocapError):
+    """A result could not be written (no space, no permission, a file in the way)."""
+
+    exit_code = 5
+
+
+#: The command line's exit statuses (also in docs/errors.md).
+EXIT_CODES = {
+    0: "success",
+    1: "an unexpected error (a bug: please report it with the traceback)",
+    2: "bad input or usage: a missing or corrupt file, a wrong setting, no person found (InputError, DataError, "
+       "ModelFileError, NoPersonError)",
+    3: "the optimiser failed (OptimizationError); the frames finished before stay in the result folder",
+    4: "the result folder is in use by another run (FolderBusyError)",
+    5: "a result file could not be written: disk full, no permission (OutputError); finished frames are kept",
+    6: "some inputs of a batch failed (flowmocap track with several inputs); the others finished",
+    130: "interrupted (Ctrl-C); the finished frames are kept and --resume continues",
+}
+
 
 __all__ = [
     "FlowMocapError",
@@ -39,4 +70,7 @@ __all__ = [
     "DataError",
     "NoPersonError",
     "OptimizationError",
+    "FolderBusyError",
+    "OutputError",
+    "EXIT_CODES",
 ]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import platform
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,23 +25,52 @@ import numpy as np
 import torch
 
 from flowmocap.body import BodyModel, load_body_model
-from flowmocap.errors import DataError, InputError, NoPersonError
+from flowmocap.errors import DataError, InputError, NoPersonError, OutputError
 from flowmocap.fit.config import PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
-from flowmocap.fit.objective import ENERGY_NAMES, FrameState, Scene, frame_data, keypoint_observation
+from flowmocap.fit.objective import (
+    ENERGY_NAMES,
+    FrameState,
+    Scene,
+    frame_data,
+    keypoint_observation,
+)
 from flowmocap.fit.reinit import ReinitMonitor
 from flowmocap.fit.tracker import FrameResult, KnownStart, SequenceTracker, track_frames
 from flowmocap.geometry.camera import PinholeCamera
-from flowmocap.io.results import read_result, write_motion, write_run
+from flowmocap.io.fingerprint import (
+    differing,
+    digest_arrays,
+    digest_input,
+    digest_model,
+    digest_value,
+)
+from flowmocap.io.lock import FolderLock
+from flowmocap.io.results import (
+    FrameLog,
+    has_result,
+    is_result_folder,
+    read_result,
+    write_json,
+    write_motion,
+    write_run,
+)
 from flowmocap.io.sequence import Sequence, load_sequence
 from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
 from flowmocap.vision import FlowCache
-from flowmocap.vision.auto import PersonTrack, auto_init, detect_joints3d, detect_sequence, first_person_frame, frame_runs
+from flowmocap.vision.auto import (
+    PersonTrack,
+    auto_init,
+    detect_joints3d,
+    detect_sequence,
+    first_person_frame,
+    frame_runs,
+)
 from flowmocap.vision.person import describe_person, parse_person
 
-__all__ = ["Result", "track", "load_result", "parse_frame_range"]
+__all__ = ["Result", "load_result", "parse_frame_range", "read_init", "track"]
 
 
 @dataclass
@@ -151,16 +181,20 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           resume: bool = False, progress: bool = True, profile: str | None = None,
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
           max_size: int | None = 1280, reinit: bool = True, joints3d: str = "auto",
-          log: Callable[[str], None] | None = print, person: str | int | tuple = "largest") -> Result:
+          log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
+          force: bool = False) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
         source: a video file, a folder of frames, or a sequence folder (``frames/``,
             optional ``masks/`` and ``camera.json``).
-        out: the result folder (``motion.npz``, ``run.json``, ``input.json``,
-            ``detections/``, ``flow_cache/``).
+        out: the result folder (``run.json``, ``motion.npz``, ``input.json``,
+            ``detections/``, ``flow_cache/``; while running ``progress.json``,
+            ``frames.bin``, ``events.jsonl``: see :mod:`flowmocap.io.results`). One run
+            at a time holds it (:class:`~flowmocap.io.lock.FolderLock`).
         init: ``"auto"`` (2D joints found by MediaPipe on the first frame with a whole
-            person), an ``init.json`` path or dict (:mod:`flowmocap.fit.init`), or a
+            person), an ``init.json`` path or dict (:mod:`flowmocap.fit.init`; its
+            ``"frame"`` is the frame tracking starts on), or a
             :class:`~flowmocap.fit.tracker.KnownStart`.
         masks: None (the sequence folder's ``masks/``, else automatic), ``"auto"``
             (MediaPipe's person segmentation) or a folder of masks, one per frame.
@@ -171,8 +205,11 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             fields): a dict or a JSON file.
         frames: ``"A:B"`` or ``(A, B)``, the frames to track (default: all; with the
             automatic init, from the first frame with a confidently detected person to
-            the last with the person).
-        resume: continue an interrupted run in ``out`` (same input and settings).
+            the last with the person; with an init.json, from its ``"frame"``).
+        resume: continue an interrupted run in ``out``. Only a run of the very same
+            input, model, camera, init, settings and flowmocap version is continued (the
+            run's fingerprint in ``run.json``); it then ends exactly as an
+            uninterrupted run would have. Resuming a finished run returns it.
         progress: show progress bars.
         profile: ``"video"`` or ``"synthetic"`` (:data:`~flowmocap.fit.config.PROFILES`);
             None chooses ``video`` when the masks come from the detector, else ``synthetic``.
@@ -193,13 +230,19 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             whose box contains, or lies nearest to, it in the first frame they appear
             in (:func:`~flowmocap.vision.person.parse_person`). Recorded in ``run.json``
             (``person``).
+        force: write into ``out`` even if it is a non-empty folder that flowmocap did not
+            make, or start a result in it over (its result files are replaced; stored
+            detections and flows are kept where they were made from the same input).
 
     Returns:
         the :class:`Result`.
 
     Raises:
-        flowmocap.errors.FlowMocapError: bad input (its message says what to do); the
-            frames finished before the error stay in ``out``.
+        flowmocap.errors.FlowMocapError: bad input (its message says what to do;
+            checked before any long work), :class:`~flowmocap.errors.FolderBusyError`
+            when another run holds ``out``, :class:`~flowmocap.errors.OutputError` when a
+            file cannot be written. The frames finished before an error stay in ``out``,
+            ``run.json`` says ``"failed"`` with the error, and ``resume=True`` continues.
     """
     say = log if log is not None else (lambda _msg: None)
     src, out = Path(source), Path(out)
@@ -207,10 +250,26 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
     if joints3d not in ("auto", "off"):
         raise InputError(f"joints3d must be 'auto' or 'off'; got {joints3d!r}.")
+    parse_person(person)
+    _check_out(out, force)
+    with FolderLock(out):
+        try:
+            return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
+                          flow, max_size, reinit, joints3d, say, person, force)
+        except OSError as e:
+            where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+            raise OutputError(f"could not write the result{where}: {e.strerror or e}. The frames finished so far are "
+                              f"kept in {out}; free space or fix the permissions, then run again with --resume "
+                              "(resume=True).") from e
+
+
+def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
+           flow, max_size, reinit, joints3d, say, person, force) -> Result:
+    """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
-    if (out / "motion.npz").exists() and not resume:
-        raise InputError(f"{out} already holds a result; pass resume=True (--resume) to continue it or choose "
-                         "another folder.")
+    if has_result(out) and not (resume or force):
+        raise InputError(f"{out} already holds a result; pass resume=True (--resume) to continue it, force=True "
+                         "(--force) to start it over, or choose another folder.")
     user_masks = None if masks in (None, "auto") else masks
     is_video = src.is_file() or src.suffix.lower() in VIDEO_SUFFIXES
     seq = load_video(src, masks=user_masks, max_side=max_size or None) if is_video else load_sequence(src, masks=user_masks)
@@ -228,15 +287,44 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     if profile not in PROFILES:
         raise InputError(f"unknown profile {profile!r}; use one of {sorted(PROFILES)}.")
     cfg = TrackerConfig.load(config, profile=profile, flow_method=flow)
-    say(f"settings: profile '{profile}' ({why})" + (f", then {config}" if isinstance(config, (str, Path)) else
-                                                    ", then the given overrides" if config else ""))
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
-
-    detections = None
     if choice[0] != "largest" and not (auto_masks or auto_init):
         raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
                          "your own init and masks the detector does not choose anyone; leave person at 'largest' "
                          "(the init and masks say who is tracked).")
+    # everything the user gives is checked before the long work (detection, tracking)
+    if auto_init:
+        spec = None
+        if frames is not None:
+            parse_frame_range(frames, len(seq))
+    else:
+        spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
+        a, b = _init_span(frames, spec, len(seq))
+    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d)
+    fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
+                               {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
+                                "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
+                                "joints3d": joints3d, "masks": "auto" if auto_masks else "given"})
+    if resume and has_result(out):
+        done = _resumable(out, fingerprint)
+        if done is not None:
+            say(f"{out} holds the finished run of this input and set-up; nothing to do")
+            return done
+    elif has_result(out) or (out / "run.json").exists():  # force, or a run that failed before its first frame
+        for name in ("motion.npz", "progress.json", "frames.bin", "events.jsonl", "run.json", "input.json",
+                     "init_auto.json"):
+            (out / name).unlink(missing_ok=True)
+    if not has_result(out):
+        write_run(out, {"flowmocap": __version__, "status": "preparing", "input": str(src),
+                        "fingerprint": fingerprint})
+    say(f"settings: profile '{profile}' ({why})" + (f", then {config}" if isinstance(config, (str, Path)) else
+                                                    ", then the given overrides" if config else ""))
+    cache_key = digest_value([fingerprint["input"], list(seq.size)])
+    _fresh_cache(out / "detections", cache_key, say)
+    _fresh_cache(out / "flow_cache", cache_key, say)
+    write_json(out / "flow_cache" / "source.json", {"input": cache_key})
+
+    detections = None
     if choice[0] == "point":  # the user's pixel is in the original frames; the detector sees the scaled ones
         scale = float(seq.meta.get("scale", 1.0))
         choice = ("point", (choice[1][0] * scale, choice[1][1] * scale))
@@ -253,9 +341,6 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
                    "profile": profile}
     if auto_init:
         spec, (a, b), notes["frame_range"] = _auto_start(detections, frames, len(seq), out, seq.size)
-    else:
-        spec = init if isinstance(init, KnownStart) else parse_init(init, *seq.size)
-        a, b = parse_frame_range(frames, len(seq))
     if detections is not None:
         notes["detections"] = {k: detections.info[k] for k in ("detector", "frames_with_person", "no_person",
                                                                "ignored_people")}
@@ -263,30 +348,28 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
                            **detections.info.get("person", {"choice": describe_person(choice)})}
         if choice[0] == "point":
             notes["person"]["pixel_in_tracked_frames"] = [round(v, 1) for v in choice[1]]
+        notes["gaps"] = [{"frames": r, "why": "no person found: tracked by flow alone, no silhouette term"}
+                         for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
     if is_video:
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
                                                    "scale", "focal_35mm", "timestamps") if k in seq.meta}
         notes["video"]["max_side"] = max_size or None
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "input.json").write_text(json.dumps(notes, indent=2))
 
     keypoints = j3d = None
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
-        keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None  # noqa: E731
-        j3d = lambda i: detections.smpl_joints3d(i, cam)  # noqa: E731
+        keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
+        j3d = lambda i: detections.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
         j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress)
-        (out / "input.json").write_text(json.dumps(notes, indent=2))
+    if (out / "detections").is_dir():
+        write_json(out / "detections" / "source.json", {"input": cache_key})
+    write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None
     monitor = detections if (detections is not None and reinit) else None
-    run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile)
-    if detections is not None:
-        notes["gaps"] = [{"frames": r, "why": "no person found: tracked by flow alone, no silhouette term"}
-                         for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
-    run.update(notes)
-    write_run(out, run)
+    run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
+               {"fingerprint": fingerprint, **notes})
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
     say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
@@ -296,6 +379,156 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         say(notes["frame_range"])
     return load_result(out)
 
+
+def _check_out(out: Path, force: bool) -> None:
+    """Refuse an ``out`` that is a file, or a non-empty folder flowmocap did not make
+    (unless ``force``), before anything is written."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} is a file; the result goes into a folder: give a new folder, or one that holds a "
+                         "flowmocap result.")
+    if out.is_dir() and not force and not is_result_folder(out):
+        others = sorted(p.name for p in out.iterdir() if p.name not in (".lock", ".lock.json"))
+        if others:
+            shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+            raise InputError(f"{out} is not empty ({shown}) and holds no flowmocap result; give a new or empty "
+                             "folder, or pass force=True (--force) to write the result into it anyway.")
+
+
+def read_init(init, size: tuple[int, int], num_frames: int) -> InitSpec:
+    """Read and check an init.json (path or dict) for frames of ``size = (W, H)`` pixels:
+    :func:`~flowmocap.fit.init.parse_init` plus the checks that need the input: its
+    ``"frame"`` (an integer frame of the input) and joints spread over the person (not
+    bunched into a few pixels, which would put the body kilometres away).
+
+    Raises:
+        InputError: a malformed value, with what to fix.
+    """
+    data = init
+    if not isinstance(init, dict):
+        try:
+            data = json.loads(Path(init).read_text())
+        except FileNotFoundError:
+            raise InputError(f"init file {init} does not exist.") from None
+        except IsADirectoryError:
+            raise InputError(f"init file {init} is a folder, not a JSON file.") from None
+        except (ValueError, UnicodeDecodeError) as e:
+            raise InputError(f"init file {init} is not valid JSON: {e}") from None
+    if not isinstance(data, dict):
+        raise InputError(f"init.json must hold a JSON object (joints2d, optional frame, pose, trans, betas); got "
+                         f"{type(data).__name__}.")
+    frame = data.get("frame", 0)
+    if isinstance(frame, bool) or not isinstance(frame, int) or not 0 <= frame < num_frames - 1:
+        raise InputError(f"init.json: 'frame' must be the integer number of the frame its joints belong to, "
+                         f"0..{num_frames - 2} for this input of {num_frames} frames; got {frame!r}.")
+    for key in ("confidence", "pose"):
+        if data.get(key) is not None and not isinstance(data[key], dict):
+            raise InputError(f"init.json: {key!r} must be an object keyed by joint name; got "
+                             f"{type(data[key]).__name__}.")
+    try:
+        spec = parse_init(data, *size)
+    except InputError:
+        raise
+    except (ValueError, TypeError) as e:
+        raise InputError(f"init.json holds a value of the wrong kind ({e}); see docs for its layout: joints2d "
+                         "{name: [x, y]}, confidence {name: 0..1}, pose {name: [3 numbers]}, pose72 [72 numbers], "
+                         "trans [x, y, z], betas [up to 10 numbers].") from None
+    checks = [("confidence", spec.confidence, lambda c: np.isfinite(c).all() and (c >= 0).all() and (c <= 1).all(),
+               "numbers in [0, 1]"),
+              ("pose", spec.pose, lambda p: np.isfinite(p).all() and (np.abs(p) <= 4 * np.pi).all(),
+               "finite axis-angle rotations (radians)"),
+              ("betas", spec.betas, lambda v: np.isfinite(v).all() and (np.abs(v) <= 10).all(),
+               "finite shape values within +-10")]
+    if spec.trans is not None:
+        checks.append(("trans", spec.trans, lambda t: t.shape == (3,) and np.isfinite(t).all() and t[2] > 0,
+                       "[x, y, z] metres with z > 0 (in front of the camera)"))
+    for key, value, ok, expected in checks:
+        if not ok(np.asarray(value)):
+            raise InputError(f"init.json: {key!r} must be {expected}.")
+    used = spec.confidence > 0
+    spread = float(np.ptp(spec.joints2d[used], axis=0).max())
+    if spread < MIN_INIT_SPREAD * size[1]:
+        raise InputError(f"init.json: the joints span only {spread:.1f} px of the {size[0]}x{size[1]} frames; they "
+                         f"must mark the person (spread over at least {MIN_INIT_SPREAD:.0%} of the image height), "
+                         "or the body would be placed far away. Check the joints' pixel coordinates.")
+    return spec
+
+
+#: An init's joints must span at least this fraction of the image height.
+MIN_INIT_SPREAD = 0.03
+
+
+def _init_span(frames, spec, n: int) -> tuple[int, int]:
+    """The frames to track with a given init: ``frames`` (which must start on the init's
+    frame) or from the init's frame to the end."""
+    first = 0 if isinstance(spec, KnownStart) else spec.frame
+    if frames is None:
+        return parse_frame_range((first, n), n)
+    a, b = parse_frame_range(frames, n)
+    if not isinstance(spec, KnownStart) and a != first:
+        raise InputError(f"init.json's joints are of frame {first} ('frame') but the frames to track start at {a}; "
+                         f"start at {first} (frames {first}:{b}) or mark the joints of frame {a}.")
+    return a, b
+
+
+def _fingerprint(src: Path, user_masks, body: BodyModel, cam: PinholeCamera, init, spec, cfg: TrackerConfig,
+                 choice, uses_detector: bool, options: dict) -> dict:
+    """``{part: digest}`` of everything that determines the result (:mod:`flowmocap.io.fingerprint`)."""
+    if isinstance(init, KnownStart):
+        init_digest = digest_arrays([init.poses, init.trans, init.betas])
+    elif spec is not None:
+        init_digest = digest_arrays([spec.joints2d, spec.confidence, spec.pose, spec.betas,
+                                     np.zeros(0) if spec.trans is None else spec.trans,
+                                     np.zeros(0) if spec.pose_given is None else spec.pose_given,
+                                     np.array([spec.frame])])
+    else:
+        init_digest = digest_value(["auto", describe_person(choice)])
+    detector = None
+    if uses_detector:
+        try:
+            from importlib.metadata import version
+
+            detector = ["mediapipe", version("mediapipe")]
+        except Exception:  # noqa: BLE001 -- not installed: the detector step says so itself
+            detector = ["mediapipe", None]
+    return {"input": digest_input(src), "masks": digest_input(user_masks) if user_masks else "auto-or-input",
+            "model": digest_model(body), "camera": digest_value(cam.to_dict()), "init": init_digest,
+            "config": digest_value(cfg.to_dict()), "options": digest_value(options),
+            "detector": digest_value(detector), "code": __version__}
+
+
+def _resumable(out: Path, fingerprint: dict) -> Result | None:
+    """Check that the run in ``out`` can be resumed with ``fingerprint``: None when it is
+    to be continued, its :class:`Result` when it is finished already."""
+    _, old = read_result(out)
+    if not (out / "progress.json").exists() and old.get("status") != "finished":
+        raise InputError(f"cannot resume the run in {out}: it was written by an older flowmocap and holds no "
+                         "tracker state; start a new result folder instead (or pass --force to start it over).")
+    parts = differing(old.get("fingerprint"), fingerprint)
+    if parts:
+        named = {"input": "the input", "masks": "the masks", "model": "the body model", "camera": "the camera",
+                 "init": "the init", "config": "the config", "options": "the options (frames, max size, profile, "
+                 "re-initialisation, joints3d)", "detector": "the detector's version", "code": "the flowmocap version"}
+        what = ", ".join(named.get(p, p) for p in parts)
+        raise InputError(f"cannot resume the run in {out}: {what} differ{'s' if len(parts) == 1 else ''} from the "
+                         "interrupted run's; resume with the same set-up, pass --force (force=True) to start it "
+                         "over, or choose another folder.")
+    if not (out / "progress.json").exists():
+        return load_result(out)
+    return None
+
+
+def _fresh_cache(folder: Path, key: str, say) -> None:
+    """Remove a cache folder (detections, flow) made from other input than ``key`` says."""
+    if not folder.is_dir():
+        return
+    try:
+        stored = json.loads((folder / "source.json").read_text()).get("input")
+    except (OSError, ValueError, AttributeError):
+        stored = None
+    if stored != key:
+        say(f"{folder} was made from other input; computing it anew")
+        shutil.rmtree(folder)
+    
 
 def _camera(camera, seq: Sequence, src: Path) -> tuple[PinholeCamera, str]:
     """The camera and a sentence on where it came from (see :func:`track`)."""
@@ -348,85 +581,47 @@ def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size) -> tup
     return parse_init(init, *size), (first, b), note
 
 
-class ResultWriter:
-    """Per-frame results, written to ``motion.npz`` + ``run.json`` on :meth:`flush`."""
-
-    def __init__(self, out_dir: Path, scene: Scene, fps: float, run: dict):
-        self.out_dir = Path(out_dir)
-        self.scene = scene
-        self.fps = fps
-        self.run = run
-        self.poses, self.trans, self.j3d, self.j2d, self.energies, self.index = [], [], [], [], [], []
-
-    def add(self, frame: int, state: FrameState, terms: dict) -> None:
-        with torch.no_grad():
-            out, _, _ = self.scene.forward(state.pose, state.trans)
-            j3 = out.joints[0]
-            self.j3d.append(j3.numpy())
-            self.j2d.append(self.scene.camera.project(j3).numpy())
-        self.poses.append(state.pose.numpy().astype(np.float32))
-        self.trans.append(state.trans.numpy().astype(np.float32))
-        self.energies.append([terms.get(n, np.nan) for n in ENERGY_NAMES])
-        self.index.append(frame)
-
-    def flush(self) -> None:
-        write_motion(self.out_dir, {
-            "poses": np.asarray(self.poses, np.float32).reshape(-1, 72),
-            "trans": np.asarray(self.trans, np.float32).reshape(-1, 3),
-            "betas": self.scene.betas[0].numpy().astype(np.float32),
-            "gender": np.array(self.scene.model.gender),
-            "fps": np.array(float(self.fps)),
-            "camera": np.array(json.dumps(self.scene.camera.to_dict())),
-            "joints3d": np.asarray(self.j3d, np.float32).reshape(-1, 24, 3),
-            "joints2d": np.asarray(self.j2d, np.float32).reshape(-1, 24, 2),
-            "energies": np.asarray(self.energies, np.float64).reshape(-1, len(ENERGY_NAMES)),
-            "energy_names": np.array(ENERGY_NAMES),
-            "frame_index": np.asarray(self.index, np.int64),
-        })
-        write_run(self.out_dir, self.run)
-
-    def restore(self, motion: dict) -> None:
-        self.poses = list(motion["poses"])
-        self.trans = list(motion["trans"])
-        self.j3d = list(motion["joints3d"])
-        self.j2d = list(motion["joints2d"])
-        # by name: a run written by an older version may lack later terms' columns
-        names = [str(n) for n in motion.get("energy_names", ENERGY_NAMES)]
-        col = {n: k for k, n in enumerate(names)}
-        self.energies = [[float(e[col[n]]) if n in col else float("nan") for n in ENERGY_NAMES]
-                         for e in motion["energies"]]
-        self.index = [int(i) for i in motion["frame_index"]]
+def _append(log: FrameLog, scene: Scene, frame: int, state: FrameState, terms: dict, seconds: float,
+            events: list[dict]) -> None:
+    """Queue one frame's row (parameters, joints, energies by name) in ``log``."""
+    with torch.no_grad():
+        out, _, _ = scene.forward(state.pose, state.trans)
+        j3 = out.joints[0]
+        j2 = scene.camera.project(j3)
+    log.append(state.pose.numpy(), state.trans.numpy(), j3.numpy(), j2.numpy(),
+               [terms.get(n, np.nan) for n in log.header["energy_names"]], frame, seconds, events)
 
 
 def _run(seq: Sequence, out: Path, model: BodyModel, camera: PinholeCamera, init: InitSpec | KnownStart,
          cfg: TrackerConfig, span: tuple[int, int], resume: bool, progress: bool, detections: PersonTrack | None,
-         keypoints, joints3d, profile: str) -> dict:
+         keypoints, joints3d, profile: str, notes: dict) -> dict:
     """Initialise (or restore) and track ``span`` of ``seq`` into ``out``; returns run.json's contents."""
     threads = torch.get_num_threads()
     torch.set_num_threads(int(cfg.torch_threads))
     try:
         return _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints,
-                             joints3d, profile)
+                             joints3d, profile, notes)
     finally:
         torch.set_num_threads(threads)
 
 
 def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints, joints3d,
-                  profile) -> dict:
+                  profile, notes) -> dict:
     a, b = span
     run = {
         "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
         "input": str(seq.root), "frames": [a, b], "profile": profile, "config": cfg.to_dict(),
         "model": model.name or model.source, "model_source": model.source, "gender": model.gender,
-        "camera": camera.to_dict(), "status": "running", "events": [], "timings": {},
+        "camera": camera.to_dict(), "status": "running", **notes,
     }
     fps = seq.meta.get("fps", 30.0)
     cache = FlowCache(out / "flow_cache", method=cfg.flow_method)
+    init_events: list[dict] = []
 
     def mask_of(i: int):
         mask = seq.mask(i)
         if mask is not None and not mask.any():
-            run["events"].append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
+            init_events.append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
             return None
         return mask
 
@@ -447,67 +642,91 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
         return mask, data
 
     t_start = time.perf_counter()
-    restored = resume and (out / "motion.npz").exists()
-    if restored:
-        motion, old = read_result(out)
-        for key in ("input", "frames", "config"):
-            if old.get(key) != json.loads(json.dumps(run[key])):
-                raise InputError(f"cannot resume: {key} differs from the interrupted run in {out} "
-                                 f"({old.get(key)!r} vs {run[key]!r}); start a new result folder instead.")
-        if not isinstance(old.get("tracker"), dict):
-            raise InputError(f"cannot resume the run in {out}: it was written by an older flowmocap and holds no "
-                             "tracker state; start a new result folder instead.")
-        run = old
-        run["status"] = "running"
-        scene = Scene(model, torch.as_tensor(motion["betas"])[None], camera)
-        writer = ResultWriter(out, scene, fps, run)
-        writer.restore(motion)
-        stored = {int(f): j for f, j in zip(motion["frame_index"], motion["joints2d"])}
-        tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, stored))
-        tracker.load_state_dict(run["tracker"])
-        done = len(motion["poses"])
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
-        if isinstance(init, KnownStart):
-            f = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
-            scene = Scene(model, f(init.betas).reshape(1, -1), camera)
-            s0, s1 = (FrameState(f(init.poses[k]), f(init.trans[k])) for k in (0, 1))
-            terms0 = terms1 = {}
-            anchored = True
+    log = None
+    timings: dict = {}
+    try:
+        write_run(out, run)
+        if resume and (out / "progress.json").exists():
+            log, committed = FrameLog.reopen(out)
+            timings = dict(committed["state"].get("timings", {}))
+            scene = Scene(model, torch.as_tensor(log.header["betas"])[None], camera)
+            motion = log.motion()
+            stored = {int(f): j for f, j in zip(motion["frame_index"], motion["joints2d"])}
+            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, stored))
+            tracker.load_state_dict(committed["state"]["tracker"])
+            done = log.rows
         else:
-            d0 = frame_data(mask_of(a), None, cfg, 1.0)
-            d0.joints3d = detected3d(a)
-            d1 = frame_data(mask_of(a + 1), cache.flow(a + 1, seq.frame(a + 1), seq.frame(a)), cfg,
-                            d0.person_pixels, detected(a + 1))
-            d1.joints3d = detected3d(a + 1)
-            start = initialise(model, camera, init, d0, d1, cfg)
-            scene, s0, s1, terms0, terms1 = start.scene, start.first, start.second, start.first_terms, start.second_terms
-            run["timings"]["init_s"] = time.perf_counter() - t0
-            anchored = init.states_rough_pose  # E_a holds the track only to a start someone vouched for
-        writer = ResultWriter(out, scene, fps, run)
-        writer.add(a, s0, terms0)
-        writer.add(a + 1, s1, terms1)
-        tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, None))
-        tracker.start(s0, s1, anchored)
-        run["tracker"] = tracker.state_dict()
-        writer.flush()
-        done = 2
-    frame_times = run["timings"].setdefault("frame_s", [])
+            t0 = time.perf_counter()
+            if isinstance(init, KnownStart):
+                f = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)
+                scene = Scene(model, f(init.betas).reshape(1, -1), camera)
+                s0, s1 = (FrameState(f(init.poses[k]), f(init.trans[k])) for k in (0, 1))
+                terms0 = terms1 = {}
+                anchored = True
+            else:
+                d0 = frame_data(mask_of(a), None, cfg, 1.0)
+                d0.joints3d = detected3d(a)
+                d1 = frame_data(mask_of(a + 1), cache.flow(a + 1, seq.frame(a + 1), seq.frame(a)), cfg,
+                                d0.person_pixels, detected(a + 1))
+                d1.joints3d = detected3d(a + 1)
+                start = initialise(model, camera, init, d0, d1, cfg)
+                scene, s0, s1 = start.scene, start.first, start.second
+                terms0, terms1 = start.first_terms, start.second_terms
+                anchored = init.states_rough_pose  # E_a holds the track only to a start someone vouched for
+            timings["init_s"] = time.perf_counter() - t0
+            log = FrameLog.start(out, {"betas": scene.betas[0].numpy(), "gender": scene.model.gender, "fps": fps,
+                                       "camera": camera.to_dict(), "energy_names": ENERGY_NAMES})
+            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, None))
+            tracker.start(s0, s1, anchored)
+            _append(log, scene, a, s0, terms0, float("nan"), init_events)
+            _append(log, scene, a + 1, s1, terms1, float("nan"), [])
+            log.commit({"tracker": tracker.state_dict(), "timings": timings})
+            done = 2
+        total_before = float(timings.get("total_s", 0.0))
 
-    def on_frame(res: FrameResult) -> None:
-        run["events"].extend(res.events)
-        writer.add(res.frame, res.state, res.terms)
-        frame_times.append(res.seconds)
-        run["timings"]["s_per_frame_median"] = float(np.median(frame_times))
-        run["tracker"] = tracker.state_dict()
-        writer.flush()
+        def on_frame(res: FrameResult) -> None:
+            _append(log, scene, res.frame, res.state, res.terms, res.seconds, res.events)
+            timings["total_s"] = total_before + time.perf_counter() - t_start
+            log.commit({"tracker": tracker.state_dict(), "timings": timings})
 
-    track_frames(tracker, range(a + done, b), observe, on_frame, progress=progress, done=done)
-    run["status"] = "finished"
-    run["timings"]["total_s"] = run["timings"].get("total_s", 0.0) + time.perf_counter() - t_start
-    writer.flush()
+        track_frames(tracker, range(a + done, b), observe, on_frame, progress=progress, done=done)
+    except BaseException as e:
+        _record_end(out, run, log, timings, "interrupted" if isinstance(e, KeyboardInterrupt) else "failed", e)
+        raise
+    timings["total_s"] = float(timings.get("total_s", 0.0))
+    run["tracker"] = tracker.state_dict()  # where it ended (the resume state lived in progress.json)
+    _record_end(out, run, log, timings, "finished")
+    log.close()
     return run
+
+
+def _record_end(out: Path, run: dict, log: FrameLog | None, timings: dict, status: str,
+                error: BaseException | None = None) -> None:
+    """Write ``motion.npz`` (the committed frames) and ``run.json`` with the final status,
+    events and timings. On a failure this is best effort (the original error matters
+    more, and the commit point already holds the finished frames)."""
+    try:
+        run["status"] = status
+        if error is not None:
+            run["error"] = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+        else:
+            run.pop("error", None)
+        if log is not None:
+            recs = log.records()
+            frame_s = [float(x) for x in recs["seconds"] if np.isfinite(x)]
+            run["events"] = log.events()
+            run["timings"] = {**timings, "frame_s": frame_s}
+            if frame_s:
+                run["timings"]["s_per_frame_median"] = float(np.median(frame_s))
+            if log.rows:
+                write_motion(out, log.motion())
+        else:
+            run.setdefault("events", [])
+            run["timings"] = dict(timings)
+        write_run(out, run)
+    except Exception:
+        if error is None:
+            raise
 
 
 def _monitor(detections: PersonTrack | None, cfg: TrackerConfig, stored: dict | None) -> ReinitMonitor | None:

@@ -1,25 +1,55 @@
-"""Result folders: ``motion.npz`` and ``run.json``, written frame by frame.
+"""Result folders: what :func:`flowmocap.track` writes, how it commits each frame, and how
+readers see it.
 
-Every write goes to a temporary file that is then renamed over the old one, so an
-interrupted run always leaves the last finished frame on disk, and ``--resume`` picks up
-from there.
+A result folder holds
+
+- ``run.json``: what ran (input, settings, camera, model, the run's fingerprint), its
+  ``status`` (``"preparing"``, ``"running"``, ``"finished"``, ``"failed"``) and, once the
+  run has ended, its events and timings. Written when the run starts and when it ends.
+- while the run goes on, three files written frame by frame:
+
+  - ``frames.bin``: one fixed-size binary record per tracked frame, appended (numpy
+    structured dtype :func:`record_dtype`; float32 parameters and joints, float64
+    energies and seconds, int64 frame number);
+  - ``events.jsonl``: what happened on the way, one JSON object a line, appended;
+  - ``progress.json``: **the commit point**. It is replaced atomically after every frame
+    and says how many records and event bytes are final (``rows``, ``events_bytes``),
+    and holds the tracker's state after the last of them and the result's constant
+    parts (``header``: betas, gender, fps, camera, energy names). Records or event lines
+    beyond it are from a frame that was not committed: readers ignore them and a resumed
+    run cuts them off and redoes that frame. So a run killed at any instant resumes from
+    a state that matches its motion exactly, and a frame costs a constant amount of
+    writing however long the video is.
+- ``motion.npz``: all frames in one file for other tools (layout below), written when
+  the run ends (finished, failed or interrupted by an exception). A finished run then
+  removes the three progress files (``progress.json`` first: from then on ``motion.npz``
+  is the result).
 
 ``motion.npz``: ``poses (T, 72)`` axis-angle radians, ``trans (T, 3)`` metres,
 ``betas (10,)``, ``gender``, ``fps``, ``camera`` (JSON of PinholeCamera.to_dict()),
 ``joints3d (T, 24, 3)`` metres (camera/world frame of the camera), ``joints2d (T, 24, 2)``
 pixels, ``energies (T, K)`` and ``energy_names (K,)``, ``frame_index (T,)`` (the input's
-frame numbers).
+frame numbers). :func:`read_result` gives the same arrays for a run that is still going
+or was killed.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError
+
+#: The files of a result folder that flowmocap writes (a folder holding other files is
+#: not replaced without ``force``).
+RESULT_FILES = ("run.json", "input.json", "init_auto.json", "motion.npz", "progress.json", "frames.bin",
+                "events.jsonl", ".lock", ".lock.json")
+RESULT_DIRS = ("detections", "flow_cache", "export", "render")
+FORMAT = 2
 
 
 def write_motion(out_dir: Path, arrays: dict) -> None:
@@ -34,11 +64,16 @@ def write_motion(out_dir: Path, arrays: dict) -> None:
 
 def write_run(out_dir: Path, info: dict) -> None:
     """Atomically write ``out_dir/run.json``."""
+    write_json(Path(out_dir) / "run.json", info)
+
+
+def write_json(path: Path, info) -> None:
+    """Atomically write ``info`` as JSON (numpy values and paths allowed) to ``path``."""
 
     def write(tmp):
         Path(tmp).write_text(json.dumps(info, indent=2, default=json_default))
 
-    atomic_write(Path(out_dir) / "run.json", write)
+    atomic_write(Path(path), write)
 
 
 def json_default(x):
@@ -53,19 +88,216 @@ def json_default(x):
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
+def record_dtype(num_energies: int) -> np.dtype:
+    """The numpy structured dtype of one ``frames.bin`` record (little-endian, packed):
+    ``poses (72,) f4`` radians, ``trans (3,) f4`` metres, ``joints3d (24, 3) f4`` metres,
+    ``joints2d (24, 2) f4`` pixels, ``energies (K,) f8``, ``frame_index i8``,
+    ``seconds f8`` (the frame's tracking time)."""
+    return np.dtype([("poses", "<f4", (72,)), ("trans", "<f4", (3,)), ("joints3d", "<f4", (24, 3)),
+                     ("joints2d", "<f4", (24, 2)), ("energies", "<f8", (num_energies,)), ("frame_index", "<i8"),
+                     ("seconds", "<f8")])
+
+
+class FrameLog:
+    """The frame-by-frame part of a result folder being written (see the module
+    docstring): :meth:`append` records and events, then :meth:`commit` the state.
+
+    Args:
+        out_dir: the result folder.
+        header: the result's constant parts: ``betas (10,)``, ``gender``, ``fps``,
+            ``camera`` (dict), ``energy_names (K,)``.
+    """
+
+    def __init__(self, out_dir: str | Path, header: dict):
+        self.out_dir = Path(out_dir)
+        self.header = {"betas": [float(b) for b in np.asarray(header["betas"]).ravel()],
+                       "gender": str(header["gender"]), "fps": float(header["fps"]),
+                       "camera": header["camera"], "energy_names": [str(n) for n in header["energy_names"]]}
+        self.dtype = record_dtype(len(self.header["energy_names"]))
+        self.rows = 0
+        self.events_bytes = 0
+        self.pending: list = []
+        self.pending_events: list[dict] = []
+
+    @classmethod
+    def start(cls, out_dir: str | Path, header: dict) -> FrameLog:
+        """A new, empty log (any old progress files are removed)."""
+        log = cls(out_dir, header)
+        for name in ("progress.json", "frames.bin", "events.jsonl"):
+            (log.out_dir / name).unlink(missing_ok=True)
+        return log
+
+    @classmethod
+    def reopen(cls, out_dir: str | Path) -> tuple[FrameLog, dict]:
+        """The log of an interrupted run and its last commit (``progress.json``'s dict),
+        with anything written after that commit cut off.
+
+        Raises:
+            DataError: no or unreadable progress.
+        """
+        out_dir = Path(out_dir)
+        progress = read_progress(out_dir)
+        log = cls(out_dir, progress["header"])
+        log.rows, log.events_bytes = int(progress["rows"]), int(progress["events_bytes"])
+        _truncate(out_dir / "frames.bin", log.rows * log.dtype.itemsize)
+        _truncate(out_dir / "events.jsonl", log.events_bytes)
+        return log, progress
+
+    def append(self, poses, trans, joints3d, joints2d, energies, frame: int, seconds: float,
+               events: list[dict] = ()) -> None:
+        """Queue one frame's record (``poses (72,)``, ``trans (3,)``, ``joints3d (24, 3)``,
+        ``joints2d (24, 2)``, ``energies (K,)`` in :attr:`header`'s order) and its events
+        for the next :meth:`commit`."""
+        rec = np.zeros((), self.dtype)
+        rec["poses"], rec["trans"], rec["joints3d"], rec["joints2d"] = poses, trans, joints3d, joints2d
+        rec["energies"], rec["frame_index"], rec["seconds"] = energies, frame, seconds
+        self.pending.append(rec)
+        self.pending_events.extend(events)
+
+    def commit(self, state: dict) -> None:
+        """Write the queued records and events, then ``progress.json`` with ``state`` (the
+        tracker's state after the last queued frame, JSON-serialisable): the frames are
+        final once this returns."""
+        if self.pending:
+            with open(self.out_dir / "frames.bin", "ab") as f:
+                f.write(np.stack(self.pending).tobytes())
+                f.flush()
+                os.fsync(f.fileno())
+        if self.pending_events:
+            text = "".join(json.dumps(e, default=json_default) + "\n" for e in self.pending_events).encode()
+            with open(self.out_dir / "events.jsonl", "ab") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            self.events_bytes += len(text)
+        self.rows += len(self.pending)
+        self.pending, self.pending_events = [], []
+        write_json(self.out_dir / "progress.json", {"format": FORMAT, "rows": self.rows,
+                                                    "events_bytes": self.events_bytes, "state": state,
+                                                    "header": self.header})
+
+    def records(self) -> np.ndarray:
+        """The committed records, ``(rows,)`` of :attr:`dtype`."""
+        return _read_records(self.out_dir, self.dtype, self.rows)
+
+    def events(self) -> list[dict]:
+        """The committed events."""
+        return _read_events(self.out_dir, self.events_bytes)
+
+    def motion(self) -> dict:
+        """The committed frames as ``motion.npz``'s arrays."""
+        return _motion(self.header, self.records())
+
+    def close(self) -> None:
+        """Remove the progress files once ``motion.npz`` and ``run.json`` hold everything
+        (``progress.json`` first: it is what makes a reader use the log)."""
+        for name in ("progress.json", "frames.bin", "events.jsonl"):
+            (self.out_dir / name).unlink(missing_ok=True)
+
+
+def read_progress(out_dir: str | Path) -> dict:
+    """``progress.json`` of a result folder (the last commit of a run that is going on or
+    was interrupted). Raises DataError when absent or unreadable."""
+    path = Path(out_dir) / "progress.json"
+    try:
+        progress = json.loads(path.read_text())
+        for key in ("rows", "events_bytes", "state", "header"):
+            progress[key]
+    except FileNotFoundError:
+        raise DataError(f"{out_dir} holds no run in progress ({path.name} is missing).") from None
+    except (ValueError, KeyError, TypeError, OSError) as e:
+        raise DataError(f"{path} is unreadable ({e}); start a new result folder.") from None
+    return progress
+
+
+def _truncate(path: Path, size: int) -> None:
+    have = path.stat().st_size if path.exists() else 0
+    if have < size:
+        raise DataError(f"{path} holds {have} bytes but its last commit says {size}; the result folder was changed "
+                        "by something else. Start a new result folder.")
+    if have > size:
+        with open(path, "r+b") as f:
+            f.truncate(size)
+
+
+def _read_records(out_dir: Path, dtype: np.dtype, rows: int) -> np.ndarray:
+    path = Path(out_dir) / "frames.bin"
+    if rows == 0:
+        return np.zeros(0, dtype)
+    try:
+        recs = np.fromfile(path, dtype=dtype, count=rows)
+    except (OSError, ValueError) as e:
+        raise DataError(f"{path} is unreadable ({e}).") from None
+    if len(recs) < rows:
+        raise DataError(f"{path} holds {len(recs)} frames but its last commit says {rows}.")
+    return recs
+
+
+def _read_events(out_dir: Path, size: int) -> list[dict]:
+    if size == 0:
+        return []
+    with open(Path(out_dir) / "events.jsonl", "rb") as f:
+        text = f.read(size).decode()
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def _motion(header: dict, recs: np.ndarray) -> dict:
+    return {
+        "poses": recs["poses"].reshape(-1, 72), "trans": recs["trans"].reshape(-1, 3),
+        "betas": np.asarray(header["betas"], np.float32), "gender": np.array(header["gender"]),
+        "fps": np.array(float(header["fps"])), "camera": np.array(json.dumps(header["camera"])),
+        "joints3d": recs["joints3d"].reshape(-1, 24, 3), "joints2d": recs["joints2d"].reshape(-1, 24, 2),
+        "energies": recs["energies"].reshape(len(recs), -1), "energy_names": np.array(header["energy_names"]),
+        "frame_index": recs["frame_index"].astype(np.int64),
+    }
+
+
+def has_result(out_dir: str | Path) -> bool:
+    """Whether ``out_dir`` holds tracked frames (finished or not) to resume or read."""
+    out_dir = Path(out_dir)
+    return (out_dir / "progress.json").exists() or (out_dir / "motion.npz").exists()
+
+
+def is_result_folder(out_dir: str | Path) -> bool:
+    """Whether ``out_dir`` was made by flowmocap (a ``run.json`` it wrote, or a result)."""
+    out_dir = Path(out_dir)
+    if has_result(out_dir):
+        return True
+    try:
+        run = json.loads((out_dir / "run.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(run, dict) and "flowmocap" in run
+
+
 def read_result(out_dir: str | Path) -> tuple[dict, dict]:
-    """``(motion arrays, run info)`` of a result folder.
+    """``(motion arrays, run info)`` of a result folder, finished or not: a run that is
+    still going, or was killed, gives its committed frames and events (see the module
+    docstring); its ``status`` reads ``"interrupted"`` when no process holds the folder.
 
     Raises:
         DataError: missing or unreadable files.
     """
     out_dir = Path(out_dir)
     try:
-        with np.load(out_dir / "motion.npz", allow_pickle=False) as z:
-            motion = {k: z[k] for k in z.files}
         run = json.loads((out_dir / "run.json").read_text())
+        if (out_dir / "progress.json").exists():
+            progress = read_progress(out_dir)
+            recs = _read_records(out_dir, record_dtype(len(progress["header"]["energy_names"])), progress["rows"])
+            motion = _motion(progress["header"], recs)
+            if not run.get("events"):
+                run["events"] = _read_events(out_dir, int(progress["events_bytes"]))
+            run.setdefault("timings", {}).setdefault("frame_s", recs["seconds"].tolist())
+        else:
+            with np.load(out_dir / "motion.npz", allow_pickle=False) as z:
+                motion = {k: z[k] for k in z.files}
     except FileNotFoundError as e:
-        raise DataError(f"{out_dir} is not a flowmocap result folder ({e.filename} is missing).") from None
+        raise DataError(f"{out_dir} is not a flowmocap result folder ({Path(e.filename).name} is missing).") from None
     except (ValueError, OSError) as e:
         raise DataError(f"{out_dir} holds an unreadable result ({e}).") from None
+    if run.get("status") in ("running", "preparing"):
+        from flowmocap.io.lock import is_locked
+
+        if not is_locked(out_dir):
+            run["status"] = "interrupted"
     return motion, run
