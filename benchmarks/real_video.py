@@ -26,13 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.io.results import has_result
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "video"
 
 
 def track(inp: Path, out: Path, extra: list[str]) -> float:
     cmd = [sys.executable, "-m", "flowmocap.cli", "track", str(inp), "--out", str(out), "--quiet", *extra]
-    if (out / "motion.npz").exists():
+    if has_result(out):
         cmd.append("--resume")
     t0 = time.perf_counter()
     print(" ".join(cmd), flush=True)

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.io.results import has_result
+
 ROOT = Path(__file__).resolve().parents[1]
 CMU = ROOT.parent / "shared" / "data" / "mocap" / "cmu" / "35_01.amc"
 
@@ -85,7 +87,7 @@ def main() -> int:
         joints3d, detect_note = detect_joints3d(seq, res_dir, seq.camera, progress=False)
     detect_s = time.perf_counter() - t0
     result = track(seq_dir, res_dir, init=init, config=args.config, frames=args.track_frames,
-                   resume=(res_dir / "motion.npz").exists(), progress=True, log=None)
+                   resume=has_result(res_dir), progress=True, log=None)
     wall = time.perf_counter() - t0
     motion, run = result.motion, result.run
     scores = evaluate(motion, seq.gt)

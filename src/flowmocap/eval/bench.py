@@ -46,7 +46,7 @@ from flowmocap.eval.protocol import noisy_init
 from flowmocap.eval.scoring import COLUMNS, score_detector3d, score_result
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import parse_init
-from flowmocap.io.results import json_default, read_result, write_run
+from flowmocap.io.results import has_result, json_default, read_result, write_run
 from flowmocap.io.sequence import load_sequence
 from flowmocap.pipeline import load_result, track
 from flowmocap.synth import synthesize
@@ -229,7 +229,7 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
     """
     seq = load_sequence(seq_dir)
     res = Path(res_dir)
-    resume = (res / "motion.npz").exists()
+    resume = has_result(res)
     gender = str(seq.meta.get("gender", "neutral"))
     if method == "flowmocap":
         track(seq_dir, res, init=init, config=tracker_config or None, resume=resume, progress=progress,
@@ -345,7 +345,7 @@ def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print,
     res = d / "flowmocap"
     if not _finished(res):
         log(f"[{spec.name}] running flowmocap track {spec.frames_dir} (automatic everything) ...")
-        track(spec.frames_dir, res, config=tracker_config or None, resume=(res / "motion.npz").exists(),
+        track(spec.frames_dir, res, config=tracker_config or None, resume=has_result(res),
               progress=progress, log=log)
     result = load_result(res)
     entry["settings"]["camera"] = result.run.get("camera_source")
@@ -370,7 +370,7 @@ def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print,
     if not _finished(bres):
         log(f"[{spec.name}] running baseline ...")
         run_baseline(hand, bres, model, result.camera, parse_init(init, w, h), kp, conf,
-                     resume=(bres / "motion.npz").exists(), progress=progress,
+                     resume=has_result(bres), progress=progress,
                      keypoint_note="flowmocap.vision.auto.detect_sequence keypoints (confidence >= 0.3)")
     b = score_result(bres, hand, model=model)
     entry["baseline"] = {k: b.get(k) for k in METRICS}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -11,6 +10,7 @@ import numpy as np
 
 from flowmocap.errors import InputError
 from flowmocap.eval.protocol import evaluate, noisy_init
+from flowmocap.io.results import has_result
 from flowmocap.io.sequence import load_sequence
 from flowmocap.pipeline import track
 from flowmocap.synth import synthesize
@@ -42,13 +42,12 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "64
     t1 = time.perf_counter()
     kw = dict(init=init, config=config, gender=str(seq.meta.get("gender", "neutral")), progress=progress, log=None)
     try:
-        result = track(seq_dir, res_dir, resume=(res_dir / "motion.npz").exists(), **kw)
+        result = track(seq_dir, res_dir, resume=has_result(res_dir), **kw)
     except InputError as e:
         if not str(e).startswith("cannot resume"):
             raise
         # the demo's own earlier result, made with other settings (e.g. by an older version): start over
-        shutil.rmtree(res_dir)
-        result = track(seq_dir, res_dir, resume=False, **kw)
+        result = track(seq_dir, res_dir, force=True, **kw)
     track_s = time.perf_counter() - t1
     run, motion = result.run, result.motion
     scores = evaluate(motion, seq.gt)

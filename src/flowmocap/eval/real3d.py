@@ -60,7 +60,7 @@ from flowmocap.errors import DataError, FlowMocapError, InputError
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.geometry.triangulate import CalibratedCamera, estimate_offsets, offset_cost, triangulate
 from flowmocap.io.calibration import read_qualisys_calibration
-from flowmocap.io.results import json_default
+from flowmocap.io.results import has_result, json_default
 from flowmocap.pipeline import load_result, track
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
@@ -826,10 +826,10 @@ def run_real3d(out_dir: str | Path, frames: int | None = None, max_size: int = 6
             t0 = time.perf_counter()
             try:
                 track(video, res, person=spec, max_size=max_size, frames=None if frames is None else f"0:{frames}",
-                      config=tracker_config or None, resume=(res / "motion.npz").exists(), progress=progress,
+                      config=tracker_config or None, resume=has_result(res), progress=progress,
                       log=None)
             except FlowMocapError as e:  # one failed run must not cost the others; reported, not in the mean
-                done = load_result(res).frame_index if (res / "motion.npz").exists() else []
+                done = load_result(res).frame_index if has_result(res) else []
                 msg = f"{type(e).__name__}: {e}"
                 say(f"[{p}@{v}] FAILED after {len(done)} frames: {msg}")
                 row = {"person": p, "view": v, "person_arg": spec, "failed": msg, "frames_done": len(done)}
