@@ -57,7 +57,7 @@ def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np
     Returns:
         ``joints (V, count)`` uint8 (or uint16 for J > 255) joint indices, and
         ``weights (V, count)`` float32 summing to 1 within float32 rounding; unused slots
-        have weight 0.
+        have weight 0 and joint 0.
     """
     w = np.asarray(weights, np.float64)
     if w.ndim != 2 or w.shape[1] < count:
@@ -69,6 +69,7 @@ def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np
         raise InputError("a vertex has no positive skinning weight; the model's weights are broken.")
     top = (top / total).astype(np.float32)
     top[:, 0] += np.float32(1.0) - top.sum(1, dtype=np.float32)  # float32 sum exactly 1 where possible
+    order = np.where(top > 0, order, 0)  # glTF: unused slots carry joint 0
     return order.astype(np.uint8 if w.shape[1] <= 255 else np.uint16), top
 
 
