@@ -69,3 +69,43 @@ def test_config_checks_the_weight():
     assert TrackerConfig().depth_temporal_weight >= 0
     with pytest.raises(InputError):
         TrackerConfig(depth_temporal_weight=-1.0)
+
+
+def test_frame_energy_and_tracker_reference(tmp_path):
+    """``frame_energy`` adds ``depth_temporal_weight * E_z`` when the frame has a depth
+    reference; the tracker's reference is the prediction's translation and the viewing ray
+    through its root joint."""
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.objective import FrameState, Scene, frame_data, frame_energy
+    from flowmocap.fit.tracker import depth_reference
+
+    model = load_body_model("default")
+    cam = _camera()
+    scene = Scene(model, torch.zeros(1, 10), cam)
+    centre = -np.asarray(cam.R).T @ np.asarray(cam.t)
+    ref = FrameState(torch.zeros(72), torch.as_tensor(centre + np.array([0.0, 0.0, 3.0]), dtype=torch.float32))
+    trans, u = depth_reference(scene, ref)
+    assert torch.equal(trans, ref.trans)
+    with torch.no_grad():
+        root = scene.forward(ref.pose, ref.trans)[0].joints[0, 0].double()
+    pts = torch.stack([root, root + 0.5 * u.double()])
+    px = cam.project(pts).numpy()
+    assert np.allclose(px[0], px[1], atol=1e-3)
+
+    off = {k: 0.0 for k in ("flow_weight", "silhouette_weight", "temporal_weight", "limit_weight",
+                             "penetration_weight", "detector3d_weight", "pose_prior_weight", "limb_depth_weight")}
+    cfg = TrackerConfig(depth_temporal_weight=250.0, **off)
+    data = frame_data(None, None, cfg, 1.0)
+    moved = FrameState(ref.pose.clone(), ref.trans + 0.04 * u)
+    _, terms = frame_energy(scene, moved, data, cfg, 0, None, None)
+    assert "depth_temporal" not in terms  # no reference: no term
+    data.depth_ref = (trans, u)
+    total, terms = frame_energy(scene, moved, data, cfg, 0, None, None)
+    assert terms["depth_temporal"] == pytest.approx(250.0 * 0.04 ** 2, rel=1e-4)
+    assert float(total) == pytest.approx(terms["depth_temporal"], rel=1e-6)
+    # a move across the ray costs (almost) nothing
+    side = torch.linalg.cross(u, torch.tensor([0.0, 1.0, 0.0]))
+    side = side / side.norm()
+    across = FrameState(ref.pose.clone(), ref.trans + 0.04 * side)
+    _, terms = frame_energy(scene, across, data, cfg, 0, None, None)
+    assert terms["depth_temporal"] < 1e-8
