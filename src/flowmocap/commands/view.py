@@ -1,0 +1,251 @@
+"""``flowmocap view RESULT``: a local web page with the input, the overlay and the body in 3D.
+
+A small HTTP server (``http.server``, bound to 127.0.0.1 only) serves the page and its
+JavaScript from the package (``flowmocap/viewer/``: the page, and three.js
+:data:`THREE_VERSION` with its MIT licence; nothing comes from the network), the result's
+skinned glb in the ground frame (the file ``flowmocap export --format glb`` writes), the
+camera in that frame, and the input's frames as JPEG. Routes:
+
+- ``/``: the page; ``/static/...``: the files of ``flowmocap/viewer/``;
+- ``/api/meta.json``: :meth:`ViewerData.meta`;
+- ``/motion.glb``: the skinned body; ``/frame/K.jpg``: the input frame of result row ``K``
+  (a grey frame when the input is not found).
+
+Ctrl-C stops the server cleanly.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import mimetypes
+import tempfile
+import threading
+from functools import partial
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import numpy as np
+
+THREE_VERSION = "0.187.0"
+STATIC = Path(__file__).resolve().parents[1] / "viewer"
+_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".md": "text/plain",
+          ".json": "application/json"}
+
+
+def gl_camera(camera, near: float = 0.05, far: float = 200.0, corner_depth: float = 0.4) -> dict:
+    """A pinhole camera as OpenGL/three.js matrices (column-major lists of 16).
+
+    ``projection`` maps OpenGL eye coordinates (x right, y up, looking down -z) to clip
+    space so that a point lands on the pixel :meth:`PinholeCamera.project` gives it (the
+    image spans NDC [-1, 1], v down becoming y up); ``matrix_world`` is the eye-to-world
+    transform ``[R^T D | -R^T t]`` with ``D = diag(1, -1, -1)`` (OpenCV eye axes to
+    OpenGL's). ``corners``: the image corners' rays at ``corner_depth`` metres, world frame.
+    """
+    W, H = camera.width, camera.height
+    P = np.array([
+        [2 * camera.fx / W, 0.0, 1 - 2 * camera.cx / W, 0.0],
+        [0.0, 2 * camera.fy / H, 2 * camera.cy / H - 1, 0.0],
+        [0.0, 0.0, -(far + near) / (far - near), -2 * far * near / (far - near)],
+        [0.0, 0.0, -1.0, 0.0],
+    ])
+    M = np.eye(4)
+    M[:3, :3] = camera.R.T @ np.diag([1.0, -1.0, -1.0])
+    M[:3, 3] = -camera.R.T @ camera.t
+    corners = [camera.R.T @ (corner_depth * np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+                             - camera.t) for u, v in ((0, 0), (W, 0), (W, H), (0, H))]
+    return {"projection": P.T.reshape(-1).tolist(), "matrix_world": M.T.reshape(-1).tolist(),
+            "corners": [c.tolist() for c in corners]}
+
+
+class ViewerData:
+    """What the page shows, built once: the motion in the ground frame, its glb, the frames.
+
+    Args:
+        result_dir: the result folder. input: the tracked video or sequence folder (default:
+            the one recorded in ``run.json``; grey frames when it is not found).
+        model: body model override. smooth: as for :func:`flowmocap.export.export_result`.
+    """
+
+    def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False):
+        from flowmocap.export import load_fitted_motion, write_motion_glb
+
+        self.result_dir = Path(result_dir)
+        self.motion = load_fitted_motion(self.result_dir, frame="ground", model=model, smooth=smooth)
+        with tempfile.TemporaryDirectory() as tmp:
+            self.glb = write_motion_glb(Path(tmp) / "motion.glb", self.motion).read_bytes()
+        self.seq = self._open_input(input)
+        self._jpeg: dict[int, bytes] = {}
+        self._lock = threading.Lock()
+
+    def _open_input(self, given):
+        from flowmocap.errors import DataError
+        from flowmocap.io.sequence import load_sequence
+        from flowmocap.io.video import VIDEO_SUFFIXES, load_video
+
+        cam = self.motion.camera
+        recorded = given or self.motion.run.get("input")
+        if not recorded:
+            return None
+        for p in (Path(recorded), self.result_dir.parent / str(recorded), self.result_dir.parent / Path(recorded).name):
+            if not p.exists():
+                continue
+            try:
+                seq = (load_video(p, max_side=max(cam.width, cam.height))
+                       if p.is_file() or p.suffix.lower() in VIDEO_SUFFIXES else load_sequence(p))
+            except DataError:
+                return None
+            if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.motion.frame_index.max()):
+                return seq
+            if given:
+                raise DataError(f"{p} has {len(seq)} frames of {seq.size[0]}x{seq.size[1]} but the result is "
+                                f"{cam.width}x{cam.height} up to frame {int(self.motion.frame_index.max())}; "
+                                "pass the input that was tracked.")
+            return None
+        if given:
+            raise DataError(f"input {given} does not exist.")
+        return None
+
+    def meta(self) -> dict:
+        """The page's data: ``name``, ``fps``, ``num_frames``, ``frame_index`` (T), ``width``,
+        ``height`` (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground
+        frame), ``camera`` (its ``to_dict``), ``centre`` (mean pelvis, metres), ``floor``
+        (how the floor was found), ``contacts`` (T x 2), ``smoothed``, ``has_input``."""
+        m = self.motion
+        joints = m.joints()
+        w = m.world
+        floor = (f"{w.plane.method} ({w.plane.inliers} foot points)" if w.plane.method == "contacts"
+                 else "fallback (lowest foot point)")
+        return {"name": self.result_dir.name, "fps": m.fps, "num_frames": m.num_frames,
+                "frame_index": [int(i) for i in m.frame_index], "width": m.camera.width, "height": m.camera.height,
+                "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
+                "centre": joints[:, 0].mean(0).tolist(), "floor": floor,
+                "contacts": w.contacts.astype(int).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None}
+
+    def frame_jpeg(self, k: int) -> bytes:
+        """JPEG of result row ``k``'s input frame (grey without an input)."""
+        from PIL import Image
+
+        with self._lock:
+            if k in self._jpeg:
+                return self._jpeg[k]
+        cam = self.motion.camera
+        if self.seq is None:
+            image = np.full((cam.height, cam.width, 3), 48, np.uint8)
+        else:
+            image = np.asarray(self.seq.frame(int(self.motion.frame_index[k])))[..., :3]
+        buf = io.BytesIO()
+        Image.fromarray(image).save(buf, "JPEG", quality=88)
+        data = buf.getvalue()
+        with self._lock:
+            if len(self._jpeg) > 512:
+                self._jpeg.clear()
+            self._jpeg[k] = data
+        return data
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server_version = "flowmocap-view"
+
+    def __init__(self, *args, data: ViewerData, quiet: bool = True, **kw):
+        self.data = data
+        self.quiet = quiet
+        super().__init__(*args, **kw)
+
+    def log_message(self, format, *args):  # noqa: A002 (the base class's name)
+        if not self.quiet:
+            super().log_message(format, *args)
+
+    def _send(self, body: bytes, ctype: str, status: int = 200) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        path = self.path.split("?", 1)[0]
+        try:
+            if path in ("/", "/index.html"):
+                return self._send((STATIC / "index.html").read_bytes(), "text/html; charset=utf-8")
+            if path == "/api/meta.json":
+                return self._send(json.dumps(self.data.meta()).encode(), "application/json")
+            if path == "/motion.glb":
+                return self._send(self.data.glb, "model/gltf-binary")
+            if path.startswith("/frame/") and path.endswith(".jpg"):
+                k = int(path[len("/frame/"):-len(".jpg")])
+                if not 0 <= k < self.data.motion.num_frames:
+                    return self._send(b"no such frame", "text/plain", 404)
+                return self._send(self.data.frame_jpeg(k), "image/jpeg")
+            if path.startswith("/static/"):
+                f = (STATIC / path[len("/static/"):]).resolve()
+                if STATIC in f.parents and f.is_file():
+                    ctype = _TYPES.get(f.suffix, mimetypes.guess_type(f.name)[0] or "application/octet-stream")
+                    return self._send(f.read_bytes(), ctype)
+        except (ValueError, BrokenPipeError, ConnectionResetError):
+            return None
+        return self._send(b"not found", "text/plain", 404)
+
+
+def make_server(data: ViewerData, port: int = 8765, quiet: bool = True) -> ThreadingHTTPServer:
+    """The viewer's HTTP server on 127.0.0.1:``port`` (0: any free port; see
+    ``server.server_address``). Call ``serve_forever()``; ``shutdown()`` from another thread.
+
+    Raises:
+        InputError: the port is taken or not allowed.
+    """
+    from flowmocap.errors import InputError
+
+    try:
+        server = ThreadingHTTPServer(("127.0.0.1", port), partial(_Handler, data=data, quiet=quiet))
+    except OSError as e:
+        raise InputError(f"cannot listen on 127.0.0.1:{port} ({e.strerror}); pass another --port, "
+                         "or --port 0 for any free one.") from None
+    server.daemon_threads = True
+    return server
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "view", help="look at a result in the browser: input with the overlay, 3D body on the floor",
+        description="Serve a local page (http://127.0.0.1:PORT, this machine only) that shows the input "
+        "frames with the fitted body over them and the body in 3D in the world frame (floor at 0, "
+        "the camera in place): orbit with the mouse, play/pause, step, frame slider. Works offline "
+        f"(three.js {THREE_VERSION} ships inside the package). Ctrl-C stops it.")
+    p.add_argument("result", help="result folder (motion.npz, run.json)")
+    p.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (default 8765; 0: any free port)")
+    p.add_argument("--no-browser", action="store_true", help="only print the address, do not open a browser")
+    p.add_argument("--input", help="the tracked video or sequence folder, if it moved since tracking")
+    p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
+                   help="show the motion smoothed offline (as flowmocap export --smooth)")
+    p.add_argument("--model", default=None, help="body model (default: the one recorded in run.json)")
+    p.add_argument("--verbose", action="store_true", help="log every request")
+    p.set_defaults(func=run_view)
+
+
+def run_view(args) -> int:
+    import webbrowser
+
+    from flowmocap.commands.export import smooth_option
+
+    if not 0 <= args.port <= 65535:
+        from flowmocap.errors import InputError
+
+        raise InputError(f"--port must be 0..65535, got {args.port}.")
+    print(f"preparing {args.result} ...", flush=True)
+    data = ViewerData(args.result, input=args.input, model=args.model, smooth=smooth_option(args.smooth, 2))
+    server = make_server(data, args.port, quiet=not args.verbose)
+    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    print(f"flowmocap view: {url}  ({data.motion.num_frames} frames; Ctrl-C to stop)", flush=True)
+    if data.seq is None:
+        print("the tracked input was not found: frames are grey (pass --input VIDEO_OR_FOLDER)", flush=True)
+    if not args.no_browser:
+        webbrowser.open(url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("\nstopped", flush=True)
+    finally:
+        server.server_close()
+    return 0

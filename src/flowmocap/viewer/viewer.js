@@ -1,0 +1,165 @@
+// flowmocap view: the input with the fitted body over it, and the body in 3D in the world
+// frame (floor at y = 0). Served by `flowmocap view RESULT` (flowmocap/commands/view.py):
+//   /api/meta.json  fps, frames, image size, the camera (OpenGL matrices, world frame), floor
+//   /motion.glb     the skinned, animated body (the same file `flowmocap export --format glb` writes)
+//   /frame/K.jpg    input frame of result row K
+// URL parameters: ?frame=K (start at row K, paused), ?play=1 (start playing), ?scale=S (draw
+// the input at S x its size instead of fitting it into its pane).
+// When a frame is drawn, <body> carries data-frame=K, data-ready=1 and data-overlay=[left,
+// top, width, height] (the overlay's place on the page, CSS pixels), for tests.
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+
+const $ = (id) => document.getElementById(id);
+const label = $('label');
+
+function fail(msg) {
+  label.textContent = 'error: ' + msg;
+  document.title = 'flowmocap view: error: ' + msg;
+  document.body.dataset.error = msg;
+}
+window.addEventListener('error', (e) => fail(String(e.message)));
+window.addEventListener('unhandledrejection', (e) => fail(String(e.reason)));
+
+const meta = await (await fetch('/api/meta.json')).json();
+const T = meta.num_frames;
+const fps = meta.fps;
+$('slider').max = String(T - 1);
+$('info').textContent = `${meta.name}: ${T} frames at ${fps} fps, floor: ${meta.floor}` +
+  (meta.smoothed ? ', smoothed' : '') + (meta.has_input ? '' : ' (input not found: grey frames)');
+
+// one scene, seen by two renderers: the result's camera (over the image) and an orbit camera
+const scene = new THREE.Scene();
+scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 2.2));
+const sun = new THREE.DirectionalLight(0xffffff, 1.6);
+sun.position.set(2, 4, 3);
+scene.add(sun);
+const HELPERS = 1;  // layer of things only the 3D view shows
+const grid = new THREE.GridHelper(20, 20, 0x8a93a0, 0x4a515c);
+grid.layers.set(HELPERS);
+scene.add(grid);
+
+const gltf = await new GLTFLoader().loadAsync('/motion.glb');
+const body = gltf.scene;
+body.traverse((o) => { if (o.isMesh) o.frustumCulled = false; });
+scene.add(body);
+const mixer = new THREE.AnimationMixer(body);
+mixer.clipAction(gltf.animations[0]).play();
+
+// the result's camera: world-to-camera as OpenGL matrices computed by the server
+const videoCam = new THREE.PerspectiveCamera();
+videoCam.matrixAutoUpdate = false;
+videoCam.matrix.fromArray(meta.gl_camera.matrix_world);
+videoCam.updateMatrixWorld(true);
+videoCam.projectionMatrix.fromArray(meta.gl_camera.projection);
+videoCam.projectionMatrixInverse.copy(videoCam.projectionMatrix).invert();
+videoCam.layers.set(0);
+
+// the camera in the 3D view: a pyramid from its centre to the image corners at 0.4 m
+{
+  const c = new THREE.Vector3().setFromMatrixPosition(videoCam.matrixWorld);
+  const pts = [];
+  const corners = meta.gl_camera.corners;  // 4 world points
+  for (const p of corners) pts.push(c.x, c.y, c.z, p[0], p[1], p[2]);
+  for (let i = 0; i < 4; i++) {
+    const a = corners[i], b = corners[(i + 1) % 4];
+    pts.push(a[0], a[1], a[2], b[0], b[1], b[2]);
+  }
+  const g = new THREE.BufferGeometry();
+  g.setAttribute('position', new THREE.Float32BufferAttribute(pts, 3));
+  const pyramid = new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color: 0xffb040 }));
+  pyramid.layers.set(HELPERS);
+  scene.add(pyramid);
+}
+
+const overlayR = new THREE.WebGLRenderer({ canvas: $('overlay'), alpha: true, antialias: true,
+  preserveDrawingBuffer: true });
+overlayR.setPixelRatio(1);
+overlayR.setSize(meta.width, meta.height, false);
+overlayR.setClearColor(0x000000, 0);
+const worldR = new THREE.WebGLRenderer({ canvas: $('world'), antialias: true, preserveDrawingBuffer: true });
+worldR.setPixelRatio(window.devicePixelRatio);
+worldR.setClearColor(0x1c1e22, 1);
+
+const orbitCam = new THREE.PerspectiveCamera(45, 1, 0.05, 200);
+orbitCam.layers.enable(HELPERS);
+const centre = new THREE.Vector3(...meta.centre);
+orbitCam.position.copy(centre).add(new THREE.Vector3(3.2, 1.6, 3.2));
+const controls = new OrbitControls(orbitCam, $('world'));
+controls.target.copy(centre);
+controls.update();
+controls.addEventListener('change', () => worldR.render(scene, orbitCam));
+
+const params = new URLSearchParams(location.search);
+
+function layout() {
+  const pane = $('video-pane').getBoundingClientRect();
+  const s = Number(params.get('scale')) || Math.min(pane.width / meta.width, pane.height / meta.height);
+  const box = $('overlay-box');
+  box.style.width = `${meta.width * s}px`;
+  box.style.height = `${meta.height * s}px`;
+  const r = box.getBoundingClientRect();
+  document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
+  const w = $('world-pane').getBoundingClientRect();
+  worldR.setSize(w.width, w.height, false);
+  orbitCam.aspect = w.width / Math.max(w.height, 1);
+  orbitCam.updateProjectionMatrix();
+}
+window.addEventListener('resize', () => { layout(); draw(); });
+
+let current = 0;
+let playing = false;
+let token = 0;
+
+function draw() {
+  const r = $('overlay-box').getBoundingClientRect();
+  document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
+  mixer.setTime(current / fps);
+  body.updateMatrixWorld(true);
+  overlayR.render(scene, videoCam);
+  worldR.render(scene, orbitCam);
+}
+
+async function setFrame(k) {
+  current = Math.max(0, Math.min(T - 1, Math.round(k)));
+  const mine = ++token;
+  $('slider').value = String(current);
+  label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(current / fps).toFixed(2)} s`;
+  const img = $('frame');
+  await new Promise((resolve) => { img.onload = resolve; img.onerror = resolve; img.src = `/frame/${current}.jpg`; });
+  if (mine !== token) return;  // a newer frame was asked for meanwhile
+  draw();
+  document.body.dataset.frame = String(current);
+  document.body.dataset.ready = '1';
+  document.title = `flowmocap view: frame ${current}`;
+}
+
+function setPlaying(on) {
+  playing = on;
+  $('play').innerHTML = on ? '&#10074;&#10074;' : '&#9654;';
+  if (on) {
+    const t0 = performance.now() - (current / fps) * 1000;
+    const tick = async () => {
+      if (!playing) return;
+      const k = Math.floor(((performance.now() - t0) / 1000) * fps) % T;
+      if (k !== current) await setFrame(k);
+      requestAnimationFrame(tick);
+    };
+    requestAnimationFrame(tick);
+  }
+}
+
+$('play').addEventListener('click', () => setPlaying(!playing));
+$('prev').addEventListener('click', () => { setPlaying(false); setFrame(current - 1); });
+$('next').addEventListener('click', () => { setPlaying(false); setFrame(current + 1); });
+$('slider').addEventListener('input', (e) => { setPlaying(false); setFrame(Number(e.target.value)); });
+window.addEventListener('keydown', (e) => {
+  if (e.key === ' ') { setPlaying(!playing); e.preventDefault(); }
+  if (e.key === 'ArrowLeft') { setPlaying(false); setFrame(current - 1); }
+  if (e.key === 'ArrowRight') { setPlaying(false); setFrame(current + 1); }
+});
+
+layout();
+await setFrame(Number(params.get('frame') || 0));
+if (params.get('play') === '1') setPlaying(true);

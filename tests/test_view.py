@@ -1,0 +1,176 @@
+"""flowmocap view: the camera matrices, the local server, and the page in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flowmocap.commands.view import STATIC, THREE_VERSION, ViewerData, gl_camera, make_server
+from flowmocap.errors import InputError
+from flowmocap.geometry.camera import PinholeCamera, look_at
+
+from test_export import make_result
+
+
+def _chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    """A result with a 320x240 camera 3.2 m from the body; its input is missing (grey frames)."""
+    d = tmp_path_factory.mktemp("view") / "result"
+    R, t = look_at([2.2, 1.2, 2.2], [0.25, 0.5, 0.2])
+    make_result(d, PinholeCamera.from_focal(320, 240, 330.0, R=R, t=t), seed=5)
+    return d
+
+
+@pytest.fixture(scope="module")
+def served(result):
+    data = ViewerData(result)
+    server = make_server(data, port=0)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield data, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def _get(url: str) -> tuple[int, str, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=30) as r:
+            return r.status, r.headers["Content-Type"], r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.headers["Content-Type"], e.read()
+
+
+def test_gl_camera_puts_points_on_the_pixels_the_camera_projects_them_to():
+    rng = np.random.default_rng(0)
+    R, t = look_at([1.5, 1.1, 3.0], [0.1, 0.9, 0.0])
+    cam = PinholeCamera(fx=400.0, fy=380.0, cx=170.0, cy=110.0, width=320, height=240, R=R, t=t)
+    m = gl_camera(cam)
+    P = np.array(m["projection"]).reshape(4, 4).T  # column-major lists
+    M = np.array(m["matrix_world"]).reshape(4, 4).T
+    x = rng.normal(0, 0.4, (20, 3)) + [0.1, 0.9, 0.0]
+    clip = (P @ np.linalg.inv(M) @ np.c_[x, np.ones(20)].T).T
+    ndc = clip[:, :3] / clip[:, 3:]
+    px = np.c_[(ndc[:, 0] + 1) / 2 * cam.width, (1 - ndc[:, 1]) / 2 * cam.height]
+    np.testing.assert_allclose(px, cam.project(x), atol=1e-6)
+    assert np.all(np.abs(ndc[:, 2]) < 1)  # inside the depth range
+    np.testing.assert_allclose(M[:3, 3], cam.center, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(M[:3, :3]), 1.0)
+    corners = np.array(m["corners"])
+    np.testing.assert_allclose(cam.project(corners), [[0, 0], [320, 0], [320, 240], [0, 240]], atol=1e-6)
+
+
+def test_server_routes(served):
+    data, url = served
+    status, ctype, body = _get(url + "/")
+    assert status == 200 and "text/html" in ctype and b"importmap" in body
+    status, ctype, body = _get(url + "/api/meta.json")
+    meta = json.loads(body)
+    assert meta["num_frames"] == data.motion.num_frames and meta["width"] == 320 and not meta["has_input"]
+    assert len(meta["contacts"]) == meta["num_frames"]
+    status, ctype, body = _get(url + "/motion.glb")
+    assert status == 200 and body[:4] == b"glTF" and ctype == "model/gltf-binary"
+    status, ctype, body = _get(url + "/frame/2.jpg")
+    assert status == 200 and body[:2] == b"\xff\xd8"
+    status, ctype, body = _get(url + "/static/three/three.module.js")
+    assert status == 200 and ctype == "text/javascript" and b"REVISION" in _get(url + "/static/three/three.core.js")[2]
+    assert _get(url + "/frame/99.jpg")[0] == 404
+    assert _get(url + "/static/../commands/view.py")[0] == 404
+    assert _get(url + "/static/%2e%2e/commands/view.py")[0] == 404
+    assert _get(url + "/nothing")[0] == 404
+
+
+def test_vendored_three_is_the_version_we_say_with_its_licence():
+    assert f"REVISION = '{THREE_VERSION.split('.')[1]}'" in (STATIC / "three" / "three.core.js").read_text()
+    assert "MIT License" in (STATIC / "three" / "LICENSE").read_text()
+    assert THREE_VERSION in (STATIC / "three" / "README.md").read_text()
+    for rel in ("addons/loaders/GLTFLoader.js", "addons/controls/OrbitControls.js", "addons/utils/SkeletonUtils.js",
+                "addons/utils/BufferGeometryUtils.js"):
+        assert (STATIC / "three" / rel).is_file()
+    page = (STATIC / "index.html").read_text() + (STATIC / "viewer.js").read_text()
+    assert "http://" not in page.replace("http://127.0.0.1", "") and "https://" not in page  # nothing from a CDN
+
+
+def test_a_taken_port_says_what_to_do(served):
+    data, url = served
+    port = int(url.rsplit(":", 1)[1])
+    with pytest.raises(InputError, match="--port 0"):
+        make_server(data, port=port)
+
+
+def test_cli_serves_until_ctrl_c_and_stops_cleanly(result):
+    code = "import sys; from flowmocap.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, "view", str(result), "--no-browser", "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = None
+        for _ in range(20):
+            line = proc.stdout.readline()
+            if "http://127.0.0.1:" in line:
+                url = line.split()[2]
+                break
+        assert url and url.startswith("http://127.0.0.1:"), line
+        assert _get(url)[0] == 200
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+        assert proc.returncode == 0 and "stopped" in out and "Traceback" not in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _chromium_run(url: str, *extra: str, timeout: int = 120) -> subprocess.CompletedProcess:
+    with tempfile.TemporaryDirectory() as profile:
+        return subprocess.run([
+            _chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--enable-unsafe-swiftshader", f"--user-data-dir={profile}", "--window-size=1000,420",
+            "--virtual-time-budget=20000", *extra, url], capture_output=True, text=True, timeout=timeout)
+
+
+def test_page_in_headless_chromium_draws_the_body_where_the_camera_sees_it(served, tmp_path):
+    """Load the page at frame 3, take a screenshot, and compare the overlay's body pixels with
+    the fitted body's silhouette rasterised by flowmocap's own renderer from the same camera."""
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    import imageio.v3 as iio
+
+    from flowmocap.render import body_mask
+
+    data, url = served
+    k = 3
+    page = url + f"/?frame={k}&scale=1"  # the input at its own size: the same place in both runs
+    dom = _chromium_run(page, "--dump-dom")
+    assert 'data-ready="1"' in dom.stdout and f'data-frame="{k}"' in dom.stdout, (dom.stdout[-2000:], dom.stderr[-2000:])
+    assert "data-error" not in dom.stdout
+    left, top, width, height = json.loads(dom.stdout.split('data-overlay="')[1].split('"')[0])
+    assert (width, height) == (320, 240)
+    shot = tmp_path / "shot.png"
+    _chromium_run(page, f"--screenshot={shot}")
+    img = iio.imread(shot)[..., :3].astype(np.int16)
+    cam = data.motion.camera
+    verts = data.motion.body(k, k + 1)[0][0]
+    mask = body_mask(cam.project(verts), cam.depth(verts), data.motion.model.faces_np, cam.height, cam.width)
+    assert mask.mean() > 0.03  # the body is in view, so the test can fail
+    # the overlay's pixels, sampled at each camera pixel's centre
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+    sx = np.clip((left + xs * width / cam.width).astype(int), 0, img.shape[1] - 1)
+    sy = np.clip((top + ys * height / cam.height).astype(int), 0, img.shape[0] - 1)
+    seen = np.abs(img[sy, sx] - 48).max(-1) > 30  # differs from the grey frame
+    iou = (seen & mask).sum() / (seen | mask).sum()
+    print("overlay IoU", iou)
+    assert iou > 0.85, iou
