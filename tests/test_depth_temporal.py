@@ -109,3 +109,9 @@ def test_frame_energy_and_tracker_reference(tmp_path):
     across = FrameState(ref.pose.clone(), ref.trans + 0.04 * side)
     _, terms = frame_energy(scene, across, data, cfg, 0, None, None)
     assert terms["depth_temporal"] < 1e-8
+
+
+def test_the_reference_setting_is_checked():
+    assert TrackerConfig(depth_temporal_reference="prediction").depth_temporal_reference == "prediction"
+    with pytest.raises(InputError):
+        TrackerConfig(depth_temporal_reference="next")

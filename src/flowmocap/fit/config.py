@@ -84,6 +84,7 @@ _RANGES: dict[str, str] = {
 _CHOICES: dict[str, tuple[str, ...]] = {
     "silhouette_model": ("capsules", "mesh"),
     "flow_method": tuple(FLOW_METHODS),
+    "depth_temporal_reference": ("previous", "prediction"),
 }
 
 
@@ -125,8 +126,9 @@ class TrackerConfig:
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
-    depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards the
-    #                                    Kalman prediction (m^2); 0: off
+    depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
+    #                                    reference (m^2); 0: off
+    depth_temporal_reference: str = "previous"  # E_z's reference: the "previous" frame or the Kalman "prediction"
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

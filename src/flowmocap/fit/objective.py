@@ -14,8 +14,8 @@ joints, ``E_3d`` the model's joints towards a detector's 3D joints after a per-f
 similarity alignment, with a cost that keeps pulling a limb that has flipped in depth
 (where ``E_d`` saturates), ``E_p`` a pose prior learned from motion capture
 (:mod:`flowmocap.fit.pose_prior`, loaded once by :func:`learned_pose_prior`), ``E_z`` the
-root's motion along the camera ray away from the Kalman prediction (the depth a single
-camera barely sees).
+root's motion along the camera ray away from the previous frame's (or the Kalman
+prediction's) root (the depth a single camera barely sees).
 :class:`Scene` holds what stays fixed over a sequence (body, shape, camera,
 faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observations.
 """

@@ -5,7 +5,7 @@ a linear one for translation) predict pose and translation; the objective of
 :mod:`flowmocap.fit.objective` is minimised from there, coarse to fine over the flow
 pyramid (the stages of :class:`~flowmocap.fit.config.TrackerConfig`), with the shape
 fixed after initialisation, ``E_theta`` towards the predicted pose and ``E_z`` (when on)
-the root's depth towards the predicted translation; with ``flip_test``
+the root's depth towards the previous (or the predicted) translation; with ``flip_test``
 each limb's mirror image in depth is then tried (:mod:`flowmocap.fit.flip`) and kept
 where the frame's energy is lower; the result updates the filters. :class:`SequenceTracker` holds the state between frames (``start``,
 ``step``, ``state_dict`` for resuming); :func:`track_frames` runs the loop over a frame
@@ -172,7 +172,10 @@ class SequenceTracker:
         prev = self.prev
         pred = self.predict()
         data.anchor = self.anchor.pose if (self.anchor is not None and self.cfg.anchor_weight > 0) else None
-        data.depth_ref = depth_reference(self.scene, pred) if self.cfg.depth_temporal_weight > 0 else None
+        data.depth_ref = None
+        if self.cfg.depth_temporal_weight > 0:
+            data.depth_ref = depth_reference(self.scene, pred if self.cfg.depth_temporal_reference == "prediction"
+                                             else prev)
         if mask is not None and not mask.any():
             events.append({"frame": i, "event": "empty mask: no silhouette term for this frame"})
             mask = None
