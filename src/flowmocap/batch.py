@@ -1,0 +1,573 @@
+"""Many inputs, one result folder each: :func:`track_many` runs :func:`flowmocap.track` on
+every video (or frames or sequence folder) one by one, in parallel processes on this
+machine, or as tasks on a Ray cluster, and the same result folders come out either way.
+
+Layout under the output folder ``out_root``::
+
+    out_root/batch.json      which input each result folder belongs to, and the last status of each
+    out_root/<name>/         one result folder per input (motion.npz, run.json, ...)
+
+``<name>`` is the input's file or folder name without its suffix (``clips/walk.mp4`` ->
+``walk``); where two inputs would get one name (``a/walk.mp4`` and ``b/walk.mp4``, or
+``walk.mp4`` and ``walk.mov``), each of them gets ``walk-<8 hex digits>`` from its absolute
+path. ``batch.json`` keeps every name it gave, so an input keeps its folder when the
+command is run again with more or fewer inputs.
+
+Run again, the same command skips every finished result (whatever settings made it: delete
+a result folder to track that input anew), resumes every interrupted one (with the same
+settings; other settings make that input fail with a message) and tracks the rest. One
+input's failure does not stop the others; it is reported in the summary.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import os
+import re
+import sys
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from flowmocap.atomic import atomic_write
+from flowmocap.errors import DataError, FlowMocapError, InputError
+from flowmocap.io.sequence import IMAGE_SUFFIXES
+from flowmocap.io.video import VIDEO_SUFFIXES
+from flowmocap.pipeline import load_result, track
+from flowmocap.version import __version__
+
+__all__ = ["BATCH_FAILED", "MANIFEST", "BatchItem", "expand_inputs", "is_batch", "plan", "summary_table",
+           "track_many"]
+
+#: The file under ``out_root`` that maps result folder names to inputs.
+MANIFEST = "batch.json"
+
+#: The command line's exit status when some inputs of a batch failed and the others finished.
+BATCH_FAILED = 6
+
+#: Arguments of :func:`flowmocap.track` that may name a file or folder: made absolute before
+#: they go to another process (a Ray worker need not share this process's working folder).
+_PATH_ARGS = ("init", "masks", "camera", "config", "model")
+
+#: What :func:`track_many` leaves to itself: each input has its own ``source``, ``out``,
+#: ``resume`` and log.
+_OWN_ARGS = ("source", "out", "resume", "force", "log")
+
+_WORKER_DIED = ("the worker process running it died (it crashed or was killed, e.g. for lack of memory); run the "
+                "same command again to resume it")
+
+
+@dataclass
+class BatchItem:
+    """One input of a batch and what became of it.
+
+    Attributes:
+        input: the input as given (a video file, a frames folder or a sequence folder).
+        name: its result folder's name under the batch's output folder.
+        out: its result folder.
+        status: before a run (:func:`plan`): ``"new"``, ``"resume"`` (an interrupted result
+            is there) or ``"finished"``; after it (:func:`track_many`): ``"tracked"``,
+            ``"resumed"``, ``"skipped"`` (finished before) or ``"failed"``.
+        frames: rows in its result (0 where there is none).
+        new_frames: rows this run added.
+        seconds: wall-clock seconds this run spent on it (reading, detection, init, tracking).
+        reinits: re-initialisations recorded in its result.
+        error: why it failed (``""`` unless ``status == "failed"``).
+        details: a traceback where the failure was not one of flowmocap's own errors (a bug
+            worth reporting), else ``""``.
+    """
+
+    input: str
+    name: str
+    out: Path
+    status: str
+    frames: int = 0
+    new_frames: int = 0
+    seconds: float = 0.0
+    reinits: int = 0
+    error: str = ""
+    details: str = ""
+
+    @property
+    def s_per_frame(self) -> float:
+        """Wall-clock seconds per frame this run added (NaN where it added none)."""
+        return self.seconds / self.new_frames if self.new_frames else float("nan")
+
+    @property
+    def ok(self) -> bool:
+        """Whether the input has a finished result."""
+        return self.status in ("tracked", "resumed", "skipped", "finished")
+
+
+def is_batch(inputs: Sequence[str | Path], list_files: Sequence[str | Path] = ()) -> bool:
+    """Whether the inputs ask for a batch (one result folder per input under ``--out``)
+    rather than one result folder: several inputs, a list file (``@list.txt`` or
+    ``list_files``), or a folder of videos or sequence folders. One video, frames folder or
+    sequence folder is not a batch: ``--out`` is then the result folder itself."""
+    if list_files or len(inputs) != 1:
+        return True
+    x = str(inputs[0])
+    return x.startswith("@") or _is_collection(Path(x))
+
+
+def expand_inputs(inputs: Sequence[str | Path], list_files: Sequence[str | Path] = ()) -> list[Path]:
+    """The inputs of a batch, each once, in the order given.
+
+    Args:
+        inputs: video files, frames folders, sequence folders, folders of videos and
+            sequence folders (expanded to their entries, sorted by name; not recursively)
+            and ``@FILE`` list files.
+        list_files: more list files: one input per line; blank lines and lines starting with
+            ``#`` are skipped; a relative path is relative to the list file's folder.
+
+    Returns:
+        the inputs' paths; a path that does not exist is kept (it fails on its own, as one
+        input of the batch, without stopping the others).
+
+    Raises:
+        InputError: a list file that cannot be read, a folder that holds nothing to track,
+            or no inputs at all.
+    """
+    found: list[Path] = []
+    for x in inputs:
+        s = str(x)
+        if s.startswith("@"):
+            found += _read_list(Path(s[1:]))
+        elif _is_collection(Path(s)):
+            found += _collection(Path(s))
+        elif Path(s).is_dir() and not _is_single(Path(s)):
+            raise InputError(f"{s} holds no videos ({', '.join(VIDEO_SUFFIXES)}), frames or sequence folders; "
+                             "give video files, frames folders or sequence folders (with frames/).")
+        else:
+            found.append(Path(s))
+    for f in list_files:
+        found += _read_list(Path(f))
+    seen, unique = set(), []
+    for p in found:
+        key = _absolute(p)
+        if key not in seen:
+            seen.add(key)
+            unique.append(p)
+    if not unique:
+        raise InputError("no inputs to track: give video files, frames or sequence folders, a folder of videos, "
+                         "or a list file (@list.txt) with one per line.")
+    return unique
+
+
+def plan(inputs: Sequence[str | Path], out_root: str | Path) -> list[BatchItem]:
+    """Each input's result folder under ``out_root`` and what is there (status ``"new"``,
+    ``"resume"`` or ``"finished"``); records new names in ``out_root/batch.json``.
+
+    Args:
+        inputs: the inputs, as :func:`expand_inputs` gives them.
+        out_root: the batch's output folder (created).
+
+    Raises:
+        InputError: ``out_root`` is one input's result folder, not a batch's.
+    """
+    root = Path(out_root)
+    if _holds_result(root):
+        raise InputError(f"{root} is the result folder of a single input; give another --out folder for several "
+                         "inputs (each gets its own result folder inside it).")
+    root.mkdir(parents=True, exist_ok=True)
+    manifest = _read_manifest(root)
+    names = _names([Path(p) for p in inputs], root, manifest)
+    items = []
+    for p in inputs:
+        name = names[_absolute(Path(p))]
+        out = root / name
+        item = BatchItem(input=str(p), name=name, out=out, status="new")
+        if out.is_dir():
+            try:
+                res = load_result(out)
+            except FlowMocapError:  # no result yet (or one that failed before its first frame)
+                res = None
+            if res is not None:
+                item.frames, item.reinits = len(res), _reinits(res)
+                item.status = "finished" if res.run.get("status") == "finished" else "resume"
+        items.append(item)
+    _update_manifest(root, {it.name: {"input": _absolute(Path(it.input))} for it in items})
+    return items
+
+
+def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int = 1, ray: bool | str = False,
+               force: bool = False, progress: bool = True, log: Callable[[str], None] | None = print,
+               **track_kwargs) -> list[BatchItem]:
+    """Track every input into its own result folder under ``out_root`` (see the module's
+    docstring for the layout, names, skipping and resuming).
+
+    Args:
+        inputs: video files, frames folders or sequence folders (:func:`expand_inputs`
+            expands folders of videos and list files first; this function does not).
+        out_root: the batch's output folder.
+        workers: how many inputs to track at once in separate processes on this machine
+            (1: one after the other, in this process). Each process gets an equal share of
+            the cores for torch's threads.
+        ray: False (no Ray), True (the Ray instance this process is connected to, else the
+            one ``RAY_ADDRESS`` names, else a new local one) or a Ray address (``"auto"``,
+            ``"HOST:PORT"``, ``"ray://HOST:10001"``): each input is one Ray task with one
+            CPU. flowmocap must be installed on the cluster's nodes and the inputs and
+            ``out_root`` must lie at the same paths on each node (a shared file system).
+        force: track every input anew, starting its result folder over, finished and
+            interrupted ones too (:func:`flowmocap.track`'s ``force``).
+        progress: progress bars (one input at a time in this process only; parallel runs
+            report one line per input instead).
+        log: where the one-line messages go (each prefixed with the input's name; None:
+            nowhere).
+        **track_kwargs: settings for every input, as :func:`flowmocap.track` takes them
+            (``init``, ``masks``, ``config``, ``frames``, ...) except ``source``, ``out``,
+            ``resume``, ``force`` and ``log``.
+
+    Returns:
+        one :class:`BatchItem` per input, in the inputs' order; failed inputs have status
+        ``"failed"`` and say why. Without ``force``, a finished result is skipped whatever
+        settings made it.
+
+    Raises:
+        InputError: bad ``workers``, ``ray`` and ``workers`` together, Ray not installed or
+            its cluster not reachable, ``track_kwargs`` naming an argument this function
+            sets itself, or an ``out_root`` that is a single result folder.
+    """
+    say = log if log is not None else (lambda _msg: None)
+    clash = sorted(set(track_kwargs) & set(_OWN_ARGS))
+    if clash:
+        raise InputError(f"track_many sets {', '.join(clash)} for each input itself; leave them out.")
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
+    if ray is not False and ray is not None and workers != 1:
+        raise InputError("choose either Ray (--ray) or local worker processes (--workers), not both.")
+    if ray not in (False, None):
+        _import_ray()  # before anything is written: say at once when it is missing
+    kwargs = {k: _absolute_arg(v) if k in _PATH_ARGS else v for k, v in track_kwargs.items()}
+    kwargs["force"] = bool(force)
+    items = plan(inputs, out_root)
+    root = Path(out_root)
+    if force:  # every input starts over
+        items = [replace(it, status="new", frames=0, reinits=0) for it in items]
+    todo = [it for it in items if it.status != "finished"]
+    counts = {s: sum(it.status == s for it in items) for s in ("new", "resume", "finished")}
+    how = ("one after the other" if (workers == 1 and ray in (False, None)) else
+           "as Ray tasks" if ray not in (False, None) else f"in {min(workers, max(len(todo), 1))} worker processes")
+    say(f"{len(items)} inputs into {root}: " + ("all tracked anew (force)" if force else
+        f"{counts['new']} new, {counts['resume']} to resume, {counts['finished']} finished before (skipped)")
+        + f"; tracking {how}")
+    results = {it.name: replace(it, status="skipped") for it in items if it.status == "finished"}
+    done = 0
+
+    def report(res: BatchItem) -> None:
+        nonlocal done
+        done += 1
+        results[res.name] = res
+        _update_manifest(root, {res.name: _manifest_entry(res)})
+        if res.status == "failed":
+            say(f"[{done}/{len(todo)}] {res.name}: FAILED after {res.seconds:.1f} s: {res.error}")
+            if res.details:
+                print(res.details, file=sys.stderr, end="" if res.details.endswith("\n") else "\n")
+        else:
+            say(f"[{done}/{len(todo)}] {res.name}: {res.status}, {res.frames} frames "
+                f"({res.new_frames} new, {res.s_per_frame:.2f} s per frame, {res.seconds:.1f} s)")
+
+    if todo:
+        if ray not in (False, None):
+            _run_ray(todo, kwargs, ray, report)
+        elif workers > 1:
+            _run_processes(todo, kwargs, workers, report)
+        else:
+            for it in todo:
+                report(_track_one(it, kwargs, progress=progress, log=log))
+    return [results[it.name] for it in items]
+
+
+def summary_table(items: Iterable[BatchItem], root: str | Path | None = None) -> str:
+    """A plain-text table of a batch's items (input, result folder, status, frames, new
+    frames, s per frame, seconds, re-initialisations), a count line and each failure's
+    reason."""
+    items = list(items)
+    rows = [("input", "result", "status", "frames", "new", "s/frame", "time s", "reinits")]
+    for it in items:
+        spf = f"{it.s_per_frame:.2f}" if it.new_frames else "-"
+        rows.append((it.input, it.name, it.status, str(it.frames), str(it.new_frames), spf,
+                     f"{it.seconds:.1f}" if it.status != "skipped" else "-", str(it.reinits)))
+    width = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    numeric = {3, 4, 5, 6, 7}
+    lines = ["  ".join(c.rjust(w) if k in numeric else c.ljust(w) for k, (c, w) in enumerate(zip(r, width))).rstrip()
+             for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in width))
+    n = {s: sum(it.status == s for it in items) for s in ("tracked", "resumed", "skipped", "failed")}
+    lines.append(f"{len(items)} inputs: {n['tracked']} tracked, {n['resumed']} resumed, {n['skipped']} finished "
+                 f"before (skipped), {n['failed']} failed" + (f"; results in {root}" if root is not None else ""))
+    lines += [f"failed: {it.input}: {it.error}" for it in items if it.status == "failed"]
+    return "\n".join(lines)
+
+
+# --- one input, wherever it runs ----------------------------------------------------------------------------------
+
+def _track_one(item: BatchItem, kwargs: dict, progress: bool = False,
+               log: Callable[[str], None] | None = print, threads: int | None = None) -> BatchItem:
+    """Track one planned item (status ``"new"`` or ``"resume"``) and say what became of it;
+    never raises for a failure of this input (KeyboardInterrupt still stops it)."""
+    if threads is not None:
+        _set_threads(threads)
+    t0 = time.perf_counter()
+    before = item.frames if item.status == "resume" else 0
+    prefix = f"[{item.name}] "
+    say = None if log is None else (lambda msg: log(prefix + msg))
+    try:
+        src = Path(item.input)
+        if not src.exists():
+            raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
+        # resume=True also starts afresh a folder without tracked frames (a run that stopped before its first one)
+        res = track(src, item.out, resume=not kwargs.get("force"), progress=progress, log=say, **kwargs)
+        return replace(item, status="resumed" if item.status == "resume" else "tracked", frames=len(res),
+                       new_frames=len(res) - before, seconds=time.perf_counter() - t0, reinits=_reinits(res))
+    except Exception as e:  # noqa: BLE001 -- one input's failure, whatever it is, must not stop the others
+        details = "" if isinstance(e, FlowMocapError) else traceback.format_exc()
+        frames = 0
+        try:
+            frames = len(load_result(item.out))
+        except FlowMocapError:
+            pass
+        return replace(item, status="failed", frames=frames, new_frames=max(frames - before, 0),
+                       seconds=time.perf_counter() - t0, error=_describe(e), details=details)
+
+
+def _track_in_worker(item: BatchItem, kwargs: dict, threads: int) -> BatchItem:
+    """:func:`_track_one` in a worker process or a Ray task: no progress bars; the one-line
+    messages go to this process's stdout at once (the parent's or Ray's log shows them)."""
+    return _track_one(item, kwargs, progress=False, log=lambda msg: print(msg, flush=True), threads=threads)
+
+
+def _set_threads(n: int) -> None:
+    """Limit torch's thread pool of this process to ``n`` threads (the tracker itself uses
+    the settings' ``torch_threads`` while it runs). OpenCV keeps its own: its DIS flow
+    differs in the last bits with its thread count, and a worker's results must equal those
+    of the same input tracked in the main process."""
+    torch.set_num_threads(n)
+
+
+def _describe(e: BaseException) -> str:
+    return str(e) if isinstance(e, FlowMocapError) else f"{type(e).__name__}: {e}"
+
+
+def _reinits(res) -> int:
+    return sum(1 for e in res.events if e.get("event") == "re-initialised")
+
+
+# --- local worker processes ---------------------------------------------------------------------------------------
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _run_processes(todo: list[BatchItem], kwargs: dict, workers: int, report: Callable[[BatchItem], None]) -> None:
+    """Track ``todo`` in ``workers`` spawned processes, at most ``workers`` inputs handed out
+    at a time, so that when a process dies only the inputs it was running are lost (failed,
+    resumable) and a fresh pool takes the rest."""
+    workers = min(workers, len(todo))
+    threads = max(1, _cores() // workers)
+    pending = deque(todo)
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's and OpenCV's threads
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    running: dict = {}
+    try:
+        while pending or running:
+            while pending and len(running) < workers:
+                it = pending.popleft()
+                running[pool.submit(_track_in_worker, it, kwargs, threads)] = it
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            broken = False
+            for fut in finished:
+                it = running.pop(fut)
+                try:
+                    report(fut.result())
+                except BrokenProcessPool:
+                    broken = True
+                    report(replace(it, status="failed", error=_WORKER_DIED))
+            if broken:  # every input still in the dead pool is lost with it
+                for fut, it in running.items():
+                    report(replace(it, status="failed", error=_WORKER_DIED))
+                running.clear()
+                pool.shutdown(wait=True, cancel_futures=True)
+                pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# --- Ray ----------------------------------------------------------------------------------------------------------
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--ray needs the Ray package, which is not installed: pip install 'flowmocap[cluster]' "
+                         "(or pip install 'ray[client]'), or use --workers N to run in processes on this "
+                         "machine.") from None
+    return ray
+
+
+def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: Callable[[BatchItem], None]) -> None:
+    """Track each of ``todo`` as one Ray task (one CPU each) and report each as it ends."""
+    ray = _import_ray()
+    started = False
+    if not ray.is_initialized():
+        where = None if address is True or address in ("", "local") else str(address)
+        try:
+            ray.init(address=where, include_dashboard=False, logging_level="WARNING")
+        except Exception as e:  # noqa: BLE001 -- ray raises ConnectionError, RuntimeError, ValueError, ...
+            raise InputError(f"cannot start or reach the Ray cluster{f' at {where}' if where else ''}: "
+                             f"{type(e).__name__}: {e}; start one with `ray start --head` on its head node and "
+                             "pass its address (--ray HOST:6379, or --ray auto on a node of it).") from None
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, max_retries=1)(_track_in_worker)
+        refs = {task.remote(it, kwargs, 1): it for it in todo}
+        waiting = list(refs)
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=1)
+            ref = ready[0]
+            try:
+                report(ray.get(ref))
+            except ray.exceptions.RayError as e:  # the task's process died, or the task could not run
+                report(replace(refs[ref], status="failed", error=f"the Ray task failed: {type(e).__name__}: {e}"))
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# --- names and the manifest ---------------------------------------------------------------------------------------
+
+def _absolute(p: Path) -> str:
+    return str(Path(os.path.abspath(Path(p).expanduser())))
+
+
+def _absolute_arg(v):
+    """A path-like argument made absolute where it names an existing file or folder;
+    anything else (``"auto"``, ``"default"``, a number, an object) unchanged."""
+    if isinstance(v, (str, Path)) and Path(v).expanduser().exists():
+        return _absolute(Path(v))
+    return v
+
+
+def _holds_result(folder: Path) -> bool:
+    if not folder.is_dir():
+        return False
+    try:
+        load_result(folder)
+    except FlowMocapError:
+        return False
+    return True
+
+
+def _is_single(p: Path) -> bool:
+    """A sequence folder (``frames/``) or a folder of images: one input."""
+    return p.is_dir() and ((p / "frames").is_dir() or any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()))
+
+
+def _collection(p: Path) -> list[Path]:
+    """The videos, sequence folders and frames folders in folder ``p``, sorted by name."""
+    return sorted(q for q in p.iterdir() if (q.is_file() and q.suffix.lower() in VIDEO_SUFFIXES) or _is_single(q))
+
+
+def _is_collection(p: Path) -> bool:
+    return p.is_dir() and not _is_single(p) and bool(_collection(p))
+
+
+def _read_list(path: Path) -> list[Path]:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read the list file {path}: {e}; give a text file with one input per line.") from None
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            p = Path(line).expanduser()
+            out.append(p if p.is_absolute() else path.parent / p)
+    return out
+
+
+_SAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def _base_name(p: Path) -> str:
+    p = Path(os.path.normpath(p))
+    stem = p.stem if p.suffix.lower() in VIDEO_SUFFIXES else p.name
+    return _SAFE.sub("_", stem).strip("._") or "input"
+
+
+def _hashed(p: Path) -> str:
+    return f"{_base_name(p)}-{hashlib.sha1(_absolute(p).encode()).hexdigest()[:8]}"
+
+
+def _names(paths: list[Path], root: Path, manifest: dict) -> dict[str, str]:
+    """``{absolute input: result folder name}``: names ``batch.json`` gave before are kept;
+    a new input gets its base name unless another input of this batch or of ``batch.json``
+    (compared ignoring case) or a folder ``batch.json`` does not know has it, else the
+    base name with a hash of its path."""
+    given = {v["input"]: k for k, v in manifest.items()}
+    taken = {k.lower() for k in manifest} | {MANIFEST.lower()}
+    taken |= {q.name.lower() for q in root.iterdir()} if root.is_dir() else set()
+    new = [p for p in paths if _absolute(p) not in given]
+    count: dict[str, int] = {}
+    for p in new:
+        count[_base_name(p).lower()] = count.get(_base_name(p).lower(), 0) + 1
+    names = {}
+    for p in paths:
+        key = _absolute(p)
+        if key in given:
+            names[key] = given[key]
+            continue
+        base = _base_name(p)
+        name = base if (count[base.lower()] == 1 and base.lower() not in taken) else _hashed(p)
+        taken.add(name.lower())
+        names[key] = name
+    return names
+
+
+def _read_manifest(root: Path) -> dict:
+    path = root / MANIFEST
+    if not path.exists():
+        return {}
+    try:
+        items = json.loads(path.read_text())["results"]
+    except (OSError, ValueError, KeyError, TypeError):
+        items = None
+    if not (isinstance(items, dict) and all(isinstance(v, dict) and isinstance(v.get("input"), str)
+                                            for v in items.values())):
+        raise InputError(f"{path} is not a flowmocap batch file; give another --out folder, or delete it (the "
+                         "result folders beside it are then named anew from their inputs).")
+    return items
+
+
+def _manifest_entry(it: BatchItem) -> dict:
+    entry = {"input": _absolute(Path(it.input)), "status": it.status, "frames": it.frames,
+             "new_frames": it.new_frames, "seconds": round(it.seconds, 3), "reinits": it.reinits,
+             "when": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if it.error:
+        entry["error"] = it.error
+    return entry
+
+
+def _update_manifest(root: Path, entries: dict) -> None:
+    """Merge ``{name: entry}`` into ``root/batch.json`` (atomically; keeps the others)."""
+    items = _read_manifest(root)
+    for name, entry in entries.items():
+        items[name] = {**items.get(name, {}), **entry}
+    data = {"flowmocap": __version__, "results": items}
+
+    def write(tmp):
+        Path(tmp).write_text(json.dumps(data, indent=2))
+
+    atomic_write(root / MANIFEST, write)
