@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from flowmocap.batch import BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many
 from flowmocap.commands import register_all
 from flowmocap.errors import FlowMocapError, InputError, OutputError
 from flowmocap.eval.demo import run_demo
@@ -57,12 +58,33 @@ def cmd_demo(args) -> int:
 
 
 def cmd_track(args) -> int:
-    camera = args.camera or args.focal
-    track(args.input, args.out, init=args.init or "auto", masks=args.masks, camera=camera, config=args.config,
-          frames=args.frames, resume=args.resume, progress=not args.quiet, profile=args.profile, model=args.model,
-          gender=args.gender, flow=args.flow, max_size=args.max_size, reinit=not args.no_reinit,
-          joints3d=args.joints3d, person=args.person, force=args.force)
-    return 0
+    settings = {"init": args.init or "auto", "masks": args.masks, "camera": args.camera or args.focal,
+                "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
+                "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
+                "joints3d": args.joints3d, "person": args.person}
+    lists = [args.list] if args.list else []
+    if args.workers < 1:
+        raise InputError(f"--workers must be at least 1; got {args.workers}.")
+    if args.ray and Path(args.ray).exists():
+        raise InputError(f"--ray took {args.ray!r} for the Ray cluster's address; put --ray after the inputs, or "
+                         "write --ray=ADDRESS.")
+    if not is_batch(args.input, lists):
+        if args.workers > 1 or args.ray is not None:
+            print("one input: tracking it in this process (--workers and --ray share out several inputs)")
+        track(args.input[0], args.out, resume=args.resume, progress=not args.quiet, force=args.force, **settings)
+        return 0
+    if args.masks not in (None, "auto"):
+        raise InputError(f"--masks {args.masks} holds one video's masks; with several inputs leave --masks at auto "
+                         "(a sequence folder brings its own masks/), or track that video on its own.")
+    if args.init not in (None, "auto"):
+        print(f"note: every input starts from the 2D joints of {args.init}")
+    if "," in str(args.person):
+        print(f"note: in every input, the person at pixel {args.person} is tracked")
+    ray = False if args.ray is None else (args.ray or True)
+    items = track_many(expand_inputs(args.input, lists), args.out, workers=args.workers, ray=ray, force=args.force,
+                       progress=not args.quiet, **settings)
+    print(summary_table(items, args.out))
+    return BATCH_FAILED if any(it.status == "failed" for it in items) else 0
 
 
 def cmd_synth(args) -> int:
@@ -111,9 +133,27 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Track the person in a video, a folder of frames or a sequence folder and write "
                        "a result folder (motion.npz, run.json). Everything not given is automatic: masks, 2D and 3D "
                        "joints, initialisation and camera. Results are written after every frame; --resume "
-                       "continues an interrupted run.")
-    t.add_argument("input", help="a video file, a sequence folder (frames/, masks/, camera.json) or a folder of frames")
-    t.add_argument("--out", required=True, help="result folder (motion.npz, run.json, detections/)")
+                       "continues an interrupted run. Several inputs (or a folder of videos, or a list file) make a "
+                       "batch: one result folder per input under --out, named after the input (--out/batch.json "
+                       "says which is which); run again, it skips finished inputs (--force: tracks them anew) and "
+                       "resumes interrupted ones, and one input's failure does not stop the others.",
+                       epilog=f"Exit status: 0 when every input has a finished result; {BATCH_FAILED} when some inputs "
+                       "of a batch failed (the others are done; the summary says why; run again to retry them); "
+                       "other non-zero values on an error that stopped the command.")
+    t.add_argument("input", nargs="+", help="a video file, a sequence folder (frames/, masks/, camera.json) or a "
+                   "folder of frames; for a batch: several of them, a folder of videos and sequence folders, or "
+                   "@LIST (a text file, one input per line)")
+    t.add_argument("--out", required=True, help="result folder (motion.npz, run.json, detections/); for a batch, "
+                   "the folder of the result folders")
+    t.add_argument("--list", metavar="FILE", help="a text file of inputs, one per line (# comments; relative paths "
+                   "are relative to the file's folder): a batch")
+    t.add_argument("--workers", type=int, default=1, help="batch: track this many inputs at once, each in its own "
+                   "process on this machine, sharing its cores (default 1: one after the other)")
+    t.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", help="batch: track each input as "
+                   "a task on a Ray cluster (pip install 'flowmocap[cluster]'): ADDRESS as ray.init takes it (auto, "
+                   "HOST:PORT, ray://HOST:10001); without it, the cluster RAY_ADDRESS names, else a new one on this "
+                   "machine. The cluster's nodes need flowmocap, and the inputs and --out at the same paths. Put it "
+                   "after the inputs or write --ray=ADDRESS")
     t.add_argument("--init", default=None, help="'auto' (default: 2D joints found by MediaPipe on the first frame "
                    "with a person) or init.json: 2D joints of the first frame, optional rough pose")
     t.add_argument("--masks", default=None, help="'auto' (MediaPipe person segmentation; the default for a video "
