@@ -1,0 +1,220 @@
+"""Many inputs in one command (flowmocap.batch, ``flowmocap track a b c --out DIR``): one
+result folder per input, the same results one by one, in worker processes and as Ray tasks,
+finished inputs skipped, interrupted ones resumed, a bad input reported without stopping the
+others."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flowmocap
+from flowmocap.batch import BATCH_FAILED, MANIFEST, expand_inputs, is_batch, plan, track_many
+from flowmocap.cli import main
+from flowmocap.errors import InputError
+from flowmocap.eval.protocol import noisy_init
+from flowmocap.io.sequence import load_sequence
+from flowmocap.synth import synthesize
+
+QUICK = {"iterations": 4, "init_iterations": 6, "init_flow_iterations": 4}
+NAMES = ("walk_a", "walk_b", "walk_c")
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """Three 4-frame 160x120 sequence folders (other bodies, other phases of the walk), one
+    init.json near all three first frames, and the quick settings."""
+    d = tmp_path_factory.mktemp("batch")
+    for k, name in enumerate(NAMES):
+        synthesize("builtin:walk", d / name, fps=30, start=k, frames=4, size="160x120", betas="random", seed=k + 1,
+                   azimuth=60.0, flow=False)
+    (d / "init.json").write_text(json.dumps(noisy_init(load_sequence(d / NAMES[0]).gt, frame=0, seed=1)))
+    (d / "quick.json").write_text(json.dumps(QUICK))
+    return d
+
+
+def _args(clips, out, *more):
+    return ["track", *(str(clips / n) for n in NAMES), "--out", str(out), "--init", str(clips / "init.json"),
+            "--config", str(clips / "quick.json"), "--joints3d", "off", "--quiet", *more]
+
+
+def _same(a: flowmocap.Result, b: flowmocap.Result, what: str):
+    for k in ("poses", "trans", "betas", "joints3d", "joints2d", "frame_index"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=f"{what}: {k}")
+
+
+@pytest.fixture(scope="module")
+def one_by_one(clips, tmp_path_factory):
+    """The three clips tracked one after the other (the reference)."""
+    out = tmp_path_factory.mktemp("serial") / "results"
+    assert main(_args(clips, out)) == 0
+    return out
+
+
+def _check_same_as(reference, out, what):
+    for name in NAMES:
+        res = flowmocap.load_result(out / name)
+        assert res.run["status"] == "finished" and len(res) == 4
+        _same(flowmocap.load_result(reference / name), res, f"{what} {name}")
+    manifest = json.loads((out / MANIFEST).read_text())["results"]
+    assert sorted(manifest) == sorted(NAMES) and all(manifest[n]["status"] == "tracked" for n in NAMES)
+
+
+def test_batch_one_by_one_writes_a_folder_per_input_and_a_summary(clips, one_by_one, capsys):
+    for name in NAMES:
+        assert flowmocap.load_result(one_by_one / name).run["status"] == "finished"
+    # the three clips differ, so equal results across modes below mean each went to its own folder
+    assert not np.array_equal(flowmocap.load_result(one_by_one / NAMES[0]).poses,
+                              flowmocap.load_result(one_by_one / NAMES[1]).poses)
+    # run again: everything finished is skipped, nothing is tracked
+    assert main(_args(clips, one_by_one)) == 0
+    out = capsys.readouterr().out
+    assert "3 finished before (skipped)" in out and "0 tracked" in out
+    table = [line.split() for line in out.splitlines() if line.startswith(str(clips))]
+    assert [row[1:3] for row in table] == [[n, "skipped"] for n in NAMES]
+
+
+def test_worker_processes_give_the_same_results(clips, one_by_one, tmp_path, capsys):
+    out = tmp_path / "workers"
+    assert main(_args(clips, out, "--workers", "2")) == 0
+    assert "in 2 worker processes" in capsys.readouterr().out
+    _check_same_as(one_by_one, out, "--workers 2")
+
+
+def test_ray_tasks_give_the_same_results(clips, one_by_one, tmp_path, capsys):
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowmocap[cluster]')")
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")  # local, on loopback only
+    try:
+        out = tmp_path / "ray"
+        assert main(_args(clips, out, "--ray")) == 0
+        assert ray.is_initialized()  # the command used this instance and left it running
+    finally:
+        ray.shutdown()
+    assert "as Ray tasks" in capsys.readouterr().out
+    _check_same_as(one_by_one, out, "--ray")
+
+
+def test_without_ray_the_ray_option_says_how_to_install_it(clips, tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    assert main(_args(clips, tmp_path / "o", "--ray")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("flowmocap: error:") and "pip install 'flowmocap[cluster]'" in err
+    assert not (tmp_path / "o").exists()  # said before anything was written
+
+
+def test_a_single_input_keeps_its_out_folder(clips, one_by_one, tmp_path, capsys):
+    out = tmp_path / "single"
+    args = _args(clips, out, "--workers", "2")
+    args[1:4] = [str(clips / NAMES[0])]
+    assert main(args) == 0
+    assert "one input: tracking it in this process" in capsys.readouterr().out
+    _same(flowmocap.load_result(one_by_one / NAMES[0]), flowmocap.load_result(out), "single input")
+    assert not (out / MANIFEST).exists() and not (out / NAMES[0]).exists()
+
+
+def _interrupt_when(folder, frames: int):
+    """Press Ctrl-C (SIGINT to this process) once the run in ``folder`` has committed
+    ``frames`` frames; returns the watcher's stop event and thread."""
+    stop = threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            try:
+                if len(flowmocap.load_result(folder)) >= frames:
+                    os.kill(os.getpid(), signal.SIGINT)
+                    return
+            except flowmocap.FlowMocapError:  # nothing committed yet
+                pass
+            stop.wait(0.005)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    return stop, watcher
+
+
+def test_finished_skipped_interrupted_resumed_and_a_bad_input_stops_nothing(clips, one_by_one, tmp_path, capsys):
+    out = tmp_path / "results"
+    shutil.copytree(one_by_one, out)  # all three finished before, batch.json knows their names
+    shutil.rmtree(out / NAMES[1])
+    kw = {"init": clips / "init.json", "config": QUICK, "joints3d": "off", "progress": False, "log": None}
+    stop, watcher = _interrupt_when(out / NAMES[1], 2)  # after the initialisation's 2 frames, before the 4th
+    with pytest.raises(KeyboardInterrupt):
+        try:
+            track_many([clips / NAMES[1]], out, **kw)
+        finally:
+            stop.set()
+            watcher.join()
+        time.sleep(2)  # an interrupt that came too late lands here, inside pytest.raises
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"\x00" * 1000)
+    inputs = [bad, clips / NAMES[0], clips / NAMES[1]]
+    planned = plan(inputs, out)
+    assert [it.status for it in planned] == ["new", "finished", "resume"]
+    assert 2 <= planned[2].frames < 4 and planned[2].name == NAMES[1]
+
+    code = main(["track", *map(str, inputs), "--out", str(out), "--init", str(clips / "init.json"),
+                 "--config", str(clips / "quick.json"), "--joints3d", "off", "--quiet"])
+    text = capsys.readouterr().out
+    assert code == BATCH_FAILED  # the bad one failed first; the others went on
+    assert "1 resumed, 1 finished before (skipped), 1 failed" in text and f"failed: {bad}:" in text
+    resumed = flowmocap.load_result(out / NAMES[1])
+    assert resumed.run["status"] == "finished"
+    _same(flowmocap.load_result(one_by_one / NAMES[1]), resumed, "interrupted, then resumed")
+    manifest = json.loads((out / MANIFEST).read_text())["results"]
+    assert manifest[NAMES[1]]["status"] == "resumed" and manifest[NAMES[1]]["new_frames"] == 4 - planned[2].frames
+    assert manifest["broken"]["status"] == "failed" and manifest["broken"]["error"]
+
+    anew = track_many([clips / NAMES[0]], out, force=True, **kw)  # force: a finished one too is tracked again
+    assert anew[0].status == "tracked" and anew[0].new_frames == 4
+    _same(flowmocap.load_result(one_by_one / NAMES[0]), flowmocap.load_result(out / NAMES[0]), "forced")
+
+
+def test_names_are_stable_and_never_collide(tmp_path):
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "walk.mp4").write_bytes(b"")
+    (tmp_path / "a" / "Walk.mov").write_bytes(b"")
+    (tmp_path / "a" / "run.mp4").write_bytes(b"")
+    a, b = tmp_path / "a" / "walk.mp4", tmp_path / "b" / "walk.mp4"
+    out = tmp_path / "out"
+    alone = plan([a], out)[0].name
+    assert alone == "walk"
+    names = [it.name for it in plan([tmp_path / "a" / "Walk.mov", b, a, tmp_path / "a" / "run.mp4"], out)]
+    assert names[2] == "walk" and names[3] == "run"  # a keeps the name it was given first
+    assert names[0].startswith("Walk-") and names[1].startswith("walk-")  # Walk/walk: one folder on macOS
+    assert len({n.lower() for n in names}) == 4
+    assert [it.name for it in plan([b], out)] == [names[1]]  # b keeps its name without the others
+
+
+def test_inputs_from_folders_and_list_files(tmp_path):
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for n in ("b.mp4", "a.MOV", "notes.txt"):
+        (videos / n).write_bytes(b"")
+    seq = videos / "seq"
+    (seq / "frames").mkdir(parents=True)
+    (tmp_path / "lists").mkdir()
+    listed = tmp_path / "lists" / "list.txt"
+    listed.write_text("# my clips\n\n../videos/b.mp4\n/elsewhere/c.mp4\n")
+    assert is_batch([videos]) and is_batch(["@x.txt"]) and is_batch(["a.mp4", "b.mp4"])
+    assert is_batch(["a.mp4"], list_files=[listed])
+    assert not is_batch([seq]) and not is_batch([videos / "b.mp4"])  # one input: --out is its result folder
+    assert expand_inputs([videos]) == [videos / "a.MOV", videos / "b.mp4", seq]
+    got = expand_inputs([f"@{listed}", videos / "b.mp4"], list_files=[listed])
+    assert got == [tmp_path / "lists" / ".." / "videos" / "b.mp4", Path("/elsewhere/c.mp4")]  # each once
+    with pytest.raises(InputError, match="list file"):
+        expand_inputs(["@" + str(tmp_path / "missing.txt")])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="holds no videos"):
+        expand_inputs([tmp_path / "a.mp4", tmp_path / "empty"])
+    with pytest.raises(InputError, match="workers"):
+        track_many([videos / "b.mp4"], tmp_path / "o", workers=0)
