@@ -32,7 +32,7 @@ from flowmocap.fit.smooth import smooth_motion, window_frames
 from flowmocap.io.results import read_result
 from flowmocap.io.sequence import load_sequence
 
-SETTINGS = [None, (0.1, 2), (0.2, 2), (0.3, 2), (0.2, 1), (0.4, 3)]
+SETTINGS = [None, (0.1, 2), (0.2, 2), (0.3, 2), (0.2, 1), (0.4, 3)]  # 0.3 s / 2: the default
 
 
 def _joints(model, poses, trans, betas) -> np.ndarray:

@@ -28,7 +28,7 @@ def register(subparsers) -> None:
                    help="ground: y up, floor at 0 (default); up: turned y up only; world: the result's own frame")
     p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
                    help="smooth the motion offline first (Savitzky-Golay on SO(3), flowmocap.fit.smooth); "
-                   "optional window length in seconds (default 0.2)")
+                   "optional window length in seconds (default 0.3)")
     p.add_argument("--smooth-order", type=int, default=2, help="polynomial degree of --smooth (default 2)")
     p.add_argument("--model", default=None,
                    help="body model (default: the one recorded in run.json, else the bundled default)")
@@ -47,7 +47,7 @@ def smooth_option(text: str | None, order: int) -> dict | bool:
     try:
         window = DEFAULT_WINDOW_S if text == "default" else float(text)
     except ValueError:
-        raise InputError(f"--smooth takes a window length in seconds, e.g. 0.2; got {text!r}.") from None
+        raise InputError(f"--smooth takes a window length in seconds, e.g. 0.3; got {text!r}.") from None
     return {"window_s": window, "order": order}
 
 

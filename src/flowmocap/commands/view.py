@@ -33,7 +33,7 @@ _TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".
           ".json": "application/json"}
 
 
-def gl_camera(camera, near: float = 0.05, far: float = 200.0, corner_depth: float = 0.4) -> dict:
+def gl_camera(camera, near: float = 0.05, far: float = 200.0, corner_depth: float = 0.6) -> dict:
     """A pinhole camera as OpenGL/three.js matrices (column-major lists of 16).
 
     ``projection`` maps OpenGL eye coordinates (x right, y up, looking down -z) to clip

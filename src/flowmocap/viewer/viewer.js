@@ -4,7 +4,8 @@
 //   /motion.glb     the skinned, animated body (the same file `flowmocap export --format glb` writes)
 //   /frame/K.jpg    input frame of result row K
 // URL parameters: ?frame=K (start at row K, paused), ?play=1 (start playing), ?scale=S (draw
-// the input at S x its size instead of fitting it into its pane).
+// the input at S x its size instead of fitting it into its pane), ?az=DEG (the 3D view's
+// start, turned DEG about the vertical from the video camera's side; default 30).
 // When a frame is drawn, <body> carries data-frame=K, data-ready=1 and data-overlay=[left,
 // top, width, height] (the overlay's place on the page, CSS pixels), for tests.
 import * as THREE from 'three';
@@ -22,6 +23,7 @@ function fail(msg) {
 window.addEventListener('error', (e) => fail(String(e.message)));
 window.addEventListener('unhandledrejection', (e) => fail(String(e.reason)));
 
+const params = new URLSearchParams(location.search);
 const meta = await (await fetch('/api/meta.json')).json();
 const T = meta.num_frames;
 const fps = meta.fps;
@@ -36,9 +38,14 @@ const sun = new THREE.DirectionalLight(0xffffff, 1.6);
 sun.position.set(2, 4, 3);
 scene.add(sun);
 const HELPERS = 1;  // layer of things only the 3D view shows
-const grid = new THREE.GridHelper(20, 20, 0x8a93a0, 0x4a515c);
+const grid = new THREE.GridHelper(20, 20, 0xb0b8c4, 0x5c6470);
 grid.layers.set(HELPERS);
 scene.add(grid);
+const floor = new THREE.Mesh(new THREE.PlaneGeometry(20, 20).rotateX(-Math.PI / 2),
+  new THREE.MeshBasicMaterial({ color: 0x2c3038, transparent: true, opacity: 0.6, depthWrite: false }));
+floor.position.y = -0.001;
+floor.layers.set(HELPERS);
+scene.add(floor);
 
 const gltf = await new GLTFLoader().loadAsync('/motion.glb');
 const body = gltf.scene;
@@ -56,7 +63,7 @@ videoCam.projectionMatrix.fromArray(meta.gl_camera.projection);
 videoCam.projectionMatrixInverse.copy(videoCam.projectionMatrix).invert();
 videoCam.layers.set(0);
 
-// the camera in the 3D view: a pyramid from its centre to the image corners at 0.4 m
+// the camera in the 3D view: a pyramid from its centre to the image corners at 0.6 m
 {
   const c = new THREE.Vector3().setFromMatrixPosition(videoCam.matrixWorld);
   const pts = [];
@@ -85,13 +92,19 @@ worldR.setClearColor(0x1c1e22, 1);
 const orbitCam = new THREE.PerspectiveCamera(45, 1, 0.05, 200);
 orbitCam.layers.enable(HELPERS);
 const centre = new THREE.Vector3(...meta.centre);
-orbitCam.position.copy(centre).add(new THREE.Vector3(3.2, 1.6, 3.2));
+{  // start beside the video camera, turned 40 degrees about the vertical, so both show
+  const cam = new THREE.Vector3().setFromMatrixPosition(videoCam.matrixWorld);
+  const away = cam.clone().sub(centre).setY(0);
+  if (away.length() < 1e-6) away.set(0, 0, 1);
+  away.setLength(Math.min(Math.max(away.length() * 1.35, 3.5), 10.0));
+  away.applyAxisAngle(new THREE.Vector3(0, 1, 0), THREE.MathUtils.degToRad(Number(params.get('az') ?? 30)));
+  orbitCam.position.copy(centre).add(away).add(new THREE.Vector3(0, 0.45 * away.length(), 0));
+}
 const controls = new OrbitControls(orbitCam, $('world'));
 controls.target.copy(centre);
 controls.update();
+document.body.dataset.orbit = JSON.stringify(orbitCam.position.toArray().map((v) => +v.toFixed(3)));
 controls.addEventListener('change', () => worldR.render(scene, orbitCam));
-
-const params = new URLSearchParams(location.search);
 
 function layout() {
   const pane = $('video-pane').getBoundingClientRect();
