@@ -155,9 +155,16 @@ def test_world_frame_recovers_the_floor_of_a_walk_seen_by_a_pitched_camera(tmp_p
     assert (tmp_path / WORLD_FILE).is_file()
     doc = json.loads((tmp_path / WORLD_FILE).read_text())
     assert doc["method"] == "contacts" and len(doc["contacts"]) == 75
-    # the cache is used as long as the motion is the same
+    # the cache is used as long as the motion is the same ...
     (tmp_path / WORLD_FILE).write_text(json.dumps({**doc, "offset": [0.0, 5.0, 0.0]}))
     assert load_fitted_motion(tmp_path).joints()[0, 0, 1] > 4.0
+    # ... and recomputed when it changes (a resumed or re-tracked result)
+    with np.load(tmp_path / "motion.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["trans"] = arrays["trans"] + np.float32([0.0, 0.0, 0.5])
+    write_motion(tmp_path, arrays)
+    assert load_fitted_motion(tmp_path).joints()[0, 0, 1] < 1.5
+    assert json.loads((tmp_path / WORLD_FILE).read_text())["fingerprint"] != doc["fingerprint"]
 
 
 def test_camera_in_frame_projects_moved_points_to_the_same_pixels():
