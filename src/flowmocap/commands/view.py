@@ -110,17 +110,28 @@ class ViewerData:
         """The page's data: ``name``, ``fps``, ``num_frames``, ``frame_index`` (T), ``width``,
         ``height`` (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground
         frame), ``camera`` (its ``to_dict``), ``centre`` (mean pelvis, metres), ``floor``
-        (how the floor was found), ``contacts`` (T x 2), ``smoothed``, ``has_input``."""
+        (how the floor was found), ``contacts`` (T x 2), ``feet`` (T x 2 x 3: the lowest
+        point of the left and right foot, metres), ``path`` (T x 3: the pelvis, metres),
+        ``smoothed``, ``has_input``."""
+        from flowmocap.export.world import foot_vertex_sets
+
         m = self.motion
         joints = m.joints()
         w = m.world
+        left, right = foot_vertex_sets(m.model.weights.cpu().numpy())
+        feet = []
+        for s in range(0, m.num_frames, 64):
+            v = m.body(s, s + 64)[0]
+            feet.append(np.stack([v[np.arange(len(v)), f[np.argmin(v[:, f, 1], axis=1)]]
+                                  for f in (left, right)], 1))
         floor = (f"{w.plane.method} ({w.plane.inliers} foot points)" if w.plane.method == "contacts"
                  else "fallback (lowest foot point)")
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": m.num_frames,
                 "frame_index": [int(i) for i in m.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
                 "centre": joints[:, 0].mean(0).tolist(), "floor": floor,
-                "contacts": w.contacts.astype(int).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None}
+                "contacts": w.contacts.astype(int).tolist(), "feet": np.round(np.concatenate(feet), 4).tolist(),
+                "path": np.round(joints[:, 0], 4).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None}
 
     def frame_jpeg(self, k: int) -> bytes:
         """JPEG of result row ``k``'s input frame (grey without an input)."""

@@ -80,6 +80,23 @@ videoCam.layers.set(0);
   scene.add(pyramid);
 }
 
+// the pelvis's path dropped onto the floor, and a disc under each foot while it stands
+{
+  const pts = meta.path.flatMap((p) => [p[0], 0.003, p[2]]);
+  const g = new THREE.BufferGeometry();
+  g.setAttribute('position', new THREE.Float32BufferAttribute(pts, 3));
+  const path = new THREE.Line(g, new THREE.LineBasicMaterial({ color: 0x50a0ff }));
+  path.layers.set(HELPERS);
+  scene.add(path);
+}
+const discs = [0, 1].map((side) => {
+  const d = new THREE.Mesh(new THREE.CircleGeometry(0.07, 24).rotateX(-Math.PI / 2),
+    new THREE.MeshBasicMaterial({ color: side ? 0xff6060 : 0x60d060 }));
+  d.layers.set(HELPERS);
+  scene.add(d);
+  return d;
+});
+
 const overlayR = new THREE.WebGLRenderer({ canvas: $('overlay'), alpha: true, antialias: true,
   preserveDrawingBuffer: true });
 overlayR.setPixelRatio(1);
@@ -130,6 +147,11 @@ function draw() {
   document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
   mixer.setTime(current / fps);
   body.updateMatrixWorld(true);
+  for (const side of [0, 1]) {
+    const f = meta.feet[current][side];
+    discs[side].visible = meta.contacts[current][side] === 1;
+    discs[side].position.set(f[0], 0.004, f[2]);
+  }
   overlayR.render(scene, videoCam);
   worldR.render(scene, orbitCam);
 }
