@@ -112,7 +112,8 @@ def test_a_taken_port_says_what_to_do(served):
         make_server(data, port=port)
 
 
-def test_cli_serves_until_ctrl_c_and_stops_cleanly(result):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_cli_serves_until_ctrl_c_and_stops_cleanly(result, sig):
     code = "import sys; from flowmocap.cli import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", code, "view", str(result), "--no-browser", "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -125,7 +126,7 @@ def test_cli_serves_until_ctrl_c_and_stops_cleanly(result):
                 break
         assert url and url.startswith("http://127.0.0.1:"), line
         assert _get(url)[0] == 200
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, _ = proc.communicate(timeout=20)
         assert proc.returncode == 0 and "stopped" in out and "Traceback" not in out
     finally:

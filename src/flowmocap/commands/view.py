@@ -11,7 +11,7 @@ camera in that frame, and the input's frames as JPEG. Routes:
 - ``/motion.glb``: the skinned body; ``/frame/K.jpg``: the input frame of result row ``K``
   (a grey frame when the input is not found).
 
-Ctrl-C stops the server cleanly.
+Ctrl-C (SIGINT) or SIGTERM stops the server cleanly.
 """
 
 from __future__ import annotations
@@ -236,6 +236,7 @@ def register(subparsers) -> None:
 
 
 def run_view(args) -> int:
+    import signal
     import webbrowser
 
     from flowmocap.commands.export import smooth_option
@@ -253,10 +254,16 @@ def run_view(args) -> int:
         print("the tracked input was not found: frames are grey (pass --input VIDEO_OR_FOLDER)", flush=True)
     if not args.no_browser:
         webbrowser.open(url)
+
+    def stop(signum, frame):  # SIGTERM (kill, a service manager) stops as cleanly as Ctrl-C
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
         print("\nstopped", flush=True)
     finally:
+        signal.signal(signal.SIGTERM, previous)
         server.server_close()
     return 0
