@@ -86,3 +86,19 @@ def test_smooth_motion_shapes_windows_and_errors():
         smooth_motion(poses[:, :70], trans, 30.0)
     with pytest.raises(InputError, match="NaN"):
         smooth_rotations(np.full((10, 3), np.nan), 5)
+
+
+def test_runs_of_consecutive_frames_are_smoothed_apart():
+    rng = np.random.default_rng(6)
+    poses = rng.normal(0, 0.3, (30, 72))
+    trans = rng.normal(0, 0.1, (30, 3))
+    index = np.r_[np.arange(0, 18), np.arange(40, 52)]  # a gap after row 17
+    p, t = smooth_motion(poses, trans, 30.0, frame_index=index)
+    for a, b in ((0, 18), (18, 30)):
+        pa, ta = smooth_motion(poses[a:b], trans[a:b], 30.0)
+        np.testing.assert_allclose(p[a:b], pa, atol=1e-12)
+        np.testing.assert_allclose(t[a:b], ta, atol=1e-12)
+    whole, _ = smooth_motion(poses, trans, 30.0)
+    assert np.abs(whole[15:21] - p[15:21]).max() > 1e-3  # without the index it reaches across
+    with pytest.raises(InputError, match="frame_index"):
+        smooth_motion(poses, trans, 30.0, frame_index=index[:5])

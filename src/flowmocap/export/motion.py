@@ -213,7 +213,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
         from flowmocap.fit.smooth import DEFAULT_ORDER, DEFAULT_WINDOW_S, smooth_motion, window_frames
 
         kw = {"window_s": DEFAULT_WINDOW_S, "order": DEFAULT_ORDER, **(smooth if isinstance(smooth, dict) else {})}
-        poses, trans = smooth_motion(poses, trans, fps, **kw)
+        poses, trans = smooth_motion(poses, trans, fps, frame_index=index, **kw)
         smoothed = {**kw, "window_frames": window_frames(kw["window_s"], fps, kw["order"])}
     from flowmocap.export.world import camera_in_frame
 

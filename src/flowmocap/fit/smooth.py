@@ -142,7 +142,7 @@ def smooth_rotations(rotvecs: np.ndarray, window: int, order: int = DEFAULT_ORDE
 
 
 def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: float = DEFAULT_WINDOW_S,
-                  order: int = DEFAULT_ORDER) -> tuple[np.ndarray, np.ndarray]:
+                  order: int = DEFAULT_ORDER, frame_index=None) -> tuple[np.ndarray, np.ndarray]:
     """Smooth a fitted SMPL motion offline: every joint's rotation on SO(3), and the translation.
 
     Args:
@@ -152,6 +152,9 @@ def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: fl
         window_s: window length in seconds (:func:`window_frames` turns it into an odd
             number of frames). order: polynomial degree (2 keeps accelerations' shape; 1
             is a moving average on SO(3) that flattens peaks more).
+        frame_index: ``(T,)`` the input's frame numbers, or None (consecutive). Runs of
+            consecutive frames are smoothed separately: the filter never reaches across a
+            gap in time.
 
     Returns:
         ``poses (T, 72)``, ``trans (T, 3)``, float64.
@@ -166,5 +169,14 @@ def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: fl
         raise InputError(f"the smoothing order must be a whole number >= 0, got {order!r}.")
     window = window_frames(window_s, fps, order)
     T = poses.shape[0]
+    if frame_index is not None:
+        idx = np.asarray(frame_index).reshape(-1)
+        if idx.shape != (T,):
+            raise InputError(f"frame_index must have {T} entries, one per frame; got {idx.shape}.")
+        cuts = np.flatnonzero(np.diff(idx) != 1) + 1
+        if cuts.size:
+            parts = [smooth_motion(poses[a:b], trans[a:b], fps, window_s, order)
+                     for a, b in zip(np.r_[0, cuts], np.r_[cuts, T])]
+            return np.concatenate([q for q, _ in parts]), np.concatenate([t for _, t in parts])
     p = smooth_rotations(poses.reshape(T, 24, 3), window, order).reshape(T, 72)
     return p, smooth_translations(trans, window, order)
