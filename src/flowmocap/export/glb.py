@@ -6,62 +6,77 @@ indices are stored once and shared), under one root node ``flowmocap``. One anim
 ``k`` has scale 1 from ``k / fps`` to ``(k + 1) / fps`` and 0 otherwise), the usual way
 to play a mesh sequence in Blender, three.js and other glTF viewers. Viewers without
 animation show frame 0. Vertices are exact (pose correctives included), at the cost of
-about ``24 V`` bytes per frame. glTF is y up, metres, like the ``"up"`` export frame.
+about ``24 V`` bytes per frame. glTF is y up, metres, like the export frames. Built with
+``pygltflib``; :class:`GltfBuffer` and :func:`save_glb` are shared with the skinned export
+(:mod:`flowmocap.export.gltf_skin`).
 """
 
 from __future__ import annotations
 
-import json
-import struct
 from pathlib import Path
 
 import numpy as np
 
 from flowmocap.errors import InputError
 
-__all__ = ["write_mesh_sequence_glb"]
+__all__ = ["write_mesh_sequence_glb", "GltfBuffer", "vertex_normals", "save_glb"]
 
-_FLOAT, _UINT = 5126, 5125
-_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+BODY_COLOUR = (0.62, 0.68, 0.78, 1.0)
 
 
-class _Builder:
-    """Accumulates buffer views and accessors of one binary buffer."""
+class GltfBuffer:
+    """Buffer views and accessors of a document's one binary buffer, built with pygltflib.
 
-    def __init__(self):
-        self.chunks: list[bytes] = []
-        self.size = 0
-        self.views: list[dict] = []
-        self.accessors: list[dict] = []
+    ``add(array, kind)`` appends a C-contiguous float32/uint32/uint16/uint8 array (4-byte
+    aligned) as a buffer view and an accessor of glTF type ``kind`` (``"SCALAR"``,
+    ``"VEC3"``, ``"VEC4"``, ``"MAT4"``) and returns the accessor's index; ``bounds`` adds
+    the ``min``/``max`` that glTF requires for positions and animation inputs.
+    """
 
-    def add(self, array: np.ndarray, component: int, kind: str, target: int | None = None,
-            bounds: bool = False) -> int:
-        data = np.ascontiguousarray(array).tobytes()
-        pad = (-self.size) % 4
-        if pad:
-            self.chunks.append(b"\0" * pad)
-            self.size += pad
-        view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(data)}
-        if target is not None:
-            view["target"] = target
-        self.views.append(view)
-        self.chunks.append(data)
-        self.size += len(data)
-        count = array.shape[0] if kind != "SCALAR" or array.ndim == 1 else array.size
-        acc = {"bufferView": len(self.views) - 1, "componentType": component, "count": int(count), "type": kind}
+    def __init__(self, gltf):
+        self.gltf = gltf
+        self.data = bytearray()
+
+    def add(self, array: np.ndarray, kind: str, target: int | None = None, bounds: bool = False,
+            name: str | None = None) -> int:
+        """Add ``array`` (first axis: the accessor's count) in a buffer view of its own."""
+        import pygltflib as g
+
+        array = np.ascontiguousarray(array)
+        component = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT,
+                     np.dtype(np.uint16): g.UNSIGNED_SHORT, np.dtype(np.uint8): g.UNSIGNED_BYTE}[array.dtype]
+        self.data += b"\0" * ((-len(self.data)) % 4)
+        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(self.data), byteLength=array.nbytes,
+                                                  target=target))
+        self.data += array.tobytes()
+        count = array.shape[0]
+        acc = g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component, count=int(count),
+                         type=kind, name=name)
         if bounds:
-            flat = array.reshape(int(count), -1)
-            acc["min"] = flat.min(0).astype(float).tolist()
-            acc["max"] = flat.max(0).astype(float).tolist()
-        self.accessors.append(acc)
-        return len(self.accessors) - 1
-
-    def blob(self) -> bytes:
-        data = b"".join(self.chunks)
-        return data + b"\0" * ((-len(data)) % 4)
+            flat = array.reshape(count, -1).astype(np.float64)
+            acc.min = flat.min(0).tolist()
+            acc.max = flat.max(0).tolist()
+        self.gltf.accessors.append(acc)
+        return len(self.gltf.accessors) - 1
 
 
-def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def save_glb(gltf, buffer: GltfBuffer, path: str | Path) -> Path:
+    """Attach ``buffer`` as the document's binary chunk and write ``path`` as ``.glb``."""
+    import pygltflib as g
+
+    buffer.data += b"\0" * ((-len(buffer.data)) % 4)
+    gltf.buffers = [g.Buffer(byteLength=len(buffer.data))]
+    gltf.set_binary_blob(bytes(buffer.data))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"".join(gltf.save_to_bytes()))
+    return path
+
+
+def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(V, 3)`` unit area-weighted vertex normals of a ``(V, 3)`` mesh with ``(F, 3)`` faces."""
+    verts = np.asarray(verts, np.float64)
+    faces = np.asarray(faces, np.int64)
     fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
     n = np.zeros_like(verts)
     for k in range(3):
@@ -85,61 +100,43 @@ def write_mesh_sequence_glb(path: str | Path, frames, faces: np.ndarray, fps: fl
     Returns:
         The path written.
     """
+    import pygltflib as g
     from tqdm import tqdm
 
-    faces = np.asarray(faces, np.uint32).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if num_frames < 1:
         raise InputError("a glb needs at least one frame.")
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"fps must be positive, got {fps}.")
-    b = _Builder()
-    indices = b.add(faces.reshape(-1), _UINT, "SCALAR", _ELEMENT_ARRAY_BUFFER, bounds=True)
-    meshes, nodes, channels, samplers = [], [], [], []
-    end = num_frames / fps
+    gltf = g.GLTF2(asset=g.Asset(generator="flowmocap", version="2.0"))
+    b = GltfBuffer(gltf)
+    indices = b.add(faces.astype(np.uint32).reshape(-1), g.SCALAR, g.ELEMENT_ARRAY_BUFFER, bounds=True)
+    nodes = [g.Node(name="flowmocap")]
+    samplers, channels = [], []
     n = 0
     for k, verts in enumerate(tqdm(frames, total=num_frames, disable=not progress, unit="frame", desc="glb")):
         v = np.asarray(verts, np.float64)
-        pos = b.add(v.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)
-        nor = b.add(_vertex_normals(v, faces.astype(np.int64)).astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER)
-        meshes.append({"name": f"frame_{k:06d}",
-                       "primitives": [{"attributes": {"POSITION": pos, "NORMAL": nor}, "indices": indices,
-                                       "material": 0}]})
-        nodes.append({"name": f"frame_{k:06d}", "mesh": k, "scale": [1.0, 1.0, 1.0] if k == 0 else [0.0, 0.0, 0.0]})
+        pos = b.add(v.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, bounds=True)
+        nor = b.add(vertex_normals(v, faces).astype(np.float32), g.VEC3, g.ARRAY_BUFFER)
+        gltf.meshes.append(g.Mesh(name=f"frame_{k:06d}", primitives=[g.Primitive(
+            attributes=g.Attributes(POSITION=pos, NORMAL=nor), indices=indices, material=0)]))
+        nodes.append(g.Node(name=f"frame_{k:06d}", mesh=k, scale=[1.0, 1.0, 1.0] if k == 0 else [0.0, 0.0, 0.0]))
         on, off = k / fps, (k + 1) / fps
         times = ([0.0] if k > 0 else []) + [on] + ([off] if k < num_frames - 1 else [])
         scales = ([0.0] if k > 0 else []) + [1.0] + ([0.0] if k < num_frames - 1 else [])
-        t_acc = b.add(np.asarray(times, np.float32), _FLOAT, "SCALAR", bounds=True)
-        s_acc = b.add(np.repeat(np.asarray(scales, np.float32)[:, None], 3, axis=1), _FLOAT, "VEC3")
-        samplers.append({"input": t_acc, "output": s_acc, "interpolation": "STEP"})
-        channels.append({"sampler": len(samplers) - 1, "target": {"node": k + 1, "path": "scale"}})
+        t_acc = b.add(np.asarray(times, np.float32), g.SCALAR, bounds=True)
+        s_acc = b.add(np.repeat(np.asarray(scales, np.float32)[:, None], 3, axis=1), g.VEC3)
+        samplers.append(g.AnimationSampler(input=t_acc, output=s_acc, interpolation="STEP"))
+        channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
+                                           target=g.AnimationChannelTarget(node=k + 1, path="scale")))
         n += 1
     if n != num_frames:
         raise InputError(f"expected {num_frames} frames, got {n}.")
-    doc = {
-        "asset": {"version": "2.0", "generator": "flowmocap"},
-        "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"name": "flowmocap", "children": list(range(1, n + 1))}] + nodes,
-        "meshes": meshes,
-        "materials": [{"name": "body", "pbrMetallicRoughness": {
-            "baseColorFactor": [0.62, 0.68, 0.78, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8}}],
-        "animations": [{"name": "motion", "channels": channels, "samplers": samplers}],
-        "accessors": b.accessors,
-        "bufferViews": b.views,
-        "buffers": [{"byteLength": 0}],
-        "extras": {"fps": float(fps), "frames": n, "duration_s": end},
-    }
-    blob = b.blob()
-    doc["buffers"][0]["byteLength"] = len(blob)
-    text = json.dumps(doc, separators=(",", ":")).encode()
-    text += b" " * ((-len(text)) % 4)
-    total = 12 + 8 + len(text) + 8 + len(blob)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        f.write(struct.pack("<4sII", b"glTF", 2, total))
-        f.write(struct.pack("<I4s", len(text), b"JSON"))
-        f.write(text)
-        f.write(struct.pack("<I4s", len(blob), b"BIN\0"))
-        f.write(blob)
-    return path
+    nodes[0].children = list(range(1, n + 1))
+    gltf.nodes = nodes
+    gltf.materials = [g.Material(name="body", pbrMetallicRoughness=g.PbrMetallicRoughness(
+        baseColorFactor=list(BODY_COLOUR), metallicFactor=0.0, roughnessFactor=0.8))]
+    gltf.animations = [g.Animation(name="motion", channels=channels, samplers=samplers)]
+    gltf.scenes = [g.Scene(nodes=[0], extras={"fps": float(fps), "frames": n, "duration_s": n / fps})]
+    gltf.scene = 0
+    return save_glb(gltf, b, path)

@@ -29,23 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from flowmocap.errors import InputError
+from flowmocap.export.glb import BODY_COLOUR, GltfBuffer, save_glb, vertex_normals
 
-__all__ = ["write_skinned_glb", "skin_influences", "read_skinned_glb", "glb_joint_positions", "vertex_normals"]
-
-BODY_COLOUR = (0.62, 0.68, 0.78, 1.0)
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``(V, 3)`` unit area-weighted vertex normals of a ``(V, 3)`` mesh with ``(F, 3)`` faces."""
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
-    fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    n = np.zeros_like(verts)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(length > 0, length, 1.0)
-
+__all__ = ["write_skinned_glb", "skin_influences", "read_skinned_glb", "glb_joint_positions"]
 
 def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` largest skinning weights per vertex, renormalised to sum 1.
@@ -83,35 +69,6 @@ def _quaternions(poses: np.ndarray) -> np.ndarray:
         flip = np.sum(q[k] * q[k - 1], axis=1) < 0
         q[k, flip] *= -1
     return q.astype(np.float32)
-
-
-class _Blob:
-    """Buffer views and accessors of one binary buffer, through pygltflib's classes."""
-
-    def __init__(self, gltf):
-        self.gltf = gltf
-        self.data = bytearray()
-
-    def add(self, array: np.ndarray, kind: str, target: int | None = None, bounds: bool = False,
-            name: str | None = None) -> int:
-        import pygltflib as g
-
-        array = np.ascontiguousarray(array)
-        component = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT,
-                     np.dtype(np.uint16): g.UNSIGNED_SHORT, np.dtype(np.uint8): g.UNSIGNED_BYTE}[array.dtype]
-        self.data += b"\0" * ((-len(self.data)) % 4)
-        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(self.data), byteLength=array.nbytes,
-                                                  target=target))
-        self.data += array.tobytes()
-        count = array.shape[0]
-        acc = g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component, count=int(count),
-                         type=kind, name=name)
-        if bounds:
-            flat = array.reshape(count, -1).astype(np.float64)
-            acc.min = flat.min(0).tolist()
-            acc.max = flat.max(0).tolist()
-        self.gltf.accessors.append(acc)
-        return len(self.gltf.accessors) - 1
 
 
 def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, rest_vertices: np.ndarray,
@@ -154,7 +111,7 @@ def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, re
     joints_idx, w4 = skin_influences(weights)
 
     gltf = g.GLTF2(asset=g.Asset(generator="flowmocap", version="2.0"))
-    blob = _Blob(gltf)
+    blob = GltfBuffer(gltf)
     pos = blob.add(rv.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, bounds=True)
     nor = blob.add(vertex_normals(rv, faces).astype(np.float32), g.VEC3, g.ARRAY_BUFFER)
     jnt = blob.add(joints_idx, g.VEC4, g.ARRAY_BUFFER)
@@ -196,14 +153,7 @@ def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, re
     gltf.scenes = [g.Scene(name="flowmocap", nodes=[0, 1],
                            extras={"fps": float(fps), "frames": T, **(extras or {})})]
     gltf.scene = 0
-    blob.data += b"\0" * ((-len(blob.data)) % 4)
-    gltf.buffers = [g.Buffer(byteLength=len(blob.data))]
-    gltf.set_binary_blob(bytes(blob.data))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = b"".join(gltf.save_to_bytes())
-    path.write_bytes(data)
-    return path
+    return save_glb(gltf, blob, path)
 
 
 def read_skinned_glb(path: str | Path):
