@@ -95,11 +95,11 @@ def _bad(name: str, value: Any, expected: str) -> InputError:
 
 #: Settings that turn off the depth cues added for generalisation (issue 18: ``E_3d`` in
 #: the frames and the joint fits, the per-limb flip test, the learned prior ``E_p``, the
-#: 3D re-initialisation criterion), leaving the tracker of before them; e.g.
+#: 3D re-initialisation criterion, the root-depth term ``E_z``), leaving the tracker of before them; e.g.
 #: ``TrackerConfig.load(None, **DEPTH_CUES_OFF)`` or the same as a config file.
 DEPTH_CUES_OFF: dict = {"detector3d_weight": 0.0, "init_detector3d_weight": 0.0, "flip_test": False,
                         "pose_prior_weight": 0.0, "init_learned_prior_weight": 0.0,
-                        "reinit_max_joint3d_error": 0.0}
+                        "reinit_max_joint3d_error": 0.0, "depth_temporal_weight": 0.0}
 
 
 @dataclass
@@ -126,9 +126,9 @@ class TrackerConfig:
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
-    depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
+    depth_temporal_weight: float = 1e5  # lambda_z, E_z: root depth along the camera ray towards a
     #                                    reference (m^2); 0: off
-    depth_temporal_reference: str = "previous"  # E_z's reference: the "previous" frame or the Kalman "prediction"
+    depth_temporal_reference: str = "prediction"  # E_z's reference: the Kalman "prediction" or the "previous" frame
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
