@@ -5,7 +5,7 @@ from __future__ import annotations
 FORMAT_HELP = {
     "bvh": "skeleton with the fitted bone lengths (Blender, Maya, MotionBuilder, Unity)",
     "glb": "glTF binary: one skinned mesh, 24-joint rig, keyframed joint rotations (Blender, three.js, engines)",
-    "glb-frames": "glTF binary flipbook: one full mesh per frame (exact vertices, about 190 kB per frame)",
+    "glb-frames": "glTF binary flipbook: one full mesh per frame (exact vertices, about 170 kB per frame)",
     "obj": "one .obj mesh per frame in a folder",
     "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
