@@ -13,6 +13,7 @@ from the detector where the fit loses the person; and write ``motion.npz`` and
 
 from __future__ import annotations
 
+import glob
 import json
 import platform
 import shutil
@@ -47,6 +48,7 @@ from flowmocap.io.fingerprint import (
 )
 from flowmocap.io.lock import FolderLock
 from flowmocap.io.results import (
+    RESULT_FILES,
     FrameLog,
     has_result,
     is_result_folder,
@@ -267,6 +269,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
            flow, max_size, reinit, joints3d, say, person, force) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
+    for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
+        for tmp in out.glob(f"{glob.escape(name)}.*.tmp"):
+            tmp.unlink(missing_ok=True)
     if has_result(out) and not (resume or force):
         raise InputError(f"{out} already holds a result; pass resume=True (--resume) to continue it, force=True "
                          "(--force) to start it over, or choose another folder.")
@@ -508,7 +513,8 @@ def _resumable(out: Path, fingerprint: dict) -> Result | None:
         named = {"input": "the input", "masks": "the masks", "model": "the body model", "camera": "the camera",
                  "init": "the init", "config": "the config", "options": "the options (frames, max size, profile, "
                  "re-initialisation, joints3d)", "detector": "the detector's version", "code": "the flowmocap version"}
-        what = ", ".join(named.get(p, p) for p in parts)
+        names = [named.get(p, p) for p in parts]
+        what = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
         raise InputError(f"cannot resume the run in {out}: {what} differ{'s' if len(parts) == 1 else ''} from the "
                          "interrupted run's; resume with the same set-up, pass --force (force=True) to start it "
                          "over, or choose another folder.")

@@ -35,6 +35,7 @@ or was killed.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -55,9 +56,11 @@ FORMAT = 2
 def write_motion(out_dir: Path, arrays: dict) -> None:
     """Atomically write ``out_dir/motion.npz`` from a dict of arrays."""
 
+    buf = io.BytesIO()  # in memory first: a full disk then fails cleanly (see vision.flow._npz_bytes)
+    np.savez(buf, **arrays)
+
     def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+        Path(tmp).write_bytes(buf.getvalue())
 
     atomic_write(Path(out_dir) / "motion.npz", write)
 
@@ -289,6 +292,9 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
                 run["events"] = _read_events(out_dir, int(progress["events_bytes"]))
             run.setdefault("timings", {}).setdefault("frame_s", recs["seconds"].tolist())
         else:
+            if not (out_dir / "motion.npz").exists() and "flowmocap" in run:
+                raise DataError(f"{out_dir} holds no tracked frames yet (its run is {run.get('status')!r}"
+                                f"{': ' + run['error'] if run.get('error') else ''}).")
             with np.load(out_dir / "motion.npz", allow_pickle=False) as z:
                 motion = {k: z[k] for k in z.files}
     except FileNotFoundError as e:

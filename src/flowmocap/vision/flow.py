@@ -36,6 +36,7 @@ boundaries, large displacements and untextured regions are not measured by it).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import zipfile
 from pathlib import Path
@@ -158,6 +159,14 @@ def observed_flow(frame_cur: Any, frame_prev: Any, method: str = "dis", **option
     return np.ascontiguousarray(flow, dtype=np.float32)
 
 
+def _npz_bytes(**arrays) -> bytes:
+    """``np.savez`` into memory: a failed write to the disk then fails cleanly (numpy's
+    zip writer left open on a full disk complains again when it is collected)."""
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
 class FlowCache:
     """Observed flows on disk: ``<folder>/flow_<index>_<method>[_<hash>].npz``.
 
@@ -228,7 +237,7 @@ class FlowCache:
 
         def write(tmp):
             with open(tmp, "wb") as fh:
-                np.savez(fh, flow=flow)
+                fh.write(_npz_bytes(flow=flow))
 
         atomic_write(p, write)
         return p
