@@ -83,10 +83,45 @@ def test_batch_one_by_one_writes_a_folder_per_input_and_a_summary(clips, one_by_
     assert [row[1:3] for row in table] == [[n, "skipped"] for n in NAMES]
 
 
-def test_worker_processes_give_the_same_results(clips, one_by_one, tmp_path, capsys):
+def _workers_of_this_process() -> list[int]:
+    """Process ids of this process's spawned multiprocessing workers (not its resource tracker)."""
+    pids = []
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes() if Path(f"/proc/{pid}").exists() else b""
+            if b"spawn_main" in cmd:
+                pids.append(int(pid))
+    return pids
+
+
+def test_worker_processes_give_the_same_results_even_when_one_dies(clips, one_by_one, tmp_path, capsys):
     out = tmp_path / "workers"
-    assert main(_args(clips, out, "--workers", "2")) == 0
-    assert "in 2 worker processes" in capsys.readouterr().out
+    stop, killed = threading.Event(), []
+
+    def kill_a_worker():  # once the first input has committed 2 frames: as the out-of-memory killer would
+        while not stop.is_set():
+            try:
+                if len(flowmocap.load_result(out / NAMES[0])) >= 2 and _workers_of_this_process():
+                    pid = _workers_of_this_process()[0]
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    return
+            except (flowmocap.FlowMocapError, OSError):  # nothing committed yet; a process just ended
+                pass
+            stop.wait(0.005)
+
+    linux = Path(f"/proc/{os.getpid()}/task").is_dir()  # where the workers can be found
+    watcher = threading.Thread(target=kill_a_worker if linux else stop.wait, daemon=True)
+    watcher.start()
+    try:
+        assert main(_args(clips, out, "--workers", "2")) == 0
+    finally:
+        stop.set()
+        watcher.join()
+    text = capsys.readouterr().out
+    assert "in 2 worker processes" in text
+    if linux:
+        assert killed and "a worker process died while tracking" in text and "once more (resuming)" in text
     _check_same_as(one_by_one, out, "--workers 2")
 
 

@@ -62,8 +62,8 @@ _PATH_ARGS = ("init", "masks", "camera", "config", "model")
 #: ``resume`` and log.
 _OWN_ARGS = ("source", "out", "resume", "force", "log")
 
-_WORKER_DIED = ("the worker process running it died (it crashed or was killed, e.g. for lack of memory); run the "
-                "same command again to resume it")
+_WORKER_DIED = ("the worker process running it died twice (it crashed or was killed, e.g. for lack of memory); "
+                "run the same command again to resume it")
 
 
 @dataclass
@@ -280,7 +280,7 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
         if ray not in (False, None):
             _run_ray(todo, kwargs, ray, report)
         elif workers > 1:
-            _run_processes(todo, kwargs, workers, report)
+            _run_processes(todo, kwargs, workers, report, say)
         else:
             for it in todo:
                 report(_track_one(it, kwargs, progress=progress, log=log))
@@ -371,38 +371,64 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _run_processes(todo: list[BatchItem], kwargs: dict, workers: int, report: Callable[[BatchItem], None]) -> None:
+def _run_processes(todo: list[BatchItem], kwargs: dict, workers: int, report: Callable[[BatchItem], None],
+                   say: Callable[[str], None]) -> None:
     """Track ``todo`` in ``workers`` spawned processes, at most ``workers`` inputs handed out
-    at a time, so that when a process dies only the inputs it was running are lost (failed,
-    resumable) and a fresh pool takes the rest."""
+    at a time. When a process dies (a crash, the out-of-memory killer) the pool goes down with
+    it; the inputs it was running cannot be told apart, so each of them is tried once more in
+    a fresh pool (resuming from its last committed frame) and fails if its second try dies
+    too."""
     workers = min(workers, len(todo))
     threads = max(1, _cores() // workers)
     pending = deque(todo)
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's and OpenCV's threads
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
-    running: dict = {}
+    running: dict = {}  # future -> (item, when it was handed out)
+    tries: dict[str, int] = {}
+    spent: dict[str, float] = {}  # seconds of tries that died
     try:
         while pending or running:
             while pending and len(running) < workers:
                 it = pending.popleft()
-                running[pool.submit(_track_in_worker, it, kwargs, threads)] = it
+                tries[it.name] = tries.get(it.name, 0) + 1
+                running[pool.submit(_track_in_worker, it, kwargs, threads)] = (it, time.perf_counter())
             finished, _ = wait(running, return_when=FIRST_COMPLETED)
-            broken = False
+            lost = []
             for fut in finished:
-                it = running.pop(fut)
+                it, t0 = running.pop(fut)
                 try:
-                    report(fut.result())
+                    res = fut.result()
                 except BrokenProcessPool:
-                    broken = True
-                    report(replace(it, status="failed", error=_WORKER_DIED))
-            if broken:  # every input still in the dead pool is lost with it
-                for fut, it in running.items():
-                    report(replace(it, status="failed", error=_WORKER_DIED))
+                    lost.append((it, t0))
+                else:
+                    report(replace(res, seconds=res.seconds + spent.get(res.name, 0.0)))
+            if lost:  # every input still in the dead pool is lost with it
+                lost += list(running.values())
                 running.clear()
                 pool.shutdown(wait=True, cancel_futures=True)
                 pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+                again = [it.name for it, _ in lost if tries[it.name] < 2]
+                say(f"a worker process died while tracking {', '.join(it.name for it, _ in lost)}"
+                    + (f"; trying {', '.join(again)} once more (resuming)" if again else ""))
+                for it, t0 in reversed(lost):
+                    spent[it.name] = spent.get(it.name, 0.0) + time.perf_counter() - t0
+                    if tries[it.name] < 2:
+                        pending.appendleft(it)
+                    else:
+                        report(_died(it, spent[it.name]))
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _died(item: BatchItem, seconds: float, error: str = _WORKER_DIED) -> BatchItem:
+    """``item`` failed because its process died; with the frames its result folder kept."""
+    before = item.frames if item.status == "resume" else 0
+    try:
+        frames = len(load_result(item.out))
+    except FlowMocapError:
+        frames = 0
+    return replace(item, status="failed", frames=frames, new_frames=max(frames - before, 0), seconds=seconds,
+                   error=error)
 
 
 # --- Ray ----------------------------------------------------------------------------------------------------------
@@ -422,9 +448,11 @@ def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: C
     ray = _import_ray()
     started = False
     if not ray.is_initialized():
-        where = None if address is True or address in ("", "local") else str(address)
+        where = None if address is True or address == "" else str(address)
+        # a new local instance: no dashboard, fewer log lines; Ray Client (ray://) takes neither
+        options = {} if (where or "").startswith("ray://") else {"include_dashboard": False, "logging_level": "WARNING"}
         try:
-            ray.init(address=where, include_dashboard=False, logging_level="WARNING")
+            ray.init(address=where, **options)
         except Exception as e:  # noqa: BLE001 -- ray raises ConnectionError, RuntimeError, ValueError, ...
             raise InputError(f"cannot start or reach the Ray cluster{f' at {where}' if where else ''}: "
                              f"{type(e).__name__}: {e}; start one with `ray start --head` on its head node and "
@@ -432,6 +460,7 @@ def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: C
         started = True
     try:
         task = ray.remote(num_cpus=1, max_retries=1)(_track_in_worker)
+        t0 = time.perf_counter()
         refs = {task.remote(it, kwargs, 1): it for it in todo}
         waiting = list(refs)
         while waiting:
@@ -439,8 +468,9 @@ def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: C
             ref = ready[0]
             try:
                 report(ray.get(ref))
-            except ray.exceptions.RayError as e:  # the task's process died, or the task could not run
-                report(replace(refs[ref], status="failed", error=f"the Ray task failed: {type(e).__name__}: {e}"))
+            except ray.exceptions.RayError as e:  # its process died (twice: Ray retried it once), or it could not run
+                report(_died(refs[ref], time.perf_counter() - t0,
+                             f"the Ray task failed: {type(e).__name__}: {e}; run the same command again to resume it"))
     finally:
         if started:
             ray.shutdown()
