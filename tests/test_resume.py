@@ -401,3 +401,20 @@ def test_bad_settings_are_refused_before_any_work(clip, tmp_path, config, match)
     with pytest.raises(InputError, match=match):
         flowmocap.track(clip, out, **{**_kw(clip), "config": config})
     assert not (out / "run.json").exists() and not (out / "detections").exists()
+
+
+def test_a_video_is_tracked_from_a_stream_and_its_flows_are_not_kept(clip, tmp_path):
+    """A video is decoded as the tracker reads it, and its flows (2.5 MB a frame at 640x480)
+    are not stored unless asked for; frame folders keep them for render and resume."""
+    from test_video import write_video
+
+    seq = load_sequence(clip)
+    video = write_video(tmp_path / "clip.mp4", [seq.frame(i) for i in range(len(seq))])
+    kw = {**_kw(clip), "masks": clip / "masks", "camera": seq.camera}
+    res = flowmocap.track(video, tmp_path / "v", frames="0:4", **kw)
+    assert len(res) == 4 and not list((tmp_path / "v" / "flow_cache").glob("*.npz"))
+    kept = flowmocap.track(video, tmp_path / "k", frames="0:4", keep_flow=True, **kw)
+    assert len(list((tmp_path / "k" / "flow_cache").glob("flow_*.npz"))) == 3
+    np.testing.assert_allclose(kept.poses, res.poses, atol=SAME)  # the same flows, kept or not
+    folder = flowmocap.track(clip, tmp_path / "f", frames="0:4", **_kw(clip))
+    assert len(list((tmp_path / "f" / "flow_cache").glob("flow_*.npz"))) == 3 and len(folder) == 4

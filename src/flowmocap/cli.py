@@ -61,7 +61,7 @@ def cmd_track(args) -> int:
     settings = {"init": args.init or "auto", "masks": args.masks, "camera": args.camera or args.focal,
                 "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
-                "joints3d": args.joints3d, "person": args.person}
+                "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow}
     lists = [args.list] if args.list else []
     if args.workers < 1:
         raise InputError(f"--workers must be at least 1; got {args.workers}.")
@@ -184,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same input and "
                    "set-up only; it ends exactly as an uninterrupted run would)")
+    t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "
+                   "OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for videos: "
+                   "about 2.5 MB a frame at 640x480)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
     t.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -184,7 +184,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
           max_size: int | None = 1280, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
-          force: bool = False) -> Result:
+          force: bool = False, keep_flow: bool | None = None) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -235,6 +235,10 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         force: write into ``out`` even if it is a non-empty folder that flowmocap did not
             make, or start a result in it over (its result files are replaced; stored
             detections and flows are kept where they were made from the same input).
+        keep_flow: store the observed flows in ``out/flow_cache`` (about 2.5 MB a frame at
+            640x480, float32) for a resume or ``flowmocap render`` to reuse; None (default):
+            for frame folders, not for videos, whose flows would fill the disk (a resume and
+            ``render`` compute them again, giving the same values).
 
     Returns:
         the :class:`Result`.
@@ -257,7 +261,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-                          flow, max_size, reinit, joints3d, say, person, force)
+                          flow, max_size, reinit, joints3d, say, person, force, keep_flow)
         except OSError as e:
             where = f" ({e.filename})" if getattr(e, "filename", None) else ""
             raise OutputError(f"could not write the result{where}: {e.strerror or e}. The frames finished so far are "
@@ -266,7 +270,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
 
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-           flow, max_size, reinit, joints3d, say, person, force) -> Result:
+           flow, max_size, reinit, joints3d, say, person, force, keep_flow) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -327,7 +331,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     cache_key = digest_value([fingerprint["input"], list(seq.size)])
     _fresh_cache(out / "detections", cache_key, say)
     _fresh_cache(out / "flow_cache", cache_key, say)
-    write_json(out / "flow_cache" / "source.json", {"input": cache_key})
+    keep_flow = (not is_video) if keep_flow is None else bool(keep_flow)
+    if keep_flow:
+        write_json(out / "flow_cache" / "source.json", {"input": cache_key})
 
     detections = None
     if choice[0] == "point":  # the user's pixel is in the original frames; the detector sees the scaled ones
@@ -374,7 +380,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         j3d = None
     monitor = detections if (detections is not None and reinit) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
-               {"fingerprint": fingerprint, **notes})
+               {"fingerprint": fingerprint, **notes}, keep_flow)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
     say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
@@ -600,19 +606,19 @@ def _append(log: FrameLog, scene: Scene, frame: int, state: FrameState, terms: d
 
 def _run(seq: Sequence, out: Path, model: BodyModel, camera: PinholeCamera, init: InitSpec | KnownStart,
          cfg: TrackerConfig, span: tuple[int, int], resume: bool, progress: bool, detections: PersonTrack | None,
-         keypoints, joints3d, profile: str, notes: dict) -> dict:
+         keypoints, joints3d, profile: str, notes: dict, keep_flow: bool = True) -> dict:
     """Initialise (or restore) and track ``span`` of ``seq`` into ``out``; returns run.json's contents."""
     threads = torch.get_num_threads()
     torch.set_num_threads(int(cfg.torch_threads))
     try:
         return _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints,
-                             joints3d, profile, notes)
+                             joints3d, profile, notes, keep_flow)
     finally:
         torch.set_num_threads(threads)
 
 
 def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints, joints3d,
-                  profile, notes) -> dict:
+                  profile, notes, keep_flow) -> dict:
     a, b = span
     run = {
         "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
@@ -621,7 +627,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
         "camera": camera.to_dict(), "status": "running", **notes,
     }
     fps = seq.meta.get("fps", 30.0)
-    cache = FlowCache(out / "flow_cache", method=cfg.flow_method)
+    cache = FlowCache(out / "flow_cache" if keep_flow else None, method=cfg.flow_method)
     init_events: list[dict] = []
 
     def mask_of(i: int):

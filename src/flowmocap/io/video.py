@@ -1,5 +1,11 @@
-"""Video files as frame sequences (decoded once into memory with PyAV), and the default
-camera of a video.
+"""Video files as frame sequences, decoded as they are read (PyAV), and the default camera
+of a video.
+
+A video is scanned once when opened (every frame decoded, nothing kept but its time), so
+its frame count and timing are known and a broken file is found at once; afterwards
+:meth:`VideoReader.frame` decodes on demand, forwards from where it is or from the
+nearest keyframe before a frame asked out of order, and keeps only a few frames. Memory
+therefore stays flat however long the video is.
 
 Frames come upright (a phone video's rotation tag is applied, so a portrait video gives
 portrait frames), optionally scaled down so that the long side is at most ``max_side``.
@@ -12,6 +18,8 @@ from __future__ import annotations
 
 import math
 import re
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +37,8 @@ DEFAULT_FOCAL_FACTOR = 0.9
 
 
 def decode_video(path: str | Path, max_side: int | None = None) -> tuple[list[np.ndarray], dict]:
-    """Decode every frame of a video, upright, with timing and camera metadata.
+    """Decode every frame of a video into memory, upright, with timing and camera metadata
+    (for short clips; :class:`VideoReader` streams).
 
     Args:
         path: the video file.
@@ -37,80 +46,204 @@ def decode_video(path: str | Path, max_side: int | None = None) -> tuple[list[np
             this many pixels; None or 0 keeps the decoded size.
 
     Returns:
-        ``frames`` (list of ``(H, W, 3)`` uint8 RGB) and a dict: ``fps`` (mean rate),
-        ``timestamps`` (seconds from the first frame, one per frame),
-        ``variable_frame_rate`` (bool: frame intervals differ by more than 10% of their
-        median), ``rotation`` (degrees counter-clockwise applied from the stream's
-        display matrix), ``decoded_size`` and ``size`` (``[W, H]`` before and after
-        scaling), ``scale`` (size / decoded size), ``focal_35mm`` (35 mm-equivalent focal
-        length in mm from the metadata, or None), ``metadata`` (container and stream tags).
+        ``frames`` (list of ``(H, W, 3)`` uint8 RGB) and :attr:`VideoReader.info`.
 
     Raises:
         DataError: missing file, a file that cannot be decoded, or no frames.
     """
-    import av
-    import cv2
+    with VideoReader(path, max_side) as reader:
+        return [reader.frame(i) for i in range(len(reader))], reader.info
 
-    path = Path(path)
-    if not path.exists():
-        raise DataError(f"video {path} does not exist.")
-    frames: list[np.ndarray] = []
-    times: list[float] = []
-    rotation = 0
-    tags: dict = {}
-    rate = None
-    decoded = (0, 0)
-    try:
-        with av.open(str(path)) as container:
-            if not container.streams.video:
-                raise DataError(f"{path} holds no video stream; give a video file or a folder of frames.")
-            stream = container.streams.video[0]
-            tags = {**{f"container:{k}": v for k, v in container.metadata.items()},
-                    **{k: v for k, v in stream.metadata.items()}}
-            rate = float(stream.average_rate) if stream.average_rate else None
-            for frame in container.decode(stream):
-                img = frame.to_ndarray(format="rgb24")
-                rot = int(round(getattr(frame, "rotation", 0) or 0)) if not frames else rotation
-                if not frames:
-                    rotation = rot if rot % 90 == 0 else 0
-                    decoded = (img.shape[1], img.shape[0])
-                if rotation:
-                    img = np.rot90(img, k=(rotation // 90) % 4)
-                if max_side and max(img.shape[:2]) > max_side:
-                    s = max_side / max(img.shape[:2])
-                    img = cv2.resize(img, (max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s))),
-                                     interpolation=cv2.INTER_AREA)
-                frames.append(np.ascontiguousarray(img))
-                times.append(float(frame.time) if frame.time is not None else float("nan"))
-    except DataError:
-        raise
-    except Exception as e:  # PyAV raises many kinds of errors for broken files
-        if not frames:  # a truncated file keeps the frames that decoded
-            raise DataError(f"cannot decode video {path} ({type(e).__name__}: {e}); check the file, "
-                            "or extract its frames into a folder and pass that instead.") from None
-    if not frames:
-        raise DataError(f"video {path} holds no frames.")
-    t = np.asarray(times, np.float64)
-    if not np.isfinite(t).all() or (len(t) > 1 and (np.diff(t) <= 0).any()):
-        step = 1.0 / (rate or 30.0)
-        t = np.arange(len(frames)) * step
-    else:
-        t = t - t[0]
-    vfr = False
-    if len(t) > 2:
-        d = np.diff(t)
-        vfr = bool(np.abs(d - np.median(d)).max() > 0.1 * np.median(d))
-        fps = (len(t) - 1) / t[-1]
-    else:
-        fps = rate or 30.0
-    size = [frames[0].shape[1], frames[0].shape[0]]
-    upright = list(decoded) if rotation % 180 == 0 else [decoded[1], decoded[0]]
-    info = {
-        "fps": float(fps), "timestamps": t.round(6).tolist(), "variable_frame_rate": vfr,
-        "rotation": rotation, "decoded_size": upright, "size": size, "scale": size[0] / upright[0],
-        "focal_35mm": focal_35mm_from_tags(tags), "metadata": {k: str(v) for k, v in tags.items()},
-    }
-    return frames, info
+
+class VideoReader:
+    """Frames of a video by index, upright and optionally scaled, decoded on demand.
+
+    Args:
+        path: the video file.
+        max_side: scale frames down (area interpolation) so that neither side exceeds
+            this many pixels; None or 0 keeps the decoded size.
+
+    Attributes:
+        info: ``fps`` (mean rate), ``timestamps`` (seconds from the first frame, one per
+            frame), ``variable_frame_rate`` (bool: frame intervals differ by more than 10%
+            of their median), ``rotation`` (degrees counter-clockwise applied from the
+            stream's display matrix), ``decoded_size`` and ``size`` (``[W, H]`` before and
+            after scaling), ``scale`` (size / decoded size), ``focal_35mm`` (35
+            mm-equivalent focal length in mm from the metadata, or None), ``metadata``
+            (container and stream tags).
+
+    Thread-safe: the tracker reads the next frame on a second thread.
+
+    Raises:
+        DataError: missing file, a file that cannot be decoded, or no frames. A truncated
+        file keeps the frames that decode.
+    """
+
+    #: Frames kept decoded (the tracker reads each frame and the one before it).
+    KEEP = 4
+    #: Frames decoded forwards, rather than seeking, to reach a frame ahead.
+    FORWARD = 48
+
+    def __init__(self, path: str | Path, max_side: int | None = None):
+        self.path = Path(path)
+        self.max_side = max_side or None
+        if not self.path.exists():
+            raise DataError(f"video {self.path} does not exist.")
+        self._lock = threading.RLock()
+        self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._container = None
+        self._frames = None  # the decoding generator, positioned before frame self._next
+        self._next = 0
+        self.info, self._pts = self._scan()
+        self._index = {p: i for i, p in enumerate(self._pts)} if self._pts is not None else None
+
+    def __len__(self) -> int:
+        return len(self.info["timestamps"])
+
+    def __enter__(self) -> VideoReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file (a later :meth:`frame` opens it again)."""
+        with self._lock:
+            if self._container is not None:
+                self._container.close()
+            self._container, self._frames = None, None
+
+    def _scan(self) -> tuple[dict, list | None]:
+        import av
+
+        times: list[float] = []
+        pts: list = []
+        rotation = 0
+        tags: dict = {}
+        rate = None
+        decoded = size = (0, 0)
+        try:
+            with av.open(str(self.path)) as container:
+                if not container.streams.video:
+                    raise DataError(f"{self.path} holds no video stream; give a video file or a folder of frames.")
+                stream = container.streams.video[0]
+                tags = {**{f"container:{k}": v for k, v in container.metadata.items()},
+                        **{k: v for k, v in stream.metadata.items()}}
+                rate = float(stream.average_rate) if stream.average_rate else None
+                for frame in container.decode(stream):
+                    if not times:
+                        rot = int(round(getattr(frame, "rotation", 0) or 0))
+                        rotation = rot if rot % 90 == 0 else 0
+                        decoded = (frame.width, frame.height)
+                        self._rotation = rotation
+                        first = self._convert(frame)
+                        size = (first.shape[1], first.shape[0])
+                    elif (frame.width, frame.height) != decoded:
+                        raise DataError(f"frame {len(times)} of {self.path} changes size to {frame.width}x"
+                                        f"{frame.height} (from {decoded[0]}x{decoded[1]}); re-encode the video "
+                                        "at one frame size.")
+                    times.append(float(frame.time) if frame.time is not None else float("nan"))
+                    pts.append(frame.pts)
+        except DataError:
+            raise
+        except Exception as e:  # PyAV raises many kinds of errors for broken files
+            if not times:  # a truncated file keeps the frames that decoded
+                raise DataError(f"cannot decode video {self.path} ({type(e).__name__}: {e}); check the file, "
+                                "or extract its frames into a folder and pass that instead.") from None
+        if not times:
+            raise DataError(f"video {self.path} holds no frames.")
+        t = np.asarray(times, np.float64)
+        if not np.isfinite(t).all() or (len(t) > 1 and (np.diff(t) <= 0).any()):
+            t = np.arange(len(times)) * (1.0 / (rate or 30.0))
+        else:
+            t = t - t[0]
+        vfr = False
+        if len(t) > 2:
+            d = np.diff(t)
+            vfr = bool(np.abs(d - np.median(d)).max() > 0.1 * np.median(d))
+            fps = (len(t) - 1) / t[-1]
+        else:
+            fps = rate or 30.0
+        upright = list(decoded) if rotation % 180 == 0 else [decoded[1], decoded[0]]
+        info = {
+            "fps": float(fps), "timestamps": t.round(6).tolist(), "variable_frame_rate": vfr,
+            "rotation": rotation, "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
+            "focal_35mm": focal_35mm_from_tags(tags), "metadata": {k: str(v) for k, v in tags.items()},
+        }
+        usable = None not in pts and len(set(pts)) == len(pts)
+        return info, (pts if usable else None)
+
+    def _convert(self, frame) -> np.ndarray:
+        import cv2
+
+        img = frame.to_ndarray(format="rgb24")
+        if self._rotation:
+            img = np.rot90(img, k=(self._rotation // 90) % 4)
+        if self.max_side and max(img.shape[:2]) > self.max_side:
+            s = self.max_side / max(img.shape[:2])
+            img = cv2.resize(img, (max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s))),
+                             interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(img)
+
+    def _restart(self, i: int) -> None:
+        """Position the decoder before frame ``i``: at the keyframe at or before it (from
+        the start without usable timestamps)."""
+        import av
+
+        if self._container is None:
+            self._container = av.open(str(self.path))
+        stream = self._container.streams.video[0]
+        if self._pts is None or i == 0:
+            self._container.seek(0, stream=stream) if self._frames is not None else None
+        else:
+            self._container.seek(int(self._pts[i]), stream=stream, backward=True, any_frame=False)
+        self._frames = self._container.decode(stream)
+        self._next = 0 if self._index is None else None  # else known from the first decoded frame
+
+    def frame(self, i: int) -> np.ndarray:
+        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB (a shared array: do not modify it).
+
+        Raises:
+            DataError: the frame cannot be decoded (again).
+        """
+        n = len(self)
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} of a video of {n} frames")
+        with self._lock:
+            if i in self._kept:
+                self._kept.move_to_end(i)
+                return self._kept[i]
+            ahead = self.FORWARD if self._index is not None else len(self)  # without timestamps: never seek
+            if self._frames is None or self._next is None or not (self._next <= i <= self._next + ahead):
+                self._restart(i)
+            try:
+                for attempt in range(2):
+                    for frame in self._frames:
+                        k = self._index.get(frame.pts) if self._index is not None else self._next
+                        if k is None:
+                            continue
+                        if k > i:  # the seek went past the frame: decode from the start instead
+                            break
+                        self._next = k + 1
+                        if k >= i - self.KEEP:
+                            self._kept[k] = self._convert(frame)
+                            while len(self._kept) > self.KEEP:
+                                self._kept.popitem(last=False)
+                        if k == i:
+                            return self._kept[i]
+                    self._index_from_start()
+            except DataError:
+                raise
+            except Exception as e:  # noqa: BLE001 -- PyAV's errors for a file changed or broken since the scan
+                raise DataError(f"cannot decode frame {i} of {self.path} ({type(e).__name__}: {e}).") from None
+        raise DataError(f"cannot decode frame {i} of {self.path} again; the file changed since it was opened.")
+
+    def _index_from_start(self) -> None:
+        """Fall back to decoding from the first frame and counting frames."""
+        self.close()
+        self._index = None
+        self._pts = None
+        self._restart(0)
 
 
 def focal_35mm_from_tags(tags: dict) -> float | None:
@@ -155,27 +288,21 @@ def default_camera(width: int, height: int, focal_35mm: float | None = None) -> 
 
 
 class VideoSequence(Sequence):
-    """A :class:`~flowmocap.io.sequence.Sequence` whose frames come from a decoded video.
+    """A :class:`~flowmocap.io.sequence.Sequence` whose frames come from a video, decoded
+    as they are read (:class:`VideoReader`).
 
     ``meta`` holds ``fps``, ``source``, ``timestamps`` and the rest of
-    :func:`decode_video`'s information.
+    :attr:`VideoReader.info`.
     """
 
-    def __init__(self, path: Path, frames: list[np.ndarray], fps: float, masks: list[Path] | None,
-                 info: dict | None = None):
-        h, w = frames[0].shape[:2]
-        meta = {"fps": fps, "source": str(path), **(info or {})}
-        meta["fps"] = fps
-        super().__init__(root=path, frames=[path] * len(frames), masks=masks, camera=None,
-                         meta=meta, size=(w, h))
-        self._decoded = frames
+    def __init__(self, path: Path, reader: VideoReader, masks: list[Path] | None):
+        w, h = reader.info["size"]
+        meta = {"source": str(path), **reader.info}
+        super().__init__(root=path, frames=[path] * len(reader), masks=masks, camera=None, meta=meta, size=(w, h))
+        self.reader = reader
 
     def frame(self, i: int) -> np.ndarray:
-        f = self._decoded[i]
-        if (f.shape[1], f.shape[0]) != self.size:
-            raise DataError(f"frame {i} of {self.root} changes size to {f.shape[1]}x{f.shape[0]}; "
-                            "re-encode the video at one frame size.")
-        return f
+        return self.reader.frame(i)
 
 
 def load_video(path: str | Path, masks: str | Path | None = None, max_side: int | None = None) -> VideoSequence:
@@ -190,15 +317,16 @@ def load_video(path: str | Path, masks: str | Path | None = None, max_side: int 
         DataError: undecodable video, mask count or size not matching the video.
     """
     path = Path(path)
-    frames, info = decode_video(path, max_side=max_side)
+    reader = VideoReader(path, max_side=max_side)
+    size = tuple(reader.info["size"])
     mask_paths = None
     if masks is not None:
         mask_dir = Path(masks)
         if not mask_dir.is_dir():
             raise DataError(f"mask folder {mask_dir} does not exist.")
         mask_paths = list_images(mask_dir)
-        if len(mask_paths) != len(frames):
-            raise DataError(f"{len(mask_paths)} masks in {mask_dir} but {len(frames)} frames in {path}; "
+        if len(mask_paths) != len(reader):
+            raise DataError(f"{len(mask_paths)} masks in {mask_dir} but {len(reader)} frames in {path}; "
                             "give one mask per frame, in the same order.")
-        read_image(mask_paths[0], (frames[0].shape[1], frames[0].shape[0]), gray=True)
-    return VideoSequence(path, frames, info["fps"], mask_paths, info)
+        read_image(mask_paths[0], size, gray=True)
+    return VideoSequence(path, reader, mask_paths)

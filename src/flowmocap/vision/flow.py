@@ -178,20 +178,22 @@ class FlowCache:
     flows computed with different settings never mix.
 
     Args:
-        folder: directory (created if missing).
+        folder: directory (created if missing); None stores nothing (:meth:`flow` then
+            computes every flow, e.g. for a long video whose flows would fill the disk).
         method, **options: as for :func:`observed_flow`.
     """
 
-    def __init__(self, folder: str | Path, method: str = "dis", **options: Any):
+    def __init__(self, folder: str | Path | None, method: str = "dis", **options: Any):
         if method not in FLOW_METHODS:
             raise InputError(f"unknown flow method {method!r}; choose one of {', '.join(FLOW_METHODS)}")
-        self.folder = Path(folder)
+        self.folder = Path(folder) if folder is not None else None
         self.method = method
         self.options = dict(options)
-        try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise DataError(f"cannot create the flow cache folder {self.folder}: {exc}") from None
+        if self.folder is not None:
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise DataError(f"cannot create the flow cache folder {self.folder}: {exc}") from None
         tag = method
         if options:
             key = json.dumps(options, sort_keys=True, default=str).encode()
@@ -199,11 +201,11 @@ class FlowCache:
         self._tag = tag
 
     def path(self, index: int) -> Path:
-        """The cache file of frame ``index`` (whether it exists or not)."""
+        """The cache file of frame ``index`` (whether it exists or not); needs a folder."""
         return self.folder / f"flow_{int(index):06d}_{self._tag}.npz"
 
     def __contains__(self, index: int) -> bool:
-        return self.path(index).is_file()
+        return self.folder is not None and self.path(index).is_file()
 
     def get(self, index: int, shape: tuple[int, int] | None = None) -> np.ndarray | None:
         """The cached flow of frame ``index``, or None if absent or unreadable.
@@ -216,6 +218,8 @@ class FlowCache:
         Returns:
             ``(H, W, 2)`` float32 or None.
         """
+        if self.folder is None:
+            return None
         p = self.path(index)
         if not p.is_file():
             return None
@@ -256,5 +260,6 @@ class FlowCache:
         if cached is not None:
             return cached
         flow = observed_flow(frame_cur, frame_prev, self.method, **self.options)
-        self.put(index, flow)
+        if self.folder is not None:
+            self.put(index, flow)
         return flow
