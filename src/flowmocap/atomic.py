@@ -25,7 +25,7 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
         write(tmp)
         os.replace(tmp, path)
     except OSError as e:
-        if e.filename is None:  # say which file could not be written (a full disk names none)
+        if e.filename is None and e.errno is not None:  # say which file could not be written (a full disk names none)
             raise OSError(e.errno, e.strerror, str(path)) from e
         raise
     finally:
