@@ -1,0 +1,172 @@
+"""Long videos: memory, disk and time per frame along a long 640x480 video (issue 19).
+
+Makes a video of the built-in walk played forwards and backwards in turn (a continuous
+motion of any length) at 30 fps, 640x480: ``flowmocap synth`` renders one cycle, PyAV
+encodes the ping-pong of it (H.264). Then ``flowmocap track VIDEO --out DIR`` runs in a
+child process while this script samples, once a second, the child's resident memory
+(``VmRSS``, and ``VmHWM`` its peak) and the frames it has committed (``progress.json``).
+Prints a table at each minute mark of the video (and the end), the peak, the result
+folder's size, and the seconds per frame of each stretch, and writes JSON.
+
+``--masks auto`` (default) is what a user gets: MediaPipe finds the person (a pass over
+the whole video before tracking) and the ``video`` profile tracks. ``--masks given``
+passes the rendered masks and an init.json (the ``synthetic`` profile, no detector).
+
+Usage: python benchmarks/long_video.py [--minutes 10] [--work DIR] [--masks auto|given]
+       [--out benchmarks/results/long_video.json] [--cycle 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+FPS = 30
+
+
+def make_video(work: Path, minutes: float, cycle: int, size: str) -> tuple[Path, Path, Path]:
+    """The ping-pong video, a masks folder (hard links to the cycle's masks) and an
+    init.json of its first frame."""
+    import av
+    import numpy as np
+
+    from flowmocap.eval.protocol import noisy_init
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.synth import synthesize
+
+    seq_dir = work / "cycle"
+    if not (seq_dir / "gt.npz").exists():
+        synthesize("builtin:walk", seq_dir, fps=FPS, frames=cycle, size=size, betas="random", seed=0, azimuth=60.0,
+                   flow=False)
+    seq = load_sequence(seq_dir)
+    order = list(range(cycle)) + list(range(cycle - 2, 0, -1))  # forwards, then backwards: no jump
+    total = int(round(minutes * 60 * FPS))
+    index = [order[k % len(order)] for k in range(total)]
+    video = work / f"walk_{minutes:g}min.mp4"
+    if not video.exists():
+        frames = [seq.frame(i) for i in range(cycle)]
+        tmp = video.with_suffix(".part.mp4")
+        with av.open(str(tmp), "w") as c:
+            s = c.add_stream("libx264", rate=FPS)
+            s.width, s.height, s.pix_fmt = frames[0].shape[1], frames[0].shape[0], "yuv420p"
+            s.options = {"crf": "18", "preset": "veryfast"}
+            for i in index:
+                for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i]), format="rgb24")):
+                    c.mux(p)
+            for p in s.encode():
+                c.mux(p)
+        tmp.rename(video)
+    masks = work / f"masks_{minutes:g}min"
+    if not masks.exists():
+        part = masks.with_name(masks.name + ".part")
+        part.mkdir(exist_ok=True)
+        for k, i in enumerate(index):
+            dst = part / f"{k:06d}.png"
+            if not dst.exists():
+                os.link(seq.masks[i], dst)
+        part.rename(masks)
+    init = work / "init.json"
+    init.write_text(json.dumps(noisy_init(seq.gt, frame=0, seed=0)))
+    return video, masks, init
+
+
+def rss_mb(pid: int) -> tuple[float, float]:
+    """``(VmRSS, VmHWM)`` of a process in MB (0 when it has ended)."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0.0, 0.0
+    vals = {}
+    for line in text.splitlines():
+        if line.startswith(("VmRSS:", "VmHWM:")):
+            key, kb = line.split()[:2]
+            vals[key[:-1]] = int(kb) / 1024
+    return vals.get("VmRSS", 0.0), vals.get("VmHWM", 0.0)
+
+
+def folder_mb(path: Path) -> float:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2 ** 20
+
+
+def committed(res: Path) -> int:
+    try:
+        return int(json.loads((res / "progress.json").read_text())["rows"])
+    except (OSError, ValueError, KeyError):
+        return -1
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="length of the video (default 10)")
+    ap.add_argument("--cycle", type=int, default=60, help="frames of the rendered walk cycle (default 60)")
+    ap.add_argument("--size", default="640x480")
+    ap.add_argument("--masks", default="auto", choices=["auto", "given"])
+    ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "long_video"))
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "long_video.json"))
+    args = ap.parse_args()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    video, masks, init = make_video(work, args.minutes, args.cycle, args.size)
+    print(f"video {video} ({video.stat().st_size / 2 ** 20:.1f} MB) made in {time.time() - t0:.0f} s", flush=True)
+    res = work / f"result_{args.minutes:g}min_{args.masks}"
+    cmd = [sys.executable, "-m", "flowmocap.cli", "track", str(video), "--out", str(res), "--quiet"]
+    if args.masks == "given":
+        cmd += ["--masks", str(masks), "--init", str(init)]
+    if (res / "run.json").exists():
+        cmd.append("--resume")
+    print(" ".join(cmd), flush=True)
+    start = time.time()
+    proc = subprocess.Popen(cmd)
+    samples = []  # (seconds, frames committed, rss MB, peak MB, folder MB)
+    while proc.poll() is None:
+        rss, hwm = rss_mb(proc.pid)
+        n = committed(res)
+        size = folder_mb(res) if res.exists() and len(samples) % 30 == 0 else (samples[-1][4] if samples else 0.0)
+        samples.append((time.time() - start, n, rss, hwm, size))
+        time.sleep(1.0)
+    wall = time.time() - start
+    if proc.returncode != 0:
+        print(f"tracking failed with exit status {proc.returncode}")
+        return proc.returncode
+    run = json.loads((res / "run.json").read_text())
+    total = int(round(args.minutes * 60 * FPS))
+    marks = sorted({min(total, int(m * 60 * FPS)) for m in [1, 5, 10] if m <= args.minutes} | {total})
+    rows = []
+    tracking = [s for s in samples if s[1] >= 2]
+    for m in marks:
+        at = next((s for s in tracking if s[1] >= m - 1), tracking[-1] if tracking else None)
+        if at is None:
+            continue
+        rows.append({"video_minutes": round(m / (60 * FPS), 2), "frame": m, "rss_mb": round(at[2], 1),
+                     "peak_mb": round(at[3], 1), "folder_mb": round(at[4], 1), "seconds": round(at[0], 1)})
+    for a, b in zip([None] + rows[:-1], rows):
+        t_a, f_a = (next(s[0] for s in tracking), 2) if a is None else (a["seconds"], a["frame"])
+        b["s_per_frame"] = round((b["seconds"] - t_a) / max(1, b["frame"] - f_a), 3)
+    result = {
+        "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "wall_s": round(wall, 1),
+        "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),
+        "result_folder_mb": round(folder_mb(res), 2), "video_mb": round(video.stat().st_size / 2 ** 20, 1),
+        "s_per_frame_median": run["timings"].get("s_per_frame_median"), "marks": rows,
+        "rss_trace": [(round(s[0]), s[1], round(s[2])) for s in samples[:: max(1, len(samples) // 200)]],
+        "machine": f"{os.cpu_count()} cores",
+    }
+    print(f"\n{'video min':>9}{'frame':>8}{'RSS MB':>9}{'peak MB':>9}{'folder MB':>11}{'s/frame':>9}")
+    for r in rows:
+        print(f"{r['video_minutes']:>9}{r['frame']:>8}{r['rss_mb']:>9}{r['peak_mb']:>9}{r['folder_mb']:>11}"
+              f"{r['s_per_frame']:>9}")
+    print(f"peak RSS {result['peak_rss_mb']} MB; result folder {result['result_folder_mb']} MB; wall {wall:.0f} s")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
