@@ -246,3 +246,20 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: Nobody())
     joints3d, note = detect_joints3d(seq, tmp_path / "c", progress=False)
     assert joints3d is None and "no 3D joints" in note
+
+
+def test_packed_masks_round_trip_and_are_small():
+    """find_people keeps one mask per person per frame of a whole video: packed to the bits
+    of the mask's box, and unpacked exactly."""
+    from flowmocap.vision.auto import PackedMask, _mask_array
+
+    rng = np.random.default_rng(0)
+    m = np.zeros((480, 640), bool)
+    m[100:400, 250:400] = rng.random((300, 150)) > 0.3
+    p = PackedMask.pack(m)
+    np.testing.assert_array_equal(p.unpack(), m)
+    np.testing.assert_array_equal(_mask_array(p), m)
+    np.testing.assert_array_equal(_mask_array(m), m)
+    assert p.bits.nbytes <= 300 * 150 / 8 + 1 and p.bits.nbytes < m.nbytes / 40
+    empty = PackedMask.pack(np.zeros((4, 5), bool))
+    assert empty.unpack().shape == (4, 5) and not empty.unpack().any()
