@@ -37,7 +37,9 @@ PROFILES: dict[str, dict[str, Any]] = {
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
-              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3},
+              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
+              # E_z (root depth) was measured on the synthetic suites only, not yet on real video
+              "depth_temporal_weight": 0.0},
 }
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
