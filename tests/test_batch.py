@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import sys
 import threading
 import time
@@ -146,6 +147,17 @@ def test_without_ray_the_ray_option_says_how_to_install_it(clips, tmp_path, monk
     assert not (tmp_path / "o").exists()  # said before anything was written
 
 
+def test_a_ray_address_where_nothing_answers_is_a_clear_error(clips, tmp_path, capsys):
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowmocap[cluster]')")
+    with socket.socket() as s:  # a port on loopback that nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(_args(clips, tmp_path / "o", f"--ray=127.0.0.1:{port}")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"flowmocap: error: no Ray cluster answers at 127.0.0.1:{port}") and "ray start" in err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_single_input_keeps_its_out_folder(clips, one_by_one, tmp_path, capsys):
     out = tmp_path / "single"
     args = _args(clips, out, "--workers", "2")
@@ -228,6 +240,7 @@ def test_names_are_stable_and_never_collide(tmp_path):
     assert names[0].startswith("Walk-") and names[1].startswith("walk-")  # Walk/walk: one folder on macOS
     assert len({n.lower() for n in names}) == 4
     assert [it.name for it in plan([b], out)] == [names[1]]  # b keeps its name without the others
+    assert [it.name for it in plan([tmp_path / "c" / "new.mp4"] * 2, out)] == ["new"]  # twice: once
 
 
 def test_inputs_from_folders_and_list_files(tmp_path):

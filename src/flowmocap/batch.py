@@ -13,10 +13,10 @@ Layout under the output folder ``out_root``::
 path. ``batch.json`` keeps every name it gave, so an input keeps its folder when the
 command is run again with more or fewer inputs.
 
-Run again, the same command skips every finished result (whatever settings made it: delete
-a result folder to track that input anew), resumes every interrupted one (with the same
-settings; other settings make that input fail with a message) and tracks the rest. One
-input's failure does not stop the others; it is reported in the summary.
+Run again, the same command skips every finished result (whatever settings made it;
+``force`` tracks them anew), resumes every interrupted one (with the same settings; other
+settings make that input fail with a message) and tracks the rest. One input's failure does
+not stop the others; it is reported in the summary.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import json
 import multiprocessing
 import os
 import re
+import socket
 import sys
 import time
 import traceback
@@ -58,8 +59,8 @@ BATCH_FAILED = 6
 #: they go to another process (a Ray worker need not share this process's working folder).
 _PATH_ARGS = ("init", "masks", "camera", "config", "model")
 
-#: What :func:`track_many` leaves to itself: each input has its own ``source``, ``out``,
-#: ``resume`` and log.
+#: What :func:`track_many` sets itself: each input's ``source``, ``out`` and log, and
+#: ``resume`` and ``force`` from its own ``force``.
 _OWN_ARGS = ("source", "out", "resume", "force", "log")
 
 _WORKER_DIED = ("the worker process running it died twice (it crashed or was killed, e.g. for lack of memory); "
@@ -168,7 +169,8 @@ def plan(inputs: Sequence[str | Path], out_root: str | Path) -> list[BatchItem]:
     ``"resume"`` or ``"finished"``); records new names in ``out_root/batch.json``.
 
     Args:
-        inputs: the inputs, as :func:`expand_inputs` gives them.
+        inputs: the inputs, as :func:`expand_inputs` gives them (an input given twice
+            counts once).
         out_root: the batch's output folder (created).
 
     Raises:
@@ -181,9 +183,12 @@ def plan(inputs: Sequence[str | Path], out_root: str | Path) -> list[BatchItem]:
     root.mkdir(parents=True, exist_ok=True)
     manifest = _read_manifest(root)
     names = _names([Path(p) for p in inputs], root, manifest)
-    items = []
+    items, seen = [], set()
     for p in inputs:
         name = names[_absolute(Path(p))]
+        if name in seen:
+            continue
+        seen.add(name)
         out = root / name
         item = BatchItem(input=str(p), name=name, out=out, status="new")
         if out.is_dir():
@@ -245,8 +250,10 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
         raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
     if ray is not False and ray is not None and workers != 1:
         raise InputError("choose either Ray (--ray) or local worker processes (--workers), not both.")
-    if ray not in (False, None):
-        _import_ray()  # before anything is written: say at once when it is missing
+    if ray not in (False, None):  # before anything is written: say at once when Ray is missing or unreachable
+        _import_ray()
+        if isinstance(ray, str):
+            _check_reachable(ray)
     kwargs = {k: _absolute_arg(v) if k in _PATH_ARGS else v for k, v in track_kwargs.items()}
     kwargs["force"] = bool(force)
     items = plan(inputs, out_root)
@@ -443,6 +450,21 @@ def _import_ray():
     return ray
 
 
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """Raise InputError when nothing answers at a ``HOST:PORT`` or ``ray://HOST:PORT``
+    address (Ray itself would retry for minutes); other forms (``auto``, ``local``) are left
+    to ``ray.init``."""
+    hostport = address.removeprefix("ray://")
+    host, sep, port = hostport.rpartition(":")
+    if not (sep and host and port.isdigit()):
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise InputError(f"no Ray cluster answers at {address} ({e}); start one with `ray start --head` on its head "
+                         "node, or check the address and port (6379 for the head node, 10001 for ray://).") from None
+
+
 def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: Callable[[BatchItem], None]) -> None:
     """Track each of ``todo`` as one Ray task (one CPU each) and report each as it ends."""
     ray = _import_ray()
@@ -455,8 +477,9 @@ def _run_ray(todo: list[BatchItem], kwargs: dict, address: bool | str, report: C
             ray.init(address=where, **options)
         except Exception as e:  # noqa: BLE001 -- ray raises ConnectionError, RuntimeError, ValueError, ...
             raise InputError(f"cannot start or reach the Ray cluster{f' at {where}' if where else ''}: "
-                             f"{type(e).__name__}: {e}; start one with `ray start --head` on its head node and "
-                             "pass its address (--ray HOST:6379, or --ray auto on a node of it).") from None
+                             f"{type(e).__name__}: {str(e).rstrip('.')}; start one with `ray start --head` on its "
+                             "head node and pass its address (--ray HOST:6379, or --ray auto on a node of "
+                             "it).") from None
         started = True
     try:
         task = ray.remote(num_cpus=1, max_retries=1)(_track_in_worker)
@@ -549,13 +572,15 @@ def _names(paths: list[Path], root: Path, manifest: dict) -> dict[str, str]:
     given = {v["input"]: k for k, v in manifest.items()}
     taken = {k.lower() for k in manifest} | {MANIFEST.lower()}
     taken |= {q.name.lower() for q in root.iterdir()} if root.is_dir() else set()
-    new = [p for p in paths if _absolute(p) not in given]
+    new = {_absolute(p): p for p in paths if _absolute(p) not in given}
     count: dict[str, int] = {}
-    for p in new:
+    for p in new.values():
         count[_base_name(p).lower()] = count.get(_base_name(p).lower(), 0) + 1
     names = {}
     for p in paths:
         key = _absolute(p)
+        if key in names:
+            continue
         if key in given:
             names[key] = given[key]
             continue
