@@ -122,12 +122,12 @@ def reference(clip, ctx, tmp_path_factory):
     return motion, time.perf_counter() - t0
 
 
-#: Two uninterrupted runs of the same input in two processes are not bitwise equal: the
-#: optimiser's float32 sums differ in the last bits from process to process (not from
-#: hash seeds, address randomisation or MKL's reduction order: measured with each pinned),
-#: and with this test's 4 L-BFGS iterations a frame's line search amplifies that to
-#: 3e-4 rad at most. So "the same result" is equality within 1e-3 rad / 1 mm, a hundred
-#: times below what a stale resume state caused (0.13 rad, 7.8 cm).
+#: Two uninterrupted runs of the same input are not bitwise equal: the initialisation's
+#: flow step ends in one of two states that differ in the last bits, at random from call
+#: to call (see docs/errors.md, "What is not exact"), and with this test's 4 L-BFGS
+#: iterations a frame's line search amplifies that to 3e-4 rad at most. So "the same
+#: result" is equality within 1e-3 rad / 1 mm, a hundred times below what a stale resume
+#: state caused (0.13 rad, 7.8 cm).
 SAME = 1e-3
 
 
