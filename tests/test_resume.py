@@ -19,7 +19,7 @@ import pytest
 
 import flowmocap
 from flowmocap.cli import main
-from flowmocap.errors import FolderBusyError, InputError, OutputError
+from flowmocap.errors import DataError, FolderBusyError, InputError, OutputError
 from flowmocap.eval.protocol import noisy_init
 from flowmocap.io.lock import FolderLock, is_locked
 from flowmocap.io.results import FrameLog, has_result, read_result
@@ -418,3 +418,27 @@ def test_a_video_is_tracked_from_a_stream_and_its_flows_are_not_kept(clip, tmp_p
     np.testing.assert_allclose(kept.poses, res.poses, atol=SAME)  # the same flows, kept or not
     folder = flowmocap.track(clip, tmp_path / "f", frames="0:4", **_kw(clip))
     assert len(list((tmp_path / "f" / "flow_cache").glob("flow_*.npz"))) == 3 and len(folder) == 4
+
+
+def test_a_run_that_fails_before_its_first_frame_is_marked_failed(clip, tmp_path, monkeypatch):
+    import flowmocap.pipeline as pipeline
+    from flowmocap.errors import NoPersonError
+
+    out = tmp_path / "r"
+    with pytest.raises(InputError, match="'frame' must be"):
+        flowmocap.track(clip, out, **{**_kw(clip), "init": {**json.loads((clip.parent / "init.json").read_text()),
+                                                             "frame": 99}})
+    assert not (out / "run.json").exists()  # refused before anything was written
+
+    def no_person(*args, **kwargs):
+        raise NoPersonError("no person in any frame (test)")
+
+    monkeypatch.setattr(pipeline, "detect_joints3d", no_person)  # fails after the folder is claimed
+    with pytest.raises(NoPersonError):
+        flowmocap.track(clip, out, **{**_kw(clip), "joints3d": "auto"})
+    run = json.loads((out / "run.json").read_text())
+    assert run["status"] == "failed" and "no person in any frame" in run["error"]
+    with pytest.raises(DataError, match="holds no tracked frames yet.*failed"):
+        flowmocap.load_result(out)
+    monkeypatch.undo()
+    assert len(flowmocap.track(clip, out, frames="0:3", **_kw(clip))) == 3  # and it can simply be run again

@@ -262,11 +262,30 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
                           flow, max_size, reinit, joints3d, say, person, force, keep_flow)
-        except OSError as e:
-            where = f" ({e.filename})" if getattr(e, "filename", None) else ""
-            raise OutputError(f"could not write the result{where}: {e.strerror or e}. The frames finished so far are "
-                              f"kept in {out}; free space or fix the permissions, then run again with --resume "
+        except BaseException as e:
+            _failed_before_tracking(out, e)
+            if not isinstance(e, OSError):
+                raise
+            name = getattr(e, "filename", None)
+            inside = name is None or Path(name).resolve().is_relative_to(out.resolve())
+            what = "could not write the result" if inside else "could not read or write a file"
+            raise OutputError(f"{what}{f' ({name})' if name else ''}: {e.strerror or e}. The frames finished so far "
+                              f"are kept in {out}; free space or fix the permissions, then run again with --resume "
                               "(resume=True).") from e
+
+
+def _failed_before_tracking(out: Path, error: BaseException) -> None:
+    """Mark a run that stopped before its first frame (``run.json`` still ``"preparing"``)
+    as failed (or interrupted), with the error; best effort."""
+    try:
+        run = json.loads((out / "run.json").read_text())
+        if run.get("status") != "preparing":
+            return
+        run["status"] = "interrupted" if isinstance(error, KeyboardInterrupt) else "failed"
+        run["error"] = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+        write_run(out, run)
+    except Exception:  # noqa: BLE001 -- the original error is what the user must see
+        pass
 
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
