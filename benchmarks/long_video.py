@@ -109,6 +109,8 @@ def main() -> int:
     ap.add_argument("--masks", default="auto", choices=["auto", "given"])
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "long_video"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "long_video.json"))
+    ap.add_argument("--stop-after", type=float, default=None, help="stop tracking after this many seconds and "
+                    "report the frames reached (the result resumes with the same command)")
     args = ap.parse_args()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -125,19 +127,28 @@ def main() -> int:
     start = time.time()
     proc = subprocess.Popen(cmd)
     samples = []  # (seconds, frames committed, rss MB, peak MB, folder MB)
+    stopped = False
     while proc.poll() is None:
+        if args.stop_after is not None and time.time() - start > args.stop_after:
+            proc.kill()  # the commit point holds every finished frame
+            proc.wait()
+            stopped = True
+            break
         rss, hwm = rss_mb(proc.pid)
         n = committed(res)
         size = folder_mb(res) if res.exists() and len(samples) % 30 == 0 else (samples[-1][4] if samples else 0.0)
         samples.append((time.time() - start, n, rss, hwm, size))
         time.sleep(1.0)
     wall = time.time() - start
-    if proc.returncode != 0:
+    if proc.returncode != 0 and not stopped:
         print(f"tracking failed with exit status {proc.returncode}")
         return proc.returncode
     run = json.loads((res / "run.json").read_text())
     total = int(round(args.minutes * 60 * FPS))
-    marks = sorted({min(total, int(m * 60 * FPS)) for m in [1, 5, 10] if m <= args.minutes} | {total})
+    reached = max((s[1] for s in samples), default=0)
+    quarters = {int(reached * q / 4) for q in (1, 2, 3)} if stopped else set()
+    marks = sorted(({min(total, int(m * 60 * FPS)) for m in [1, 5, 10] if m <= args.minutes} | {total} | quarters)
+                   & set(range(3, reached + 1)) | ({reached} if stopped else set()))
     rows = []
     tracking = [s for s in samples if s[1] >= 2]
     for m in marks:
@@ -153,7 +164,8 @@ def main() -> int:
         "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "wall_s": round(wall, 1),
         "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),
         "result_folder_mb": round(folder_mb(res), 2), "video_mb": round(video.stat().st_size / 2 ** 20, 1),
-        "s_per_frame_median": run["timings"].get("s_per_frame_median"), "marks": rows,
+        "s_per_frame_median": run.get("timings", {}).get("s_per_frame_median"), "marks": rows,
+        "stopped_after_s": args.stop_after if stopped else None, "frames_reached": reached,
         "rss_trace": [(round(s[0]), s[1], round(s[2])) for s in samples[:: max(1, len(samples) // 200)]],
         "machine": f"{os.cpu_count()} cores",
     }
