@@ -37,9 +37,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
-              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
-              # E_z (root depth) was measured on the synthetic suites only, not yet on real video
-              "depth_temporal_weight": 0.0},
+              "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3},
 }
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
@@ -128,8 +126,8 @@ class TrackerConfig:
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
-    depth_temporal_weight: float = 1e5  # lambda_z, E_z: root depth along the camera ray towards a
-    #                                    reference (m^2); 0: off
+    depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
+    #                                    reference (m^2); 0: off (measured, not better: docs/experiments.md)
     depth_temporal_reference: str = "prediction"  # E_z's reference: the Kalman "prediction" or the "previous" frame
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
