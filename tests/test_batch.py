@@ -168,39 +168,33 @@ def test_a_single_input_keeps_its_out_folder(clips, one_by_one, tmp_path, capsys
     assert not (out / MANIFEST).exists() and not (out / NAMES[0]).exists()
 
 
-def _interrupt_when(folder, frames: int):
-    """Press Ctrl-C (SIGINT to this process) once the run in ``folder`` has committed
-    ``frames`` frames; returns the watcher's stop event and thread."""
-    stop = threading.Event()
+def _interrupt_at_frame_call(monkeypatch, n: int) -> None:
+    """Ctrl-C (KeyboardInterrupt) on the ``n``-th tracked frame after the
+    initialisation, in this process: deterministic, whatever the machine's speed."""
+    import flowmocap.fit.tracker as tracker
 
-    def watch():
-        while not stop.is_set():
-            try:
-                if len(flowmocap.load_result(folder)) >= frames:
-                    os.kill(os.getpid(), signal.SIGINT)
-                    return
-            except flowmocap.FlowMocapError:  # nothing committed yet
-                pass
-            stop.wait(0.005)
+    original = tracker.track_frame
+    calls = {"n": 0}
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    return stop, watcher
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracker, "track_frame", interrupted)
 
 
-def test_finished_skipped_interrupted_resumed_and_a_bad_input_stops_nothing(clips, one_by_one, tmp_path, capsys):
+def test_finished_skipped_interrupted_resumed_and_a_bad_input_stops_nothing(clips, one_by_one, tmp_path, capsys,
+                                                                           monkeypatch):
     out = tmp_path / "results"
     shutil.copytree(one_by_one, out)  # all three finished before, batch.json knows their names
     shutil.rmtree(out / NAMES[1])
     kw = {"init": clips / "init.json", "config": QUICK, "joints3d": "off", "progress": False, "log": None}
-    stop, watcher = _interrupt_when(out / NAMES[1], 2)  # after the initialisation's 2 frames, before the 4th
+    _interrupt_at_frame_call(monkeypatch, 2)  # after the initialisation's 2 frames and one more, before the 4th
     with pytest.raises(KeyboardInterrupt):
-        try:
-            track_many([clips / NAMES[1]], out, **kw)
-        finally:
-            stop.set()
-            watcher.join()
-        time.sleep(2)  # an interrupt that came too late lands here, inside pytest.raises
+        track_many([clips / NAMES[1]], out, **kw)
+    monkeypatch.undo()
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"\x00" * 1000)
     inputs = [bad, clips / NAMES[0], clips / NAMES[1]]
