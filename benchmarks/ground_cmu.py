@@ -4,7 +4,8 @@ The synthetic sequences live in a y-up world whose floor is level, so the floor'
 should be +y. For every run folder ``RUNS/*/`` (``sequence/`` with ``gt.npz`` and a result
 in ``new/result``, ``result`` or ``flowmocap``) the world frame is computed twice, from the
 fitted motion and from the ground-truth motion of the same frames, and the angle between
-each floor normal and +y is reported, with the fraction of frames labelled as foot contacts.
+each floor normal and +y is reported, with the fraction of frames labelled as foot contacts
+and how the fit's contact labels agree with those computed from the true motion.
 
     python benchmarks/ground_cmu.py --runs /work/bench-runs/seeds --out benchmarks/results/ground_cmu.json
 """
@@ -45,7 +46,10 @@ def run(runs: Path) -> list[dict]:
         rows.append({"run": d.name, "method": fit.plane.method, "fit_tilt_deg": _tilt_deg(fit.plane.normal),
                      "fit_prior_tilt_deg": _tilt_deg(fit.prior_up), "gt_tilt_deg": _tilt_deg(truth.plane.normal),
                      "fit_residual_mm": 1000 * fit.plane.residual_m, "fit_contacts": float(fit.contacts.mean()),
-                     "gt_contacts": float(truth.contacts.mean())})
+                     "gt_contacts": float(truth.contacts.mean()),
+                     # agreement of the fit's per-frame contact labels with the true motion's
+                     "tp": int((fit.contacts & truth.contacts).sum()), "fp": int((fit.contacts & ~truth.contacts).sum()),
+                     "fn": int((~fit.contacts & truth.contacts).sum())})
     return rows
 
 
@@ -62,8 +66,12 @@ def main() -> None:
         print(f"| {r['run']} | {r['method']} | {r['fit_tilt_deg']:.2f} | {r['fit_prior_tilt_deg']:.2f} | "
               f"{r['gt_tilt_deg']:.2f} | {r['fit_contacts']:.2f} / {r['gt_contacts']:.2f} |")
     med = {k: float(np.median([r[k] for r in rows])) for k in ("fit_tilt_deg", "gt_tilt_deg")}
+    tp, fp, fn = (sum(r[k] for r in rows) for k in ("tp", "fp", "fn"))
+    med["contact_precision"] = tp / max(tp + fp, 1)
+    med["contact_recall"] = tp / max(tp + fn, 1)
     print(f"median tilt: fit {med['fit_tilt_deg']:.2f} deg, truth's motion {med['gt_tilt_deg']:.2f} deg "
-          f"({len(rows)} runs)")
+          f"({len(rows)} runs); contact labels of the fit against the true motion's: precision "
+          f"{med['contact_precision']:.2f}, recall {med['contact_recall']:.2f}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"rows": rows, "median": med}, indent=1))
     print(f"wrote {args.out}")
