@@ -5,9 +5,10 @@ For every finished sequence of a ``flowmocap bench`` folder (``NAME/sequence/gt.
 
 - ``local_cm`` / ``global_cm``: the bench's metrics (13 joints, similarity per frame / per
   sequence);
-- ``global_true_depth_cm``: the global error once each frame's fit is moved along the
-  camera ray through its root (pelvis) until the root is at its true depth (the image of
-  the fit is unchanged; what a perfect depth would give, the pose as fitted);
+- ``global_true_depth_cm``: the global error once each frame's fit is scaled about the
+  camera centre until its root (pelvis) is at its true depth (the image of the fit is
+  unchanged, its 3D size scales with the depth: what a perfect depth would give for the
+  fitted image);
 - ``global_true_root_cm``: ... once the root is moved to its true position (depth and
   across the view);
 - ``global_true_orientation_cm``: ... once each frame's torso is turned onto the true one
