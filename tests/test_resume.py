@@ -27,6 +27,9 @@ from flowmocap.io.sequence import load_sequence
 from flowmocap.synth import synthesize
 
 QUICK = {"iterations": 4, "init_iterations": 6, "init_flow_iterations": 4}
+#: The kill test's tracker: one pyramid level, a few iterations and no flip test, so that
+#: 40 runs fit in a minute; the commit protocol it tests is the same for any settings.
+LEAN = {**QUICK, "iterations": 3, "levels": 1, "stages": [[0]], "flip_test": False}
 FRAMES = 8
 KILL_POINTS = 20
 
@@ -91,7 +94,7 @@ def _run(clip: str, out: str, crash: str | None = None, known: bool = False) -> 
         atomic.os = _Os()
     kw = _kw(Path(clip))
     if known:
-        kw["init"] = _known_start(Path(clip))
+        kw["init"], kw["config"] = _known_start(Path(clip)), LEAN
     flowmocap.track(clip, out, resume=True, **kw)
 
 
@@ -144,14 +147,15 @@ def _assert_same(out: Path, ref: dict) -> None:
 def test_a_kill_at_any_instant_resumes_exactly(clip, ctx, tmp_path):
     """SIGKILL at 20 random instants of a run (its start, any frame, any file write), each
     resumed to the end: always the uninterrupted run's result."""
-    t0 = time.perf_counter()
-    p = _child(ctx, clip, tmp_path / "ref", known=True)
-    p.join(300)
-    seconds = time.perf_counter() - t0
+    for name in ("ref0", "ref"):  # the second run's time: the first also starts the fork server
+        t0 = time.perf_counter()
+        p = _child(ctx, clip, tmp_path / name, known=True)
+        p.join(300)
+        seconds = time.perf_counter() - t0
     ref, _ = read_result(tmp_path / "ref")
     rng = random.Random(21)
     killed = []
-    for attempt in range(3 * KILL_POINTS):
+    for attempt in range(5 * KILL_POINTS):
         if len(killed) == KILL_POINTS:
             break
         out = tmp_path / f"k{attempt}"
@@ -170,7 +174,7 @@ def test_a_kill_at_any_instant_resumes_exactly(clip, ctx, tmp_path):
         assert p.exitcode == 0, f"resume after a kill at {delay:.2f} s failed"
         _assert_same(out, ref)
     print(f"kills (seconds after start, frames committed) in a run of {seconds:.1f} s:", killed)
-    assert len(killed) == KILL_POINTS
+    assert len(killed) == KILL_POINTS, f"only {len(killed)} runs were still going at their kill point"
     assert len({n for _, n in killed}) >= 3  # kills landed at different stages of the run
 
 
