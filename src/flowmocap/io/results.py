@@ -49,7 +49,6 @@ from flowmocap.errors import DataError
 #: not replaced without ``force``).
 RESULT_FILES = ("run.json", "input.json", "init_auto.json", "motion.npz", "progress.json", "frames.bin",
                 "events.jsonl", ".lock", ".lock.json")
-RESULT_DIRS = ("detections", "flow_cache", "export", "render")
 FORMAT = 2
 
 
