@@ -285,6 +285,18 @@ def test_the_result_folder_is_checked_before_any_work(clip, tmp_path, capsys):
             flowmocap.track(clip, "/proc/flowmocap-out", **kw)
 
 
+def test_a_folder_holding_only_flowmocap_caches_is_accepted(tmp_path):
+    # e.g. benchmarks/track.py runs the detector into the result folder before tracking
+    from flowmocap.pipeline import _check_out
+    out = tmp_path / "r"
+    (out / "detections").mkdir(parents=True)
+    (out / "flow_cache").mkdir()
+    _check_out(out, force=False)
+    (out / "mine.txt").write_text("x")
+    with pytest.raises(InputError, match=r"not empty \(mine.txt\)"):
+        _check_out(out, force=False)
+
+
 def test_results_get_normal_permissions(clip, tmp_path):
     old = os.umask(0o022)
     try:

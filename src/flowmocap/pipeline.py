@@ -417,7 +417,9 @@ def _check_out(out: Path, force: bool) -> None:
         raise InputError(f"{out} is a file; the result goes into a folder: give a new folder, or one that holds a "
                          "flowmocap result.")
     if out.is_dir() and not force and not is_result_folder(out):
-        others = sorted(p.name for p in out.iterdir() if p.name not in (".lock", ".lock.json"))
+        # the lock and flowmocap's own caches (e.g. detections run before tracking) are ours
+        ours = (".lock", ".lock.json", "detections", "flow_cache")
+        others = sorted(p.name for p in out.iterdir() if p.name not in ours)
         if others:
             shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
             raise InputError(f"{out} is not empty ({shown}) and holds no flowmocap result; give a new or empty "
