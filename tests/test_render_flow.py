@@ -399,3 +399,41 @@ def test_internal_rasterisation_matches_an_explicit_raster():
         r = rasterize(xc + shift, Xc[:, 2], f, H, W)
         assert E.item() == flow_loss(xc + shift, xp + shift, f, obs, raster=r).item()
         assert r.bbox == (0, 0, 0, 0) or (r.face_id[: r.bbox[0]] < 0).all()
+
+
+def test_the_flow_term_on_a_worker_thread_gives_the_same_value_and_gradients():
+    """flow_loss_async (the tracker's: E_f on its own thread while the other terms are
+    built) is flow_loss bit for bit, and raises its errors when finished."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from flowmocap.render import flow_loss_async
+
+    H, W = 40, 48
+    f, Xc, Xp, xc, xp, obs = _bumpy_sheet(H, W)
+    target = flow_target(obs, None, 3)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for cull in (False, True):
+            grads = []
+            values = []
+            for run in ("serial", "async"):
+                cur = torch.tensor(xc, dtype=torch.float32, requires_grad=True)
+                depth = torch.tensor(Xc[:, 2], dtype=torch.float32, requires_grad=True)
+                prev = torch.tensor(xp, dtype=torch.float32)
+                if run == "serial":
+                    E = flow_loss(cur, prev, f, target, depth_cur=depth, cull_backfaces=cull)
+                else:
+                    finish = flow_loss_async(pool, cur, prev, f, target, depth_cur=depth, cull_backfaces=cull)
+                    E = finish()
+                (2.0 * E).backward()
+                values.append(E.item())
+                grads.append(cur.grad.clone())
+                assert depth.grad is None  # depth only rasterises
+            assert values[0] == values[1] and values[0] > 0
+            assert torch.equal(grads[0], grads[1])
+        bad = torch.tensor(xc, dtype=torch.float32)
+        bad[0, 0] = float("nan")
+        finish = flow_loss_async(pool, bad, torch.tensor(xp), f, target, depth_cur=torch.tensor(Xc[:, 2]))
+        with pytest.raises(InputError):
+            finish()
+        with pytest.raises(InputError, match="FlowTarget"):
+            flow_loss_async(pool, bad, torch.tensor(xp), f, obs, depth_cur=torch.tensor(Xc[:, 2]))

@@ -22,6 +22,8 @@ faces), :class:`FrameState` the variables, :class:`FrameData` one frame's observ
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cache
 
@@ -35,7 +37,7 @@ from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.pose_prior import PosePrior
 from flowmocap.geometry.camera import PinholeCamera
-from flowmocap.render import flow_loss, flow_target, prepare_faces
+from flowmocap.render import flow_loss_async, flow_target, prepare_faces
 
 #: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
@@ -150,6 +152,17 @@ def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerCon
                      keypoints=keypoints)
 
 
+_FLOW_THREAD: list = []
+
+
+def _flow_thread() -> ThreadPoolExecutor:
+    """The one worker thread :func:`frame_energy` computes ``E_f`` on (made on first use;
+    a forked child makes its own)."""
+    if not _FLOW_THREAD or _FLOW_THREAD[0][0] != os.getpid():
+        _FLOW_THREAD[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="flowmocap-flow"))]
+    return _FLOW_THREAD[0][1]
+
+
 def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, stage: int | None,
                  prev_px: torch.Tensor | None, ref_pose: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
     """The objective of one frame.
@@ -165,9 +178,12 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     """
     out, px, depth = scene.forward(state.pose, state.trans)
     terms = {}
+    flow = None
     if prev_px is not None and data.targets and cfg.flow_weight > 0:
-        ef = flow_loss(px, prev_px, scene.faces, data.targets[stage], depth_cur=depth, cull_backfaces=True)
-        terms["flow"] = cfg.flow_weight * ef / data.person_pixels
+        # rasterised and compared on the flow thread while the other terms are built here
+        flow = flow_loss_async(_flow_thread(), px, prev_px, scene.faces, data.targets[stage], depth_cur=depth,
+                               cull_backfaces=True)
+        terms["flow"] = None  # keeps E_f first in the sum, as it always was
     caps = None
     if data.mask is not None and cfg.silhouette_weight > 0:
         if cfg.silhouette_model == "mesh":
@@ -202,6 +218,8 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.depth_ref is not None and cfg.depth_temporal_weight > 0:
         terms["depth_temporal"] = cfg.depth_temporal_weight * en.depth_temporal_energy(
             state.trans.reshape(1, 3), *data.depth_ref)[0]
+    if flow is not None:
+        terms["flow"] = cfg.flow_weight * flow() / data.person_pixels
     total = sum(terms.values(), (state.pose * 0.0).sum())
     return total, {k: float(v.detach()) for k, v in terms.items()}
 

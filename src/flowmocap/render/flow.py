@@ -73,6 +73,8 @@ from __future__ import annotations
 
 import functools
 import threading
+from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -98,7 +100,8 @@ from flowmocap.render.pyramid import (
 )
 from flowmocap.render.raster import Raster, rasterize_scratch
 
-__all__ = ["FlowTarget", "FlowResiduals", "flow_target", "render_flow", "flow_loss", "flow_residuals"]
+__all__ = ["FlowTarget", "FlowResiduals", "flow_target", "render_flow", "flow_loss", "flow_loss_async",
+           "flow_residuals"]
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -842,12 +845,43 @@ def flow_loss(
         verts_px_cur, verts_px_prev, faces, observed_flow, weight, levels, level_weights,
         raster, depth_cur, depth_prev, cull_backfaces)
     ev = _evaluate(xc, xp, f, target, rho, zc, zp, raster, covered_only, boundary)
+    return _attach(ev, verts_px_cur, verts_px_prev, depth_cur, depth_prev, zp is not None)
+
+
+def flow_loss_async(executor: Executor, verts_px_cur: torch.Tensor, verts_px_prev: torch.Tensor, faces: Any,
+                    observed_flow: FlowTarget, *, depth_cur: torch.Tensor, cull_backfaces: bool = False
+                    ) -> Callable[[], torch.Tensor]:
+    """:func:`flow_loss` (with its rasterisation from ``depth_cur``) started on
+    ``executor``, so that the compiled rasteriser and flow kernel (which release the GIL)
+    run on another core while the caller builds the other terms of an objective.
+
+    Takes what the tracker passes to :func:`flow_loss` (a prepared :class:`FlowTarget`,
+    ``(V, 2)`` pixels and ``(V,)`` metres); copies the vertices before returning, so the
+    caller may go on using (not modifying) its tensors. Returns ``finish()``, which
+    waits and gives exactly what :func:`flow_loss` would have (the same arithmetic; its
+    exceptions are raised there)."""
+    if not isinstance(observed_flow, FlowTarget):
+        raise InputError("flow_loss_async needs a FlowTarget (flow_target())")
+    numeric = [t.detach().numpy().copy() if isinstance(t, torch.Tensor) else t
+               for t in (verts_px_cur, verts_px_prev, depth_cur)]
+
+    def work():
+        xc, xp, f, target, rho, zc, zp, raster = _prepare(
+            numeric[0], numeric[1], faces, observed_flow, None, None, None, None, numeric[2], None, cull_backfaces)
+        return _evaluate(xc, xp, f, target, rho, zc, zp, raster, False, True)
+
+    pending = executor.submit(work)
+    return lambda: _attach(pending.result(), verts_px_cur, verts_px_prev, depth_cur, None, False)
+
+
+def _attach(ev: _Evaluation, verts_px_cur, verts_px_prev, depth_cur, depth_prev, exact: bool) -> torch.Tensor:
+    """The energy of ``ev`` as a 0-dim tensor carrying its gradients to the inputs that require them."""
     ref = verts_px_cur if isinstance(verts_px_cur, torch.Tensor) and verts_px_cur.is_floating_point() else None
     dtype = ref.dtype if ref is not None else torch.float64
     device = ref.device if ref is not None else torch.device("cpu")
     inputs, grads = [], []
     pairs = [(verts_px_cur, ev.grad_cur), (verts_px_prev, ev.grad_prev)]
-    if zp is not None:
+    if exact:
         pairs += [(depth_cur, ev.grad_depth_cur), (depth_prev, ev.grad_depth_prev)]
     for t, g in pairs:
         if isinstance(t, torch.Tensor) and t.requires_grad:
