@@ -200,6 +200,39 @@ def test_a_trial_pose_that_cannot_be_evaluated_makes_the_line_search_back_off():
         minimise([x], energy, 10)
 
 
+def test_the_minimiser_stops_once_the_energy_stalls_at_its_best_point():
+    """With rel_tolerance, L-BFGS ends once STALL_WINDOW evaluations improve the lowest
+    energy by less than that fraction, and leaves the parameters at the lowest energy it
+    evaluated (possibly before the line search it stopped in); without, it runs as torch's."""
+    from flowmocap.fit.lbfgs import STALL_WINDOW, minimise
+
+    scales = torch.logspace(0, 3, 12)  # an ill-conditioned quadratic: slow, steady progress
+
+    def run(rel):
+        x = torch.ones(12, requires_grad=True)
+        seen = []
+
+        def energy():
+            e = (scales * (x - 0.3) ** 2).sum() + 1.0  # minimum 1 at x = 0.3
+            seen.append((float(e.detach()), x.detach().clone()))
+            return e
+
+        value = minimise([x], energy, 100, rel_tolerance=rel)
+        return x.detach(), value, seen
+
+    x0, v0, seen0 = run(0.0)
+    x1, v1, seen1 = run(1e-3)
+    assert len(seen1) < len(seen0)  # stopped early
+    lowest = min(e for e, _ in seen1)
+    assert v1 == lowest
+    assert float((scales * (x1 - 0.3) ** 2).sum() + 1.0) == pytest.approx(lowest, rel=1e-6)
+    # it stopped because the lowest energy stalled: over the last window it moved < 0.1 %
+    best = np.minimum.accumulate([e for e, _ in seen1])
+    assert best[-1 - STALL_WINDOW] - best[-1] <= 1e-3 * best[-1]
+    assert all(best[k - STALL_WINDOW] - best[k] > 1e-3 * best[k] for k in range(STALL_WINDOW, len(best) - 1))
+    assert v0 <= v1 and v1 - 1.0 < 0.05  # close to the minimum all the same
+
+
 def test_initialisation_from_noisy_joints(clip, model, tmp_path):
     seq = load_sequence(clip)
     cfg = TrackerConfig(init_iterations=40, init_flow_iterations=10)

@@ -67,7 +67,7 @@ _RANGE_OK = {
 _RANGES: dict[str, str] = {
     "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
-    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1,
+    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
@@ -115,6 +115,7 @@ class TrackerConfig:
     levels: int = 3                    # Gaussian pyramid levels of E_f, for motions beyond a few px
     stages: tuple[tuple[int, ...], ...] = ((2,), (0, 1, 2))  # coarse to fine: levels used per stage
     iterations: int = 20               # L-BFGS iterations per stage
+    rel_tolerance: float = 0.0         # a stage stops once 5 evaluations improve E by less than this fraction
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
     limb_depth_weight: float = 2.0     # lambda_d, E_d: the detector's 3D joints resolve depth flips

@@ -69,7 +69,7 @@ def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerCon
     ref = init.pose.detach().clone()
     for stage in range(len(cfg.stages)):
         minimise([pose, trans], lambda: frame_energy(scene, state, data, cfg, stage, prev_px, ref)[0],
-                 cfg.iterations)
+                 cfg.iterations, cfg.rel_tolerance)
     with torch.no_grad():
         try:
             total, terms = frame_energy(scene, state, data, cfg, len(cfg.stages) - 1, prev_px, ref)
