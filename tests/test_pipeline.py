@@ -65,6 +65,24 @@ def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):
     assert res.frame_index.tolist() == [0, 1, 2]
 
 
+def test_fast_layers_its_settings_under_the_config_and_is_part_of_the_fingerprint(seq_dir, tmp_path, capsys):
+    from flowmocap.fit.config import FAST_SETTINGS
+
+    init = seq_dir.parent / "init.json"
+    kw = dict(init=init, frames="0:3", progress=False, joints3d="off")
+    res = flowmocap.track(seq_dir, tmp_path / "fast", config=QUICK, fast=True, **kw)
+    assert "fast" in capsys.readouterr().out
+    assert FAST_SETTINGS and all(res.run["config"][k] == v for k, v in FAST_SETTINGS.items())
+    assert res.run["config"]["iterations"] == 4  # the config still applies
+    mine = flowmocap.track(seq_dir, tmp_path / "mine", config={**QUICK, "rel_tolerance": 1e-3}, fast=True, **kw)
+    assert mine.run["config"]["rel_tolerance"] == 1e-3  # and overrides fast's
+    with pytest.raises(InputError, match="set-up"):  # a resume must use the same settings
+        flowmocap.track(seq_dir, tmp_path / "fast", config=QUICK, resume=True, **kw)
+    assert main(["track", str(seq_dir), "--out", str(tmp_path / "cli"), "--init", str(init), "--config",
+                 str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--frames", "0:3", "--fast", "--quiet"]) == 0
+    _same(res, flowmocap.load_result(tmp_path / "cli"))
+
+
 def test_bad_input_gives_the_projects_errors(seq_dir, tmp_path):
     init = seq_dir.parent / "init.json"
     kw = dict(init=init, progress=False, joints3d="off", log=None)

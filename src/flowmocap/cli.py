@@ -61,7 +61,8 @@ def cmd_track(args) -> int:
     settings = {"init": args.init or "auto", "masks": args.masks, "camera": args.camera or args.focal,
                 "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
-                "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow}
+                "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow,
+                "fast": args.fast}
     lists = [args.list] if args.list else []
     if args.workers < 1:
         raise InputError(f"--workers must be at least 1; got {args.workers}.")
@@ -187,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "
                    "OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for videos: "
                    "about 2.5 MB a frame at 640x480)")
+    t.add_argument("--fast", action="store_true", help="faster, a little less accurate: every optimisation "
+                   "stops once it stalls, refits take half the iterations (docs/settings.md has the measurements)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
     t.add_argument("--quiet", action="store_true", help="no progress bars")

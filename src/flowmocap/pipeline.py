@@ -27,7 +27,7 @@ import torch
 
 from flowmocap.body import BodyModel, load_body_model
 from flowmocap.errors import DataError, InputError, NoPersonError, OutputError
-from flowmocap.fit.config import PROFILES, TrackerConfig
+from flowmocap.fit.config import FAST_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
 from flowmocap.fit.objective import (
     ENERGY_NAMES,
@@ -184,7 +184,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
           max_size: int | None = 1280, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
-          force: bool = False, keep_flow: bool | None = None) -> Result:
+          force: bool = False, keep_flow: bool | None = None, fast: bool = False) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -239,6 +239,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             640x480, float32) for a resume or ``flowmocap render`` to reuse; None (default):
             for frame folders, not for videos, whose flows would fill the disk (a resume and
             ``render`` compute them again, giving the same values).
+        fast: the :data:`~flowmocap.fit.config.FAST_SETTINGS` over the profile's (``config``
+            still overrides them): faster, a little less accurate (``docs/settings.md``).
 
     Returns:
         the :class:`Result`.
@@ -261,7 +263,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-                          flow, max_size, reinit, joints3d, say, person, force, keep_flow)
+                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast)
         except BaseException as e:
             _failed_before_tracking(out, e)
             if not isinstance(e, OSError):
@@ -289,7 +291,7 @@ def _failed_before_tracking(out: Path, error: BaseException) -> None:
 
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-           flow, max_size, reinit, joints3d, say, person, force, keep_flow) -> Result:
+           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -314,7 +316,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         why = "chosen"
     if profile not in PROFILES:
         raise InputError(f"unknown profile {profile!r}; use one of {sorted(PROFILES)}.")
-    cfg = TrackerConfig.load(config, profile=profile, flow_method=flow)
+    cfg = TrackerConfig.load(config, profile=profile, base=FAST_SETTINGS if fast else None, flow_method=flow)
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
     if choice[0] != "largest" and not (auto_masks or auto_init):
         raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
@@ -332,7 +334,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
-                                "joints3d": joints3d, "masks": "auto" if auto_masks else "given"})
+                                "joints3d": joints3d, "masks": "auto" if auto_masks else "given",
+                                **({"fast": True} if fast else {})})
     if resume and has_result(out):
         done = _resumable(out, fingerprint)
         if done is not None:
@@ -345,7 +348,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if not has_result(out):
         write_run(out, {"flowmocap": __version__, "status": "preparing", "input": str(src),
                         "fingerprint": fingerprint})
-    say(f"settings: profile '{profile}' ({why})" + (f", then {config}" if isinstance(config, (str, Path)) else
+    say(f"settings: profile '{profile}' ({why})" + (", fast" if fast else "") + (f", then {config}" if isinstance(config, (str, Path)) else
                                                     ", then the given overrides" if config else ""))
     cache_key = digest_value([fingerprint["input"], list(seq.size)])
     _fresh_cache(out / "detections", cache_key, say)

@@ -40,6 +40,11 @@ PROFILES: dict[str, dict[str, Any]] = {
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3},
 }
 
+#: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's that trade
+#: a little accuracy for speed (docs/settings.md has the measurements): every L-BFGS run
+#: stops once it stalls, and a refit's steps get half the iterations.
+FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-4, "reinit_iterations": 30}
+
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
     "occlusion_temporal_gain": "E_theta weighs every joint alike (temporal_weight), hidden or not",
@@ -115,7 +120,8 @@ class TrackerConfig:
     levels: int = 3                    # Gaussian pyramid levels of E_f, for motions beyond a few px
     stages: tuple[tuple[int, ...], ...] = ((2,), (0, 1, 2))  # coarse to fine: levels used per stage
     iterations: int = 20               # L-BFGS iterations per stage
-    rel_tolerance: float = 0.0         # a stage stops once 5 evaluations improve E by less than this fraction
+    rel_tolerance: float = 0.0         # an L-BFGS run (frame stage, init or refit step) stops once 5
+    #                                    evaluations improve its energy by less than this fraction; 0: never
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
     limb_depth_weight: float = 2.0     # lambda_d, E_d: the detector's 3D joints resolve depth flips
@@ -261,4 +267,4 @@ def check_setting_names(values: Mapping[str, Any], source: str = "config") -> No
         raise InputError(f"{source}: unknown config settings {unknown}; known: {sorted(names)}.")
 
 
-__all__ = ["TrackerConfig", "PROFILES", "REMOVED_SETTINGS", "profile_names", "check_setting_names"]
+__all__ = ["TrackerConfig", "PROFILES", "FAST_SETTINGS", "REMOVED_SETTINGS", "profile_names", "check_setting_names"]

@@ -261,10 +261,10 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
 
     params = [trans, pose] + ([betas] if fit_shape else [])
     # 1a: translation only, 1b: everything, 2: everything with the silhouette
-    minimise([trans], lambda: energy(False), max(iterations // 3, 1))
-    minimise(params, lambda: energy(False), iterations)
+    minimise([trans], lambda: energy(False), max(iterations // 3, 1), cfg.rel_tolerance)
+    minimise(params, lambda: energy(False), iterations, cfg.rel_tolerance)
     if silhouette is not None and cfg.silhouette_weight > 0:
-        minimise(params, lambda: energy(True), iterations)
+        minimise(params, lambda: energy(True), iterations, cfg.rel_tolerance)
     terms: dict = {}
     with torch.no_grad():
         energy(silhouette is not None, terms)
@@ -299,7 +299,7 @@ def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameDat
         return e1 + e0 + ek + ep
 
     for stage in range(len(cfg.stages)):
-        minimise([p0, t0, p1, t1], lambda: energy(stage), cfg.init_flow_iterations)
+        minimise([p0, t0, p1, t1], lambda: energy(stage), cfg.init_flow_iterations, cfg.rel_tolerance)
     return FrameState(p0.detach(), t0.detach()), FrameState(p1.detach(), t1.detach())
 
 
