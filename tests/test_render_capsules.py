@@ -40,6 +40,15 @@ def test_signed_distance_is_exact_at_grid_points(step):
         assert np.abs(sd[k].numpy() - exact).max() <= step / np.sqrt(2) + 1e-9
 
 
+def test_float32_capsules_give_a_float32_map_of_the_same_values():
+    H, W = 37, 53
+    a, b, r = _capsules(B=2)
+    sd64 = capsule_signed_distance(torch.tensor(a), torch.tensor(b), torch.tensor(r), H, W, grid_step=4)
+    sd32 = capsule_signed_distance(*(torch.tensor(x, dtype=torch.float32) for x in (a, b, r)), H, W, grid_step=4)
+    assert sd32.dtype == torch.float32
+    np.testing.assert_allclose(sd32.numpy(), sd64.numpy(), atol=1e-4)
+
+
 def test_a_window_is_the_same_part_of_the_whole_map():
     H, W = 37, 53
     a, b, r = (torch.tensor(x) for x in _capsules())

@@ -9,15 +9,18 @@ pixels from pixel centre ``p`` is
 To keep it cheap it is evaluated exactly on a coarse grid of pixel centres, every
 ``grid_step`` pixels starting at pixel (0, 0), and bilinearly interpolated in between
 (exact at grid pixels ``(u, v)`` with ``u % grid_step == 0`` and ``v % grid_step == 0``).
-Everything is torch, differentiable w.r.t. the segment end points and radii.
+Differentiable w.r.t. the segment end points and radii: the minimum over the capsules is
+one compiled (Numba) pass, its gradient and the interpolation are torch.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 import torch
+from numba import njit
 import torch.nn.functional  # noqa: F401  (interpolate)
 
 from flowmocap.errors import InputError
@@ -53,6 +56,38 @@ def _reference(*xs: Any) -> torch.Tensor | None:
     return None
 
 
+@njit(cache=True, nogil=True)
+def _grid_signed_distance_kernel(pts, a, d, inv, r, best, arg):
+    """``best[b, n] = min_k (|p_n - closest point of segment k| - r[b, k])`` and its arg-min
+    (the first on ties), for points ``pts (N, 2)``, segments ``a (B, K, 2)`` + ``t d``
+    with ``inv = 1 / |d|^2`` ``(B, K)``; float64 throughout."""
+    B, K = r.shape
+    for bi in range(B):
+        for n in range(pts.shape[0]):
+            x = pts[n, 0]
+            y = pts[n, 1]
+            low = np.inf
+            which = 0
+            for k in range(K):
+                px = x - a[bi, k, 0]
+                py = y - a[bi, k, 1]
+                dx = d[bi, k, 0]
+                dy = d[bi, k, 1]
+                t = (px * dx + py * dy) * inv[bi, k]
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+                ex = px - t * dx
+                ey = py - t * dy
+                dist = math.sqrt(ex * ex + ey * ey) - r[bi, k]
+                if dist < low:
+                    low = dist
+                    which = k
+            best[bi, n] = low
+            arg[bi, n] = which
+
+
 class _GridSignedDistance(torch.autograd.Function):
     """``min_k (dist(p, segment_k) - r_k)`` at fixed points ``p (N, 2)`` for a batch.
 
@@ -64,25 +99,19 @@ class _GridSignedDistance(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, pts, a, b, r):  # noqa: D102
-        d = b - a  # (B, K, 2)
-        inv = 1.0 / (d * d).sum(-1).clamp_min(1e-12)
+        # the minimum over the capsules in one compiled pass (in float64), not K rounds of
+        # whole-grid torch operations: about 10 times faster for a body's 20 capsules
+        a64 = a.detach().to(torch.float64)
+        d64 = b.detach().to(torch.float64) - a64
+        inv = 1.0 / (d64 * d64).sum(-1).clamp_min(1e-12)
         B, K = r.shape
-        px0, py0 = pts[None, :, 0], pts[None, :, 1]
-        best = torch.full((B, pts.shape[0]), float("inf"), dtype=a.dtype, device=a.device)
-        arg = torch.zeros((B, pts.shape[0]), dtype=torch.long, device=a.device)
-        for k in range(K):
-            px = px0 - a[:, k, 0:1]
-            py = py0 - a[:, k, 1:2]
-            dx, dy = d[:, k, 0:1], d[:, k, 1:2]
-            t = ((px * dx + py * dy) * inv[:, k:k + 1]).clamp(0.0, 1.0)
-            ex = px - t * dx
-            ey = py - t * dy
-            dist = torch.sqrt(ex * ex + ey * ey) - r[:, k:k + 1]
-            closer = dist < best
-            best = torch.where(closer, dist, best)
-            arg = torch.where(closer, torch.full_like(arg, k), arg)
-        ctx.save_for_backward(pts, a, b, arg)
-        return best
+        best = np.empty((B, pts.shape[0]))
+        arg = np.empty((B, pts.shape[0]), dtype=np.int64)
+        _grid_signed_distance_kernel(pts.detach().to(torch.float64).numpy(), a64.numpy(), d64.numpy(), inv.numpy(),
+                                     r.detach().to(torch.float64).numpy(), best, arg)
+        arg_t = torch.from_numpy(arg).to(a.device)
+        ctx.save_for_backward(pts, a, b, arg_t)
+        return torch.from_numpy(best).to(dtype=a.dtype, device=a.device)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
