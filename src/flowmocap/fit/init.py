@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from flowmocap.body import JOINT_INDEX, BodyModel, body_capsules
+from flowmocap.body.capsules import rest_capsules
 from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
@@ -226,6 +227,11 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     if prior_w.shape != (24,):
         raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
+    rest = None  # the capsules in the rest pose depend on the shape only: made once when it is fixed
+    if not fit_shape:
+        with torch.no_grad():
+            rest = rest_capsules(model, model(betas=betas))
+
     def energy(with_silhouette: bool, terms: dict | None = None):
         out = model(betas=betas, pose=pose[None], trans=trans[None])
         pj = camera.project(out.joints[0])
@@ -244,7 +250,7 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
                 out.joints, camera, joints3d, cfg.detector3d_scale)[0]
         if cfg.init_learned_prior_weight > 0:
             t["learned_prior"] = cfg.init_learned_prior_weight * learned_pose_prior().energy(pose[None])[0]
-        caps = body_capsules(model, out)
+        caps = body_capsules(model, out, rest=rest)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:
             if cfg.silhouette_model == "mesh":
