@@ -65,6 +65,15 @@ def test_both_parts_present_and_weighted_by_a(setup):
     np.testing.assert_allclose(r1.numpy(), r[:V].numpy() * np.sqrt(1.0 / 0.6), rtol=1e-10)
 
 
+def test_a_given_rasterisation_gives_the_same_residuals(setup):
+    px, d = setup["project"]([0.03, -0.02, 0.05])
+    own = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], a=0.4, grid_step=4)
+    raster = rasterize(px.numpy(), d.numpy(), setup["faces"], 240, 320, cull_backfaces=True)
+    given = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], a=0.4, grid_step=4, raster=raster)
+    assert own.shape[0] > px.shape[0]  # some of the mask is uncovered: both parts present
+    assert torch.equal(own, given)
+
+
 def test_gradient_matches_finite_differences(setup):
     px, d = setup["project"]([0.03, 0.02, 0.0])
     x = px.detach().clone().requires_grad_()

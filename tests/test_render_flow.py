@@ -430,6 +430,11 @@ def test_the_flow_term_on_a_worker_thread_gives_the_same_value_and_gradients():
                 assert depth.grad is None  # depth only rasterises
             assert values[0] == values[1] and values[0] > 0
             assert torch.equal(grads[0], grads[1])
+            # the worker's rasterisation is the mesh's coverage, as rasterize gives it
+            pending = flow_loss_async(pool, cur, prev, f, target, depth_cur=depth, cull_backfaces=cull)
+            np.testing.assert_array_equal(pending.raster().face_id,
+                                          rasterize(xc, Xc[:, 2], f, H, W, cull_backfaces=cull).face_id)
+            assert pending().item() == values[0]
         bad = torch.tensor(xc, dtype=torch.float32)
         bad[0, 0] = float("nan")
         finish = flow_loss_async(pool, bad, torch.tensor(xp), f, target, depth_cur=torch.tensor(Xc[:, 2]))

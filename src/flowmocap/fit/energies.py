@@ -614,6 +614,7 @@ def mesh_silhouette_residuals(
     grid_step: int = 4,
     margin: float = 0.5,
     cull_backfaces: bool = True,
+    raster: Any = None,
 ) -> torch.Tensor:
     """Residuals of E_c with the model silhouette taken from the mesh itself.
 
@@ -643,6 +644,9 @@ def mesh_silhouette_residuals(
         grid_step: pixels between the mask samples of the second part.
         margin: pixels of chamfer distance tolerated (see above).
         cull_backfaces: rasterise front faces only (same coverage, faster).
+        raster: the mesh already rasterised at these vertices and depths with these
+            ``cull_backfaces`` (e.g. by the flow term, :class:`~flowmocap.render.flow.PendingFlow`),
+            or None to rasterise here.
 
     Returns:
         ``(V + n_uncovered,)`` residuals in px (scaled as above).
@@ -670,7 +674,9 @@ def mesh_silhouette_residuals(
     with torch.no_grad():
         xy = verts_px.detach().cpu().numpy().astype(np.float64)
         z = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
-        face_id = rasterize(xy, z, faces, H, W, cull_backfaces=cull_backfaces).face_id
+        if raster is None:
+            raster = rasterize(xy, z, faces, H, W, cull_backfaces=cull_backfaces)
+        face_id = raster.face_id
         uncovered = grid[face_id[grid[:, 1], grid[:, 0]] < 0]
     if len(uncovered) == 0 or a == 1.0:
         return inside

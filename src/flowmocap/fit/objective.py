@@ -186,9 +186,10 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
         terms["flow"] = None  # keeps E_f first in the sum, as it always was
     caps = None
     if data.mask is not None and cfg.silhouette_weight > 0:
-        if cfg.silhouette_model == "mesh":
+        if cfg.silhouette_model == "mesh":  # the coverage of the flow term's rasterisation, when it has one
             ec = en.mesh_silhouette_energy(px, depth, scene.faces, data.silhouette, a=cfg.silhouette_a,
-                                           grid_step=cfg.capsule_grid_step)
+                                           grid_step=cfg.capsule_grid_step,
+                                           raster=flow.raster() if flow is not None else None)
         else:
             caps = scene.capsules(out)
             ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,

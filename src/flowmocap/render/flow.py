@@ -74,7 +74,7 @@ from __future__ import annotations
 import functools
 import threading
 from collections.abc import Callable
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -101,7 +101,7 @@ from flowmocap.render.pyramid import (
 from flowmocap.render.raster import Raster, rasterize_scratch
 
 __all__ = ["FlowTarget", "FlowResiduals", "flow_target", "render_flow", "flow_loss", "flow_loss_async",
-           "flow_residuals"]
+           "PendingFlow", "flow_residuals"]
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -848,30 +848,54 @@ def flow_loss(
     return _attach(ev, verts_px_cur, verts_px_prev, depth_cur, depth_prev, zp is not None)
 
 
+class PendingFlow:
+    """``E_f`` being computed on a worker thread (:func:`flow_loss_async`). Call it for the
+    energy (a 0-dim tensor, as :func:`flow_loss` returns); :meth:`raster` gives the mesh's
+    rasterisation as soon as the worker has made it (for another term that needs the
+    same coverage, e.g. the mesh silhouette), while the flow kernel goes on."""
+
+    def __init__(self, pending: Future, raster: Future, finish: Callable):
+        self._pending, self._raster, self._finish = pending, raster, finish
+
+    def raster(self) -> Raster:
+        """The :class:`~flowmocap.render.Raster` of the current vertices (read it only
+        until this energy is finished: the worker reuses its buffers)."""
+        return self._raster.result()
+
+    def __call__(self) -> torch.Tensor:
+        return self._finish(self._pending.result())
+
+
 def flow_loss_async(executor: Executor, verts_px_cur: torch.Tensor, verts_px_prev: torch.Tensor, faces: Any,
                     observed_flow: FlowTarget, *, depth_cur: torch.Tensor, cull_backfaces: bool = False
-                    ) -> Callable[[], torch.Tensor]:
+                    ) -> PendingFlow:
     """:func:`flow_loss` (with its rasterisation from ``depth_cur``) started on
     ``executor``, so that the compiled rasteriser and flow kernel (which release the GIL)
     run on another core while the caller builds the other terms of an objective.
 
     Takes what the tracker passes to :func:`flow_loss` (a prepared :class:`FlowTarget`,
     ``(V, 2)`` pixels and ``(V,)`` metres); copies the vertices before returning, so the
-    caller may go on using (not modifying) its tensors. Returns ``finish()``, which
-    waits and gives exactly what :func:`flow_loss` would have (the same arithmetic; its
-    exceptions are raised there)."""
+    caller may go on using (not modifying) its tensors. Returns a :class:`PendingFlow`;
+    calling it waits and gives exactly what :func:`flow_loss` would have (the same
+    arithmetic; its exceptions are raised there)."""
     if not isinstance(observed_flow, FlowTarget):
         raise InputError("flow_loss_async needs a FlowTarget (flow_target())")
     numeric = [t.detach().numpy().copy() if isinstance(t, torch.Tensor) else t
                for t in (verts_px_cur, verts_px_prev, depth_cur)]
+    raster_ready: Future = Future()
 
     def work():
-        xc, xp, f, target, rho, zc, zp, raster = _prepare(
-            numeric[0], numeric[1], faces, observed_flow, None, None, None, None, numeric[2], None, cull_backfaces)
+        try:
+            xc, xp, f, target, rho, zc, zp, raster = _prepare(
+                numeric[0], numeric[1], faces, observed_flow, None, None, None, None, numeric[2], None, cull_backfaces)
+        except BaseException as e:
+            raster_ready.set_exception(e)
+            raise
+        raster_ready.set_result(raster)
         return _evaluate(xc, xp, f, target, rho, zc, zp, raster, False, True)
 
-    pending = executor.submit(work)
-    return lambda: _attach(pending.result(), verts_px_cur, verts_px_prev, depth_cur, None, False)
+    return PendingFlow(executor.submit(work), raster_ready,
+                       lambda ev: _attach(ev, verts_px_cur, verts_px_prev, depth_cur, None, False))
 
 
 def _attach(ev: _Evaluation, verts_px_cur, verts_px_prev, depth_cur, depth_prev, exact: bool) -> torch.Tensor:
