@@ -12,8 +12,8 @@ folder's size, and the seconds per frame of each stretch, and writes JSON.
 the whole video before tracking) and the ``video`` profile tracks. ``--masks given``
 passes the rendered masks and an init.json (the ``synthetic`` profile, no detector).
 
-Usage: python benchmarks/long_video.py [--minutes 10] [--work DIR] [--masks auto|given]
-       [--out benchmarks/results/long_video.json] [--cycle 60]
+Usage: python benchmarks/long_video.py [--minutes 10] [--work DIR] [--masks auto|given] [--fast]
+       [--out benchmarks/results/long_video.json] [--cycle 60] [--stop-after SECONDS]
 """
 
 from __future__ import annotations
@@ -109,6 +109,7 @@ def main() -> int:
     ap.add_argument("--masks", default="auto", choices=["auto", "given"])
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "long_video"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "long_video.json"))
+    ap.add_argument("--fast", action="store_true", help="track with --fast (docs/settings.md)")
     ap.add_argument("--stop-after", type=float, default=None, help="stop tracking after this many seconds and "
                     "report the frames reached (the result resumes with the same command)")
     args = ap.parse_args()
@@ -117,8 +118,10 @@ def main() -> int:
     t0 = time.time()
     video, masks, init = make_video(work, args.minutes, args.cycle, args.size)
     print(f"video {video} ({video.stat().st_size / 2 ** 20:.1f} MB) made in {time.time() - t0:.0f} s", flush=True)
-    res = work / f"result_{args.minutes:g}min_{args.masks}"
+    res = work / f"result_{args.minutes:g}min_{args.masks}{'_fast' if args.fast else ''}"
     cmd = [sys.executable, "-m", "flowmocap.cli", "track", str(video), "--out", str(res), "--quiet"]
+    if args.fast:
+        cmd.append("--fast")
     if args.masks == "given":
         cmd += ["--masks", str(masks), "--init", str(init)]
     if (res / "run.json").exists():
@@ -161,7 +164,8 @@ def main() -> int:
         t_a, f_a = (next(s[0] for s in tracking), 2) if a is None else (a["seconds"], a["frame"])
         b["s_per_frame"] = round((b["seconds"] - t_a) / max(1, b["frame"] - f_a), 3)
     result = {
-        "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "wall_s": round(wall, 1),
+        "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "fast": args.fast,
+        "wall_s": round(wall, 1),
         "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),
         "result_folder_mb": round(folder_mb(res), 2), "video_mb": round(video.stat().st_size / 2 ** 20, 1),
         "s_per_frame_median": run.get("timings", {}).get("s_per_frame_median"), "marks": rows,
