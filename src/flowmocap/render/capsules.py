@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from numba import njit
 import torch.nn.functional  # noqa: F401  (interpolate)
+from numba import njit
 
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_size
