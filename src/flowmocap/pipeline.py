@@ -65,6 +65,7 @@ from flowmocap.vision import FlowCache
 from flowmocap.vision.auto import (
     PersonTrack,
     auto_init,
+    detect_for_given_masks,
     detect_joints3d,
     detect_sequence,
     first_person_frame,
@@ -330,7 +331,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     else:
         spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
         a, b = _init_span(frames, spec, len(seq))
-    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d)
+    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d) or cfg.detector_keypoints
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
@@ -389,9 +390,16 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["video"]["max_side"] = max_size or None
 
     keypoints = j3d = None
+    watch = detections  # the detections the re-initialisation compares each frame with
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         j3d = lambda i: detections.smpl_joints3d(i, cam)
+    elif cfg.detector_keypoints:  # own masks and init, but the detector's joints of every frame too
+        say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
+        watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
+        if watch is not None:
+            keypoints = lambda i: watch.smpl_joints(i) if i < len(watch) and watch.found[i] else None
+            j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
         j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress)
@@ -400,7 +408,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None
-    monitor = detections if (detections is not None and reinit) else None
+    monitor = watch if (watch is not None and reinit) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
                {"fingerprint": fingerprint, **notes}, keep_flow)
     t = run["timings"]

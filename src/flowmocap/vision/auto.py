@@ -48,7 +48,7 @@ from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetect
 from flowmocap.vision.person import (box_iou, choose_person, clean_mask, describe_person, parse_person, person_box,
                                      same_person)
 
-__all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "load_detections", "auto_init",
+__all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "detect_for_given_masks", "load_detections", "auto_init",
            "first_person_frame", "frame_runs", "facing_rotvec", "MIN_INIT_JOINTS", "find_people", "split_tracks",
            "track_scores", "follow_person", "Candidate"]
 
@@ -441,6 +441,26 @@ def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], t
     return out
 
 
+def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> tuple:
+    """The detector's keypoints and 3D joints when nothing else runs the detector (an
+    input with its own masks and init.json): MediaPipe without the mask augmentation
+    (about 0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
+
+    Returns:
+        ``(track, note)``: the :class:`PersonTrack` (2D joints in pixels of ``seq``'s
+        frames, 3D joints in metres), or None when no detector is installed or it finds
+        no person; and a sentence for ``input.json``.
+    """
+    from flowmocap.errors import InputError
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    try:
+        track = detect_sequence(seq, out_dir, detector=MediaPipePoseDetector(augment=False), progress=progress)
+    except (InputError, NoPersonError) as e:
+        return None, f"no detector joints: {e}"
+    return track, f"detector joints: {track.info['detector']}, {track.info['frames_with_person']} frames"
+
+
 def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True) -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
@@ -452,13 +472,9 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
         ``camera`` when given), or None when no detector is installed or it finds no
         person; and a sentence for ``input.json``.
     """
-    from flowmocap.errors import InputError
-    from flowmocap.vision.detect import MediaPipePoseDetector
-
-    try:
-        track = detect_sequence(seq, out_dir, detector=MediaPipePoseDetector(augment=False), progress=progress)
-    except (InputError, NoPersonError) as e:
-        return None, f"no 3D joints for E_d: {e}"
+    track, note = detect_for_given_masks(seq, out_dir, progress)
+    if track is None:
+        return None, note.replace("no detector joints", "no 3D joints for E_d")
     return (lambda i: track.smpl_joints3d(i, camera)), (f"3D joints for E_d: {track.info['detector']}, "
                                                         f"{track.info['frames_with_person']} frames")
 
