@@ -106,6 +106,51 @@ def test_thresholds_come_from_the_config(setup, monkeypatch):
             TrackerConfig.load(None, **bad)
 
 
+def test_refits_turned_down_back_off(setup, monkeypatch):
+    """Each refit turned down doubles the wait before the next attempt (from the patience,
+    up to reinit_max_wait); a kept refit or a good frame ends the wait; the wait survives
+    a resume."""
+    import json
+
+    seq, track, scene = setup
+    mon = ReinitMonitor(track, TrackerConfig(reinit_patience=1, reinit_max_wait=4))
+    kept = {"now": False}
+    attempts = []
+
+    def refit(i, state, scene_, mask, before, in3d=False):
+        attempts.append(i)
+        return (state, {}) if kept["now"] else None
+
+    monkeypatch.setattr(ReinitMonitor, "_confident", lambda self, i: True)  # the clip has 6 frames
+    monkeypatch.setattr(mon, "_reinitialise", refit)
+    monkeypatch.setattr(mon, "judge", lambda i, *a: {"iou": 0.3, "joint_error": 0.5, "bad": True})
+    for i in range(2, 14):  # every frame bad, every refit turned down: waits 1, 2, 4, 4, ...
+        mon(i, _state(seq, 0), scene, None)
+    assert attempts == [2, 3, 5, 9, 13]
+    state = json.loads(json.dumps(mon.state_dict()))
+    fresh = ReinitMonitor(track, TrackerConfig(reinit_patience=1, reinit_max_wait=4))
+    fresh.load_state_dict(state)
+    assert [fresh._due(i, 1) for i in (14, 16, 17)] == [mon._due(i, 1) for i in (14, 16, 17)] == [False, False, True]
+    monkeypatch.setattr(mon, "judge", lambda i, *a: {"iou": 0.9, "joint_error": 0.01, "bad": False})
+    mon(14, _state(seq, 0), scene, None)  # a good frame ends the wait
+    monkeypatch.setattr(mon, "judge", lambda i, *a: {"iou": 0.3, "joint_error": 0.5, "bad": True})
+    attempts.clear()
+    kept["now"] = True
+    for i in range(15, 19):  # kept refits: no wait beyond the patience
+        mon(i, _state(seq, 0), scene, None)
+    assert attempts == [15, 16, 17, 18]
+    # without the back-off (the default, 1), every bad frame is tried
+    plain = ReinitMonitor(track, TrackerConfig(reinit_patience=1))
+    monkeypatch.setattr(plain, "_reinitialise", refit)
+    monkeypatch.setattr(plain, "judge", lambda i, *a: {"iou": 0.3, "joint_error": 0.5, "bad": True})
+    kept["now"], attempts[:] = False, []
+    for i in range(2, 8):
+        plain(i, _state(seq, 0), scene, None)
+    assert attempts == [2, 3, 4, 5, 6, 7]
+    with pytest.raises(InputError):
+        TrackerConfig.load(None, reinit_max_wait=0)
+
+
 def test_a_refit_must_not_lose_the_silhouette_for_the_joints():
     """Closer joints at a much lower IoU (a detector glitch) are refused; a small IoU loss
     or an IoU gain is accepted; without masks the joints decide."""

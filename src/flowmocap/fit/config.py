@@ -76,7 +76,7 @@ _RANGES: dict[str, str] = {
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
-    "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1,
+    "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
@@ -145,6 +145,8 @@ class TrackerConfig:
     reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
     reinit_max_joint3d_error: float = 0.1  # m: a frame is 3D-bad above this aligned joint error; 0: off
     reinit_3d_patience: int = 3        # 3D-bad frames in a row before a refit
+    reinit_max_wait: int = 1           # frames: each refit turned down doubles the wait before the next
+    #                                    attempt (from the patience) up to this; 1: no back-off
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"      # flowmocap.vision.FLOW_METHODS; DIS refined to full resolution
     flow_in_mask: bool = True          # E_f only on mask pixels: the background's flow is not the body's

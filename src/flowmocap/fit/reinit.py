@@ -27,8 +27,13 @@ the refit is kept when its 3D joints are closer to the detector's, at a silhouet
 no more than 0.02 lower and 2D joints no worse than before or within
 ``reinit_max_joint_error`` (:func:`_better_3d`).
 
+Back-off: a refit that is turned down doubles the wait before the next attempt, from
+the patience up to ``reinit_max_wait`` frames; a refit that is kept, or a frame that is
+neither bad nor 3D-bad, ends the wait (a person whose mask the body never covers well,
+such as a dancer in a wide dress, would otherwise be refitted on every frame, in vain).
+
 Resuming: :meth:`ReinitMonitor.state_dict` holds the verdicts of the last frames and the
-last refit attempt (what the next frames' decisions depend on), and the tracker stores
+last refit attempt and the wait (what the next frames' decisions depend on), and the tracker stores
 it with its own state at every frame, so a resumed run decides exactly as an
 uninterrupted one. A run written without it re-judges the frames before the resumed one
 by their stored 2D joints (``stored_joints2d``) against the detector's (the silhouette
@@ -158,6 +163,8 @@ class ReinitMonitor:
         self.verdicts3d: dict[int, bool | None] = {}  # frame -> 3D-bad (None: cannot tell or criterion off)
         self.scores: dict[int, dict] = {}
         self._last_attempt = -(10 ** 9)
+        self._wait = 0  # frames the next attempt waits after the last one (grows while refits are turned down)
+        self.max_wait = max(int(cfg.reinit_max_wait), 1)
 
     def state_dict(self) -> dict:
         """JSON-serialisable state the next frames' decisions depend on: the verdicts of
@@ -165,7 +172,7 @@ class ReinitMonitor:
         attempt (:meth:`load_state_dict` continues from it)."""
         keep = sorted(self.verdicts)[-max(self.patience, self.patience3d):]
         return {"verdicts": [[j, self.verdicts[j], self.verdicts3d.get(j)] for j in keep],
-                "last_attempt": self._last_attempt}
+                "last_attempt": self._last_attempt, "wait": self._wait}
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
@@ -173,6 +180,7 @@ class ReinitMonitor:
             self.verdicts[int(j)] = bad
             self.verdicts3d[int(j)] = bad3d
         self._last_attempt = int(state["last_attempt"])
+        self._wait = int(state.get("wait", 0))  # a state stored before the back-off existed: none
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
         """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus
@@ -216,13 +224,21 @@ class ReinitMonitor:
         self.verdicts[i] = s["bad"]
         self.verdicts3d[i] = s.get("bad3d")
         self.scores[i] = s
+        if s["bad"] is False and not s.get("bad3d"):
+            self._wait = 0  # tracking is fine again: the next failure is refitted without delay
         if s["bad"] and self._due(i, self.patience):
-            self._last_attempt = i
-            return self._reinitialise(i, state, scene, mask, s)
+            return self._attempt(i, state, scene, mask, s, self.patience, in3d=False)
         if s.get("bad3d") and self._due(i, self.patience3d, in3d=True):
-            self._last_attempt = i
-            return self._reinitialise(i, state, scene, mask, s, in3d=True)
+            return self._attempt(i, state, scene, mask, s, self.patience3d, in3d=True)
         return None
+
+    def _attempt(self, i: int, state, scene, mask, s: dict, patience: int, in3d: bool):
+        """Refit frame ``i``; a refit that is turned down doubles the wait before the next
+        attempt (from ``patience`` frames up to ``max_wait``), one that is kept ends it."""
+        self._last_attempt = i
+        out = self._reinitialise(i, state, scene, mask, s, in3d=in3d)
+        self._wait = 0 if out is not None else min(max(2 * self._wait, patience), self.max_wait)
+        return out
 
     def _due(self, i: int, patience: int, in3d: bool = False) -> bool:
         """Whether frame ``i`` (bad) ends a run of ``patience`` bad frames (3D-bad with
@@ -236,7 +252,7 @@ class ReinitMonitor:
             if not v:
                 break
             run += 1
-        return run >= patience and self._confident(i) and i - self._last_attempt >= patience
+        return run >= patience and self._confident(i) and i - self._last_attempt >= max(patience, self._wait)
 
     def _reinitialise(self, i: int, state, scene, mask, before: dict, in3d: bool = False):
         j2d, conf = self.track.smpl_joints(i)
