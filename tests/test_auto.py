@@ -263,3 +263,37 @@ def test_packed_masks_round_trip_and_are_small():
     assert p.bits.nbytes <= 300 * 150 / 8 + 1 and p.bits.nbytes < m.nbytes / 40
     empty = PackedMask.pack(np.zeros((4, 5), bool))
     assert empty.unpack().shape == (4, 5) and not empty.unpack().any()
+
+
+def test_own_masks_and_init_can_use_the_detectors_joints_in_every_frame(small_clip, tmp_path, monkeypatch):
+    """detector_keypoints: an input with its own masks and init.json runs the detector once
+    and uses its 2D joints in every frame (E_j) and for refits; off, the 3D joints only."""
+    import flowmocap
+    import flowmocap.pipeline as pipeline
+    import flowmocap.vision.detect as detect
+    from flowmocap.eval.protocol import noisy_init
+    from flowmocap.fit.reinit import ReinitMonitor
+    from flowmocap.io.sequence import load_sequence
+
+    seq = load_sequence(small_clip)
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
+    judged = []
+
+    class Spy(ReinitMonitor):
+        def __call__(self, i, state, scene, mask):
+            judged.append(i)
+            return super().__call__(i, state, scene, mask)
+
+    monkeypatch.setattr(pipeline, "ReinitMonitor", Spy)
+    init = noisy_init(seq.gt, frame=0, seed=1)
+    quick = {"iterations": 3, "init_iterations": 5, "init_flow_iterations": 3}
+    on = flowmocap.track(small_clip, tmp_path / "on", init=init, config={**quick, "detector_keypoints": True},
+                         progress=False)
+    assert on.run["status"] == "finished" and on.run["profile"] == "synthetic"
+    assert np.all(on.energies["keypoints"][2:] > 0)  # E_j on every tracked frame (0 and 1: the init)
+    assert judged == list(range(2, len(seq)))  # every frame after the init is judged for a refit
+    assert "detector joints" in on.run["joints3d"] and (tmp_path / "on" / "detections" / "keypoints.npz").exists()
+    judged.clear()
+    off = flowmocap.track(small_clip, tmp_path / "off", init=init, config=quick, progress=False)
+    assert np.isnan(off.energies["keypoints"][2:]).all()  # no E_j after the init
+    assert judged == [] and "3D joints for E_d" in off.run["joints3d"]
