@@ -125,22 +125,38 @@ def reference(clip, ctx, tmp_path_factory):
     return motion, time.perf_counter() - t0
 
 
-#: Two uninterrupted runs of the same input are not bitwise equal: the initialisation's
-#: flow step ends in one of two states that differ in the last bits, at random from call
-#: to call (see docs/errors.md, "What is not exact"), and with this test's 4 L-BFGS
-#: iterations a frame's line search amplifies that to 3e-4 rad at most. So "the same
-#: result" is equality within 1e-3 rad / 1 mm, a hundred times below what a stale resume
-#: state caused (0.13 rad, 7.8 cm).
-SAME = 1e-3
+
+@pytest.fixture(scope="module")
+def reference_known(clip, ctx, tmp_path_factory):
+    """The uninterrupted run from the true first two frames (no initialisation)."""
+    out = tmp_path_factory.mktemp("reference_known") / "ref"
+    p = _child(ctx, clip, out, known=True)
+    p.join(300)
+    assert p.exitcode == 0
+    return read_result(out)[0]
 
 
-def _assert_same(out: Path, ref: dict) -> None:
+#: Runs that start from the true first two frames (``known``: no initialisation) are
+#: repeatable to float rounding, so "the same result" is equality within 1e-3 rad / 1 mm /
+#: 0.1 px, a hundred times below what a stale resume state caused (0.13 rad, 7.8 cm).
+SAME = {"rad": 1e-3, "m": 1e-3, "px": 0.1}
+#: Two uninterrupted runs that include the initialisation are not: it ends in one of two
+#: states that differ in the last bits, at random from call to call (one source is MKL's
+#: dot product, which torch's L-BFGS uses and whose result depends on the vectors'
+#: memory alignment: docs/errors.md, "What is not exact"), and this test's 4 L-BFGS
+#: iterations per frame amplify that over 8 frames (measured after the speed work: 3.2e-3
+#: rad, 5.8 mm root, 7.1 mm joints, 0.17 px). Such runs are compared within 2e-2 rad / 2 cm
+#: / 1 px, still 6 times below the stale state's error; the exact checks are the known-start ones.
+AFTER_INIT = {"rad": 2e-2, "m": 2e-2, "px": 1.0}
+
+
+def _assert_same(out: Path, ref: dict, tol: dict = SAME) -> None:
     motion, run = read_result(out)
     assert run["status"] == "finished"
     np.testing.assert_array_equal(motion["frame_index"], ref["frame_index"])
-    for k in ("poses", "trans", "joints3d", "betas"):  # radians, metres
-        np.testing.assert_allclose(motion[k], ref[k], rtol=0, atol=SAME, err_msg=k)
-    np.testing.assert_allclose(motion["joints2d"], ref["joints2d"], rtol=0, atol=0.1, err_msg="joints2d")  # px
+    for k, unit in (("poses", "rad"), ("trans", "m"), ("joints3d", "m"), ("betas", "rad")):
+        np.testing.assert_allclose(motion[k], ref[k], rtol=0, atol=tol[unit], err_msg=k)
+    np.testing.assert_allclose(motion["joints2d"], ref["joints2d"], rtol=0, atol=tol["px"], err_msg="joints2d")
     assert not list(out.glob("*.tmp")) and not (out / "progress.json").exists()
 
 
@@ -178,18 +194,24 @@ def test_a_kill_at_any_instant_resumes_exactly(clip, ctx, tmp_path):
     assert len({n for _, n in killed}) >= 3  # kills landed at different stages of the run
 
 
+@pytest.mark.parametrize("known", [True, False], ids=["known-start", "with-init"])
 @pytest.mark.parametrize("crash", ["before-progress:2", "before-rename:3", "after-rename:3", "before-rename:7"])
-def test_a_kill_between_the_files_of_a_commit_resumes_exactly(clip, ctx, reference, tmp_path, crash):
+def test_a_kill_between_the_files_of_a_commit_resumes_exactly(clip, ctx, reference, reference_known, tmp_path,
+                                                               crash, known):
     """The moments a run of the old layout lost its state: after the frame's record is
-    appended but before the commit point, and around each rename."""
+    appended but before the commit point, and around each rename; from a known start
+    (exact) and through the initialisation (within its run-to-run spread)."""
     out = tmp_path / "r"
-    p = _child(ctx, clip, out, crash)
+    p = _child(ctx, clip, out, crash, known=known)
     p.join(300)
     assert p.exitcode == -signal.SIGKILL
-    p = _child(ctx, clip, out)
+    p = _child(ctx, clip, out, known=known)
     p.join(300)
     assert p.exitcode == 0
-    _assert_same(out, reference[0])
+    if known:
+        _assert_same(out, reference_known)
+    else:
+        _assert_same(out, reference[0], AFTER_INIT)
 
 
 def test_only_the_same_setup_is_resumed(clip, reference, tmp_path, toy_files):
@@ -326,7 +348,7 @@ def test_a_failed_write_is_a_clear_error_that_keeps_the_finished_frames(clip, re
     assert run["status"] == "failed" and "No space left" in run["error"] and len(motion["poses"]) == 3
     monkeypatch.setattr(FrameLog, "commit", original)
     flowmocap.track(clip, out, resume=True, **_kw(clip))
-    _assert_same(out, reference[0])
+    _assert_same(out, reference[0], AFTER_INIT)
 
 
 def test_a_file_size_limit_ends_the_command_with_one_line(clip, tmp_path):
