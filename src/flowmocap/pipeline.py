@@ -223,8 +223,9 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             (None or 0: keep the size).
         reinit: re-initialise from the detector where tracking fails (when it runs).
         joints3d: ``"auto"``: the detector's 3D joints pull each limb's direction in depth
-            (``E_d``), running the detector for them alone if nothing else needs it;
-            ``"off"``: no ``E_d``.
+            (``E_d``), running the detector for them alone if nothing else needs it (and,
+            with the ``detector_keypoints`` setting, for its 2D joints too); ``"off"``: no
+            ``E_d``, and for an input with its own masks and init no detector at all.
         log: where the one-line messages go (None: nowhere).
         person: who to track when the detector runs and several people are in view:
             ``"largest"`` (default: the person seen biggest, nearest and longest), a
@@ -331,7 +332,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     else:
         spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
         a, b = _init_span(frames, spec, len(seq))
-    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d) or cfg.detector_keypoints
+    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d) or (joints3d == "auto" and cfg.detector_keypoints)
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
@@ -394,7 +395,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         j3d = lambda i: detections.smpl_joints3d(i, cam)
-    elif cfg.detector_keypoints:  # own masks and init, but the detector's joints of every frame too
+    elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
         watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
         if watch is not None:
