@@ -287,13 +287,13 @@ def test_own_masks_and_init_can_use_the_detectors_joints_in_every_frame(small_cl
     monkeypatch.setattr(pipeline, "ReinitMonitor", Spy)
     init = noisy_init(seq.gt, frame=0, seed=1)
     quick = {"iterations": 3, "init_iterations": 5, "init_flow_iterations": 3}
-    on = flowmocap.track(small_clip, tmp_path / "on", init=init, config={**quick, "detector_keypoints": True},
-                         progress=False)
+    on = flowmocap.track(small_clip, tmp_path / "on", init=init, config=quick, progress=False)  # the default
     assert on.run["status"] == "finished" and on.run["profile"] == "synthetic"
     assert np.all(on.energies["keypoints"][2:] > 0)  # E_j on every tracked frame (0 and 1: the init)
     assert judged == list(range(2, len(seq)))  # every frame after the init is judged for a refit
     assert "detector joints" in on.run["joints3d"] and (tmp_path / "on" / "detections" / "keypoints.npz").exists()
     judged.clear()
-    off = flowmocap.track(small_clip, tmp_path / "off", init=init, config=quick, progress=False)
+    off = flowmocap.track(small_clip, tmp_path / "off", init=init, config={**quick, "detector_keypoints": False},
+                          progress=False)
     assert np.isnan(off.energies["keypoints"][2:]).all()  # no E_j after the init
     assert judged == [] and "3D joints for E_d" in off.run["joints3d"]

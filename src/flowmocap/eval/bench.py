@@ -12,8 +12,10 @@ Protocol on a synthetic sequence (one folder ``DIR/NAME/`` per sequence):
    2D joints with 3 px noise and a rough pose with 15 degrees of noise on the main
    joints; the tracker starts from the mean shape.
 3. ``flowmocap/``: :func:`flowmocap.pipeline.track` from that init, as ``flowmocap track
-   SEQ --init init.json`` runs it (the ``synthetic`` profile; keypoints on frame 0 only, as
-   in the paper; for ``E_d``, MediaPipe's 3D joints of every frame).
+   SEQ --init init.json`` runs it (the ``synthetic`` profile: the init's keypoints on frame
+   0 as in the paper, and MediaPipe's 2D and 3D joints of every rendered frame for ``E_j``,
+   ``E_d``, ``E_3d`` and refits, the ``detector_keypoints`` default; the paper used no
+   per-frame joints).
 4. ``baseline/``: :func:`flowmocap.eval.baseline.run_baseline` on detector-like
    keypoints of every frame (ground truth + 3 px noise + 5 % outliers of 20-60 px),
    its shape fitted on frame 0 from the same init.

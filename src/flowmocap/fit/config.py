@@ -124,7 +124,7 @@ class TrackerConfig:
     #                                    evaluations improve its energy by less than this fraction; 0: never
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
-    detector_keypoints: bool = False   # input with its own masks and init: the detector's 2D joints of
+    detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
     #                                    every frame too (E_j, and refits where tracking fails)
     limb_depth_weight: float = 2.0     # lambda_d, E_d: the detector's 3D joints resolve depth flips
     limb_depth_sigma: float = 0.3      # its Geman-McClure scale (a difference of sines)
