@@ -101,9 +101,12 @@ def _run(clip: str, out: str, crash: str | None = None, known: bool = False) -> 
 @pytest.fixture(scope="module")
 def ctx():
     """Children forked from a server that has imported flowmocap: a start costs
-    milliseconds, not the seconds of a fresh interpreter."""
+    milliseconds, not the seconds of a fresh interpreter. ``torch._dynamo`` too: torch
+    imports it on the first optimiser made (2.6 s here), which otherwise fell in each
+    child's first tracked frame and left the kill test's random instants hardly any
+    chance to land after it."""
     mp = multiprocessing.get_context("forkserver")
-    mp.set_forkserver_preload(["flowmocap", "flowmocap.pipeline"])
+    mp.set_forkserver_preload(["flowmocap", "flowmocap.pipeline", "torch._dynamo"])
     return mp
 
 
