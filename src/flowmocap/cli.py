@@ -170,8 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "tracking fails (re-initialisation runs when the detector is used, i.e. with automatic init or masks)")
     t.add_argument("--joints3d", default="auto", choices=["auto", "off"], help="'auto' (default): the detector's "
                    "3D joints tell each limb's direction in depth (E_d); with your own init.json and masks the "
-                   "detector then runs for them (MediaPipe, about 0.05 s per frame), and its 2D joints are used too when "
-                   "the detector_keypoints setting is on. 'off': no E_d, and with your own init.json and masks no "
+                   "detector then runs for them (MediaPipe, about 0.05 s per frame), and its 2D joints are used too (the "
+                   "detector_keypoints setting, on by default). 'off': no E_d, and with your own init.json and masks no "
                    "detector at all")
     t.add_argument("--person", default="largest", help="who to track when several people are in view: 'largest' "
                    "(default: the person seen biggest, nearest and longest), N (the N-th by that measure, 0 = the "

@@ -332,7 +332,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     else:
         spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
         a, b = _init_span(frames, spec, len(seq))
-    uses_detector = auto_masks or auto_init or (joints3d == "auto" and cfg.uses_detector3d) or (joints3d == "auto" and cfg.detector_keypoints)
+    uses_detector = auto_masks or auto_init or (joints3d == "auto" and (cfg.uses_detector3d or cfg.detector_keypoints))
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
