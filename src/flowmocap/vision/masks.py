@@ -26,8 +26,10 @@ def chamfer_map(mask: Any) -> np.ndarray:
     diagonally next to it, and so on. OpenCV's result differs in the last bit from call
     to call when it runs on several threads (146 of 10800 pixels of a test mask, 1e-6
     px), which made two runs of the tracker end apart; each distance is therefore taken
-    back to its exact square (an integer ``dx^2 + dy^2``, recovered exactly for images
-    below 2000 px a side) and its square root correctly rounded: the same map every call.
+    back to its exact square (an integer ``dx^2 + dy^2``, recovered exactly from a value up
+    to 1 ulp off for distances below 1365 px) and its square root correctly rounded: the
+    same exact map every call. Farther from the mask (only in frames over 1365 px across)
+    the integer may be off by one and the last bit may still vary.
 
     Args:
         mask: ``(H, W)`` array, True / non-zero on the person.
