@@ -33,7 +33,9 @@ of that person's reference detections in the first frame they appear in; ``max_s
 (:data:`~flowmocap.body.skeleton.EVAL_JOINTS`; head = the midpoint of the detector's
 ears for the reference and the detector, SMPL's head joint for the fit) against the
 reference triangulated **without** that view (frame ``f`` of view ``c`` is reference
-time ``f + offset[c]``):
+time ``f + offset[c]``). The fit is scored twice: its joints (``flowmocap``), and its
+body at the detector's keypoints (``flowmocap_kp``, :func:`keypoint_joints`: the learned
+offsets of :mod:`flowmocap.vision.keypoint_map`, the reference's own convention):
 
 - per-frame PA-MPJPE: a similarity Procrustes per frame, mean joint error, mm;
 - per-sequence PA-MPJPE: joints made relative to the middle of the hips, one similarity
@@ -85,7 +87,7 @@ OFFSET_SEARCH = range(-15, 16)
 DETECTION_VERSION = 3
 #: Change whenever the reference would come out differently from the same detections.
 REFERENCE_VERSION = 3
-METHODS = ("flowmocap", "detector3d")
+METHODS = ("flowmocap", "detector3d", "flowmocap_kp")
 
 
 # ------------------------------------------------------------------ joints
@@ -571,6 +573,30 @@ def pa_mpjpe(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = None)
     return float(per_frame.mean()), float(per_seq.mean()), per_frame
 
 
+def keypoint_joints(res) -> np.ndarray:
+    """``(T, 13, 3)`` a result's bodies at the detector's keypoints, metres: the 12 joints
+    moved by the learned keypoint offsets and the head at the middle of the ears
+    (:class:`~flowmocap.vision.keypoint_map.KeypointMap`), in the order of
+    :data:`EVAL_NAMES`, so they are scored in the reference's own convention (the
+    reference is triangulated from the detector's keypoints)."""
+    import torch
+
+    from flowmocap.body import load_body_model
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+
+    model = load_body_model("default", gender=str(res.motion.get("gender", "neutral")))
+    with torch.no_grad():
+        out = model(betas=torch.as_tensor(np.asarray(res.betas), dtype=torch.float32).reshape(1, -1),
+                    pose=torch.as_tensor(np.asarray(res.poses), dtype=torch.float32),
+                    trans=torch.as_tensor(np.asarray(res.trans), dtype=torch.float32))
+    joints = out.joints.double().numpy()
+    transforms = out.transforms.double().numpy()
+    kmap = load_keypoint_map()
+    pts = kmap.apply(joints, transforms)[:, list(EVAL_JOINTS)]
+    pts[:, 0] = kmap.ears_middle(joints, transforms)
+    return pts
+
+
 def score_run(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
     """Score one monocular run (view ``view``, person ``person``) against the reference
     triangulated without that view; flowmocap's fit and the detector's own 3D on the
@@ -598,6 +624,7 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
     from flowmocap.vision.auto import load_detections
 
     res = load_result(res_dir)
+    kp13 = keypoint_joints(res)
     det = load_detections(res_dir)
     if det is None or det.world is None:
         raise DataError(f"{res_dir} holds no detections with 3D landmarks; re-run the benchmark.")
@@ -629,7 +656,7 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         return (c["j13"][idx], ok) if ok.sum() >= MIN_JOINTS and ok[hips].all() else None
 
     used, skipped = [], {"no_reference": 0, "no_detection": 0, "no_fit": 0}
-    ours, mp, ref, ok_wo, ref_all, ok_all = [], [], [], [], [], []
+    ours, ours_kp, mp, ref, ok_wo, ref_all, ok_all = [], [], [], [], [], [], []
     for f in range(T):
         got = at(wo_c, f + offset)
         if got is None:
@@ -644,6 +671,7 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
             continue
         used.append(f)
         ours.append(np.asarray(res.joints3d[fit_rows[f]], np.float64)[list(EVAL_JOINTS)])
+        ours_kp.append(kp13[fit_rows[f]])
         mp.append(eval_points(w))
         ref.append(got[0])
         ok_wo.append(got[1])
@@ -653,9 +681,10 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
     out = {"person": person, "view": view, "offset": offset, "frames_scored": len(used),
            "frames": [used[0], used[-1]] if used else None, "skipped": skipped}
     if not used:
-        return {**out, "flowmocap": None, "detector3d": None, "det2d_px": None}
+        return {**out, "flowmocap": None, "detector3d": None, "flowmocap_kp": None, "det2d_px": None}
     out["joints_scored"] = float(np.mean([o.sum() for o in ok_wo]))
-    for name, pred in (("flowmocap", np.asarray(ours)), ("detector3d", np.asarray(mp))):
+    for name, pred in (("flowmocap", np.asarray(ours)), ("detector3d", np.asarray(mp)),
+                       ("flowmocap_kp", np.asarray(ours_kp))):
         pf, ps, curve = pa_mpjpe(pred, np.asarray(ref), np.asarray(ok_wo))
         pfa, psa, _ = pa_mpjpe(pred, np.asarray(ref_all), np.asarray(ok_all))
         out[name] = {"per_frame_mm": pf, "per_sequence_mm": ps, "per_frame_all_views_mm": pfa,
@@ -704,32 +733,38 @@ def format_real3d_table(result: dict) -> str:
              + (f" on the first {s['frames']} frames" if s.get("frames") else "")
              + ("" if not s.get("tracker_config") else f", tracker overrides {s['tracker_config']}") + ".", "",
              "| person | view | frames | flowmocap per-frame mm | flowmocap per-seq mm | detector3d per-frame mm "
-             "| detector3d per-seq mm | ours / det (per-frame) | det 2D px | ref w/o vs all mm |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| detector3d per-seq mm | ours / det (per-frame) | ours at keypoints per-frame mm | ratio to det "
+             "| det 2D px | ref w/o vs all mm |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     fmt = lambda v: "--" if v is None else f"{v:.1f}"  # noqa: E731
     for r in result["rows"]:
         if r.get("skipped_run"):
-            lines.append(f"| {r['person']} | {r['view']} | -- | {r['skipped_run']} | | | | | | |")
+            lines.append(f"| {r['person']} | {r['view']} | -- | {r['skipped_run']} | | | | | | | | |")
             continue
-        a, b = r.get("flowmocap") or {}, r.get("detector3d") or {}
+        a, b, k = r.get("flowmocap") or {}, r.get("detector3d") or {}, r.get("flowmocap_kp") or {}
         ratio = (a["per_frame_mm"] / b["per_frame_mm"]) if a and b else None
+        kratio = (k["per_frame_mm"] / b["per_frame_mm"]) if k and b else None
         frames = str(r["frames_scored"]) + (f" (run failed after {r['frames_done']} frames; not in the mean)"
                                             if r.get("failed") else "")
         lines.append(f"| {r['person']} | {r['view']} | {frames} | {fmt(a.get('per_frame_mm'))} | "
                      f"{fmt(a.get('per_sequence_mm'))} | {fmt(b.get('per_frame_mm'))} | {fmt(b.get('per_sequence_mm'))} "
-                     f"| {'--' if ratio is None else f'{ratio:.2f}'} | {fmt(r.get('det2d_px'))} "
+                     f"| {'--' if ratio is None else f'{ratio:.2f}'} | {fmt(k.get('per_frame_mm'))} "
+                     f"| {'--' if kratio is None else f'{kratio:.2f}'} | {fmt(r.get('det2d_px'))} "
                      f"| {fmt(r.get('reference_without_vs_all_mm'))} |")
     m = result["mean"]
-    a, b = m["flowmocap"], m["detector3d"]
+    a, b, k = m["flowmocap"], m["detector3d"], m.get("flowmocap_kp") or {}
     ratio = a["per_frame_mm"] / b["per_frame_mm"] if a["per_frame_mm"] and b["per_frame_mm"] else None
+    kratio = k["per_frame_mm"] / b["per_frame_mm"] if k.get("per_frame_mm") and b["per_frame_mm"] else None
     lines.append(f"| **mean** | {m['person_views']} person-views | {m['frames_scored']} | {fmt(a['per_frame_mm'])} | "
                  f"{fmt(a['per_sequence_mm'])} | {fmt(b['per_frame_mm'])} | {fmt(b['per_sequence_mm'])} | "
-                 f"{'--' if ratio is None else f'{ratio:.2f}'} | | |")
+                 f"{'--' if ratio is None else f'{ratio:.2f}'} | {fmt(k.get('per_frame_mm'))} | "
+                 f"{'--' if kratio is None else f'{kratio:.2f}'} | | |")
     for r in result["rows"]:
         if r.get("failed"):
             lines.append(f"\n{r['person']}@{r['view']}: the run failed: {r['failed']}")
     lines += ["", "PA-MPJPE on the 13 joints (head = midpoint of the ears for the reference and the detector, SMPL's "
-              "head for flowmocap) against the reference triangulated WITHOUT the run's view; per-frame: a similarity "
+              "head for flowmocap; 'ours at keypoints': the fitted body's points where the detector puts its "
+              "keypoints, by the learned offsets of flowmocap.vision.keypoint_map, head = middle of the ears) against the reference triangulated WITHOUT the run's view; per-frame: a similarity "
               "Procrustes per frame; per-seq: hips-relative joints, one similarity over the sequence. Both methods "
               f"on the same frames and joints (>= {MIN_JOINTS} of the 13 reference joints, hips included; a detection "
               "with 3D landmarks; a fitted body). det 2D px: "

@@ -13,8 +13,12 @@ Schema of ``init.json`` (every key optional except ``joints2d``)::
                                         # per SMPL joint; "pelvis" is the global orientation
       "pose72": [...],                  # alternative: the whole (72,) rough pose
       "trans": [x, y, z],               # optional rough translation (metres, camera frame)
-      "betas": [...]                    # optional starting shape
-    }
+      "betas": [...],                   # optional starting shape
+      "joints_from": "detector"         # optional: the joints are the detector's keypoints
+    }                                   # (with TrackerConfig.keypoint_offsets they are compared
+                                        # with the body where the detector puts them,
+                                        # flowmocap.vision.keypoint_map); default: the body
+                                        # model's own joints
 
 Three steps, as in the paper: (1) fit translation, pose and shape to the 2D joints, with
 priors towards the rough pose and the mean shape, joint limits and interpenetration;
@@ -42,6 +46,7 @@ from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy, learned_pose_prior
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import prepare_faces
+from flowmocap.vision.keypoint_map import detector_points
 
 INIT_JOINTS = (
     "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
@@ -52,8 +57,10 @@ INIT_JOINTS = (
 @dataclass
 class InitSpec:
     """Parsed init.json: ``joints2d (24, 2)`` pixels, ``confidence (24,)`` (0 = unknown),
-    ``pose (72,)`` rough pose, ``trans (3,)`` or None, ``betas (10,)``, and ``pose_given
-    (24,)`` bool: the joints whose rough rotation the file states (None: none)."""
+    ``pose (72,)`` rough pose, ``trans (3,)`` or None, ``betas (10,)``, ``pose_given
+    (24,)`` bool: the joints whose rough rotation the file states (None: none), and
+    ``from_detector``: the joints are the detector's keypoints (``"joints_from":
+    "detector"``), not the body model's own joints."""
 
     frame: int
     joints2d: np.ndarray
@@ -62,6 +69,7 @@ class InitSpec:
     trans: np.ndarray | None
     betas: np.ndarray
     pose_given: np.ndarray | None = None
+    from_detector: bool = False
 
     @property
     def states_rough_pose(self) -> bool:
@@ -122,7 +130,10 @@ def parse_init(data: dict | str | Path, width: int | None = None, height: int | 
     if data.get("betas") is not None:
         b = np.asarray(data["betas"], dtype=np.float64)
         betas[: min(10, b.size)] = b[:10]
-    return InitSpec(int(data.get("frame", 0)), j2d, conf, pose, trans, betas, given)
+    source = data.get("joints_from", "model")
+    if source not in ("model", "detector"):
+        raise InputError(f"init.json: 'joints_from' must be 'model' or 'detector'; got {source!r}.")
+    return InitSpec(int(data.get("frame", 0)), j2d, conf, pose, trans, betas, given, from_detector=source == "detector")
 
 
 def guess_translation(model: BodyModel, camera: PinholeCamera, spec: InitSpec) -> torch.Tensor:
@@ -164,7 +175,8 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
     return fit_to_joints(model, camera, spec.joints2d, spec.confidence, silhouette, cfg,
                          torch.as_tensor(spec.pose, dtype=torch.float32), trans,
                          torch.as_tensor(spec.betas, dtype=torch.float32)[None], fit_shape=True,
-                         prior_weights=rough_pose_weights(spec, cfg), joints3d=joints3d)
+                         prior_weights=rough_pose_weights(spec, cfg), joints3d=joints3d,
+                         joints_from_detector=spec.from_detector)
 
 
 def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
@@ -185,7 +197,8 @@ def rough_pose_weights(spec: InitSpec, cfg: TrackerConfig) -> np.ndarray:
 def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence, silhouette, cfg: TrackerConfig,
                   pose0: torch.Tensor, trans0: torch.Tensor, betas: torch.Tensor, *, fit_shape: bool,
                   iterations: int | None = None, prior_weights=None,
-                  joints3d: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+                  joints3d: tuple | None = None,
+                  joints_from_detector: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
     """Fit the body to one frame's 2D joints, then also to its silhouette (init steps 1-2).
 
     Translation alone first, then pose and translation (and the shape when ``fit_shape``)
@@ -209,6 +222,10 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
             ``E_3d`` (``cfg.init_detector3d_weight``: this fit's 2D-joint term is in px^2
             summed over the joints, hundreds of times the per-frame objective's scale,
             so ``E_3d`` has its own weight here) in every step; None for none.
+        joints_from_detector: ``joints2d`` are the detector's keypoints: with
+            ``cfg.keypoint_offsets`` they are compared with the body where the detector
+            puts them (:func:`~flowmocap.vision.keypoint_map.detector_points`), as the
+            3D joints always are; otherwise with the body model's joints.
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
@@ -234,7 +251,8 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
 
     def energy(with_silhouette: bool, terms: dict | None = None):
         out = model(betas=betas, pose=pose[None], trans=trans[None])
-        pj = camera.project(out.joints[0])
+        dp = detector_points(out, cfg)
+        pj = camera.project((dp if joints_from_detector else out.joints)[0])
         t = {
             "keypoints": cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0],
             "pose_prior": en.pose_prior_energy(pose[None], ref_pose[None], weights=prior_w)[0],
@@ -243,11 +261,11 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
             t["shape_prior"] = cfg.init_shape_prior_weight * en.shape_prior_energy(betas)[0]
         t["limits"] = cfg.limit_weight * en.joint_limit_energy(pose[None])[0]
         if joints3d is not None and cfg.limb_depth_weight > 0:
-            t["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(out.joints, camera, joints3d,
+            t["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(dp, camera, joints3d,
                                                                                  cfg.limb_depth_sigma)[0]
         if joints3d is not None and cfg.init_detector3d_weight > 0:
             t["detector3d"] = cfg.init_detector3d_weight * en.world_detector_joints_energy(
-                out.joints, camera, joints3d, cfg.detector3d_scale)[0]
+                dp, camera, joints3d, cfg.detector3d_scale)[0]
         if cfg.init_learned_prior_weight > 0:
             t["learned_prior"] = cfg.init_learned_prior_weight * learned_pose_prior().energy(pose[None])[0]
         caps = body_capsules(model, out, rest=rest)
@@ -279,7 +297,7 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
 
 def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameData, d1: FrameData,
                       cfg: TrackerConfig, j2d: torch.Tensor, conf: torch.Tensor,
-                      prior: tuple) -> tuple[FrameState, FrameState]:
+                      prior: tuple, joints_from_detector: bool = False) -> tuple[FrameState, FrameState]:
     """Initialisation step 3: the flow step on frame 1 while frame 0 may still move.
 
     Frame 0 keeps the terms of steps 1-2 that only it has: its 2D joints (``j2d (24, 2)``
@@ -287,7 +305,8 @@ def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameDat
     per-joint weights (24,) per rad^2)`` (:func:`rough_pose_weights` when the init states
     a rough pose, zeros when its pose is only a guess). Without that prior the flow of
     frame 1 and the silhouettes, which cannot tell a limb from its mirror image in depth,
-    moved frame 0 away from the rough pose the user gave.
+    moved frame 0 away from the rough pose the user gave. ``joints_from_detector``: as
+    in :func:`fit_to_joints`.
     """
     p0, t0 = s0.pose.clone().requires_grad_(), s0.trans.clone().requires_grad_()
     p1, t1 = s1.pose.clone().requires_grad_(), s1.trans.clone().requires_grad_()
@@ -299,7 +318,7 @@ def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameDat
         out0, px0, _ = scene.forward(p0, t0)
         e1, _ = frame_energy(scene, b, d1, cfg, stage, px0, p0)
         e0, _ = frame_energy(scene, a, d0, cfg, stage, None, None)
-        pj = scene.camera.project(out0.joints[0])
+        pj = scene.camera.project((detector_points(out0, cfg) if joints_from_detector else out0.joints)[0])
         ek = cfg.init_keypoint_weight * en.keypoint_energy(pj[None], j2d, conf, sigma=cfg.init_keypoint_sigma)[0]
         ep = en.pose_prior_energy(p0.reshape(1, 72), prior_pose, weights=prior_w)[0]
         return e1 + e0 + ek + ep
@@ -341,7 +360,8 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
     # a rough pose the init states holds frame 0 through step 3 too; the automatic init's
     # start pose is a guess, and holding it there cost DAVIS body IoU (docs/experiments.md)
     prior_w = rough_pose_weights(spec, cfg) if spec.states_rough_pose else np.zeros(24)
-    s0, s1 = refine_first_pair(scene, s0, s0.clone(), d0, d1, cfg, j2d, conf, (spec.pose, prior_w))
+    s0, s1 = refine_first_pair(scene, s0, s0.clone(), d0, d1, cfg, j2d, conf, (spec.pose, prior_w),
+                               joints_from_detector=spec.from_detector)
     _, second_terms = frame_energy(scene, s1, d1, cfg, len(cfg.stages) - 1,
                                    scene.forward(s0.pose, s0.trans)[1].detach(), s0.pose)
     return Start(scene, s0, s1, first_terms, second_terms)

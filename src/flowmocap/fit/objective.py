@@ -38,6 +38,7 @@ from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.pose_prior import PosePrior
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import flow_loss_async, flow_target, prepare_faces
+from flowmocap.vision.keypoint_map import detector_points
 
 #: The columns of the per-frame energies a result stores (``motion.npz`` ``energies``).
 ENERGY_NAMES = ("total", "flow", "silhouette", "limits", "penetration", "temporal", "keypoints", "anchor",
@@ -204,16 +205,16 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
         terms["temporal"] = cfg.temporal_weight * en.temporal_energy(state.pose.reshape(1, 72),
                                                                      ref_pose.reshape(1, 72))[0]
     if data.keypoints is not None and cfg.keypoint_weight > 0:
-        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma)
+        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma, cfg)
     if data.anchor is not None and cfg.anchor_weight > 0:
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
     if data.joints3d is not None and cfg.limb_depth_weight > 0:
         terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
-            out.joints, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
+            detector_points(out, cfg), scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
     if data.joints3d is not None and cfg.detector3d_weight > 0:
         terms["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(
-            out.joints, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
+            detector_points(out, cfg), scene.camera, data.joints3d, cfg.detector3d_scale)[0]
     if cfg.pose_prior_weight > 0:
         terms["learned_prior"] = cfg.pose_prior_weight * learned_pose_prior().energy(state.pose.reshape(1, 72))[0]
     if data.depth_ref is not None and cfg.depth_temporal_weight > 0:
@@ -225,10 +226,12 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
 
-def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float) -> torch.Tensor:
+def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: TrackerConfig | None = None) -> torch.Tensor:
     """``E_j``: robust squared pixel distance (Geman-McClure, scale ``sigma`` px) between the
     model's projected joints and detected ones, confidence-weighted, per confident joint
-    (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel)."""
+    (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel).
+    The model's joints are moved to where the detector puts them
+    (:func:`~flowmocap.vision.keypoint_map.detector_points`) when ``cfg.keypoint_offsets``."""
     j2d, conf = keypoints
-    pj = scene.camera.project(out.joints[0])
+    pj = scene.camera.project(detector_points(out, cfg)[0])
     return en.keypoint_energy(pj[None], j2d, conf, sigma=sigma)[0] / float((conf > 0).sum())

@@ -55,6 +55,7 @@ from flowmocap.fit.objective import FrameState, Scene
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.render import body_mask
 from flowmocap.vision.auto import CONFIDENT, MIN_INIT_JOINTS, PersonTrack, facing_rotvec
+from flowmocap.vision.keypoint_map import detector_points
 from flowmocap.vision.masks import mask_iou
 
 __all__ = ["body_silhouette", "joint_disagreement", "joint3d_disagreement", "fit_to_detection", "ReinitMonitor"]
@@ -123,7 +124,8 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
     """
     sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
     pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
-                                          scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d)
+                                          scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d,
+                                          joints_from_detector=True)
     return pose, trans, float(sum(terms.values()))
 
 
@@ -188,7 +190,8 @@ class ReinitMonitor:
         j2d, conf = self.track.smpl_joints(i) if i < len(self.track) else (None, None)
         with torch.no_grad():
             out, _, _ = scene.forward(pose, trans)
-            pj = scene.camera.project(out.joints[0]).numpy()
+            dp = detector_points(out, self.cfg)[0]
+            pj = scene.camera.project(dp).numpy()
         err = joint_disagreement(pj, j2d, conf) if j2d is not None else None
         iou = mask_iou(body_silhouette(scene, pose, trans), mask) if mask is not None and mask.any() else None
         if err is None and iou is None:
@@ -200,7 +203,7 @@ class ReinitMonitor:
             det = self.track.smpl_joints3d(i, scene.camera) if i < len(self.track) else None
             err3 = None
             if det is not None:
-                err3 = joint3d_disagreement(scene.camera.to_camera(out.joints[0]).numpy(), *det)
+                err3 = joint3d_disagreement(scene.camera.to_camera(dp).numpy(), *det)
             s["joint3d_error"] = err3
             s["bad3d"] = None if err3 is None else bool(err3 > self.max_joint3d_error)
         return s

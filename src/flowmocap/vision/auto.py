@@ -678,5 +678,5 @@ def auto_init(track: PersonTrack, frame: int, min_confidence: float = 0.3) -> di
         raise NoPersonError(f"frame {frame}: the detector found fewer than 4 joints of the person; "
                             "give --init init.json with the joints of a frame instead.")
     return {"frame": int(frame), "joints2d": joints, "confidence": conf,
-            "pose": {"pelvis": facing_rotvec(kp, cf).tolist()},
+            "pose": {"pelvis": facing_rotvec(kp, cf).tolist()}, "joints_from": "detector",
             "note": f"automatic: {track.info.get('detector', 'detector')} keypoints of frame {frame}"}
