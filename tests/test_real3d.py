@@ -278,3 +278,32 @@ def test_real_calibration_reprojects_detections_within_pixels():
                               c.width, c.height) for c in (cams[v] for v in VIEWS)]
     tri = triangulate(wrong, np.stack([o[0] for o in obs]), np.stack([o[1] for o in obs]), max_error_px=None)
     assert not np.nanmedian(tri.error_px) < 100.0
+
+
+def test_keypoint_joints_put_the_fit_at_the_detectors_keypoints():
+    """The fit scored in the reference's convention: the 12 joints moved by the learned
+    offsets, the head at the middle of the ears, in EVAL_NAMES order."""
+    import torch
+
+    from flowmocap.body import load_body_model
+    from flowmocap.eval.real3d import keypoint_joints
+    from flowmocap.io import walk_poses
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+
+    class _Res:
+        motion = {"gender": "neutral"}
+        poses = walk_poses(np.linspace(0.0, 1.0, 3))
+        trans = np.array([[0.0, 0.0, 3.0]] * 3)
+        betas = np.zeros(10)
+
+    pts = keypoint_joints(_Res())
+    assert pts.shape == (3, 13, 3)
+    model = load_body_model("default", dtype=torch.float64)
+    out = model(betas=torch.zeros(1, 10, dtype=torch.float64), pose=torch.as_tensor(_Res.poses),
+                trans=torch.as_tensor(_Res.trans))
+    J, T = out.joints.numpy(), out.transforms.numpy()
+    kmap = load_keypoint_map()
+    np.testing.assert_allclose(pts[:, 1:], kmap.apply(J, T)[:, list(EVAL_JOINTS)][:, 1:], atol=1e-5)
+    np.testing.assert_allclose(pts[:, 0], kmap.ears_middle(J, T), atol=1e-5)
+    assert EVAL_NAMES[0] == "head"
+    assert np.linalg.norm(pts[:, 0] - J[:, EVAL_JOINTS[0]], axis=-1).min() > 0.01  # the ears are not the head joint
