@@ -193,3 +193,41 @@ def test_the_learning_tool_recovers_a_known_offset_despite_outliers():
     o = tool.fit_offset(clips, X, R, uv, ci)
     np.testing.assert_allclose(o, o_true, atol=2e-3)
     assert tool.median_error(clips, X, R, uv, ci, o) < 1.0 < tool.median_error(clips, X, R, uv, ci, np.zeros(3))
+
+
+def test_the_joint_fit_reads_detector_joints_through_the_map_and_given_joints_as_the_models(scene64):
+    """fit_to_joints (init steps 1-2, the refits): with ``joints_from_detector`` and
+    ``keypoint_offsets`` it matches the detector's keypoints with the mapped points, so
+    keypoints made from a known pose through the map are fitted back to that pose's map
+    (and without the map the joints end off by about the offsets); given joints are the
+    model's own either way."""
+    from flowmocap.fit.init import fit_to_joints
+
+    model = load_body_model("default")
+    R, t = look_at((0.3, 0.2, 3.0), (0.0, -0.1, 0.0))
+    cam = PinholeCamera.from_focal(640, 480, 1000.0, R, t)  # 1 cm is about 3 px here
+    pose = torch.tensor(walk_poses(np.array([0.3]))[0], dtype=torch.float32)
+    trans = torch.tensor([0.0, 0.0, 0.0])
+    cfg_on = TrackerConfig(keypoint_offsets=True, init_pose_prior_weight=0.0, init_learned_prior_weight=0.0)
+    with torch.no_grad():
+        out = model(pose=pose[None], trans=trans[None])
+        kp = cam.project(detector_points(out, cfg_on)[0]).numpy()
+    conf = np.zeros(24)
+    conf[[JOINT_INDEX[n] for n in SMPL_KEYPOINTS]] = 1.0
+    moved = conf.astype(bool) & (np.abs(load_keypoint_map().offset).max(1) > 0)
+    start = pose.clone()
+    start[3:] *= 0.7
+
+    def err(p, t, cfg):
+        """Mean px distance of the moved joints' mapped points from the keypoints."""
+        with torch.no_grad():
+            o = model(pose=p[None], trans=t[None])
+            return float(np.linalg.norm(cam.project(detector_points(o, cfg)[0]).numpy() - kp, axis=1)[moved].mean())
+
+    p1, t1, _, _ = fit_to_joints(model, cam, kp, conf, None, cfg_on, start, trans, torch.zeros(1, 10), fit_shape=False,
+                                 iterations=30, joints_from_detector=True)
+    p0, t0, _, _ = fit_to_joints(model, cam, kp, conf, None, cfg_on, start, trans, torch.zeros(1, 10), fit_shape=False,
+                                 iterations=30, joints_from_detector=False)
+    e1, e0 = err(p1, t1, cfg_on), err(p0, t0, cfg_on)
+    assert e1 < 1.5  # px: the map's points land on the keypoints (0.9 px: the joint limits hold a little)
+    assert e0 > 2 * e1 + 1.0  # read as the model's joints, the body ends off by about the offsets (3.8 px)
