@@ -23,17 +23,12 @@ from flowmocap.io import walk_poses
 from flowmocap.vision.detect import SMPL_KEYPOINTS
 from flowmocap.vision.keypoint_map import KEYPOINT_OFFSETS_FILE, detector_points, load_keypoint_map
 
+from test_learned_prior_terms import scene64  # noqa: F401  (the float64 scene fixture)
+
 ROOT = Path(__file__).resolve().parents[1]
 ALL_OFF = dict(flow_weight=0.0, silhouette_weight=0.0, limit_weight=0.0, penetration_weight=0.0,
                temporal_weight=0.0, anchor_weight=0.0, keypoint_weight=1.0, limb_depth_weight=0.0,
                detector3d_weight=0.0, pose_prior_weight=0.0)
-
-
-@pytest.fixture(scope="module")
-def scene64():
-    R, t = look_at((0.3, 0.2, 3.0), (0.0, -0.1, 0.0))
-    cam = PinholeCamera.from_focal(320, 240, 300.0, R, t)
-    return Scene(load_body_model("default", dtype=torch.float64), torch.zeros(1, 10, dtype=torch.float64), cam)
 
 
 def test_the_shipped_offsets_load_and_are_small():
