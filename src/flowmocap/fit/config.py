@@ -126,7 +126,7 @@ class TrackerConfig:
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
     detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
     #                                    every frame too (E_j, and refits where tracking fails)
-    keypoint_offsets: bool = False     # compare the body with the detector's joints where the detector
+    keypoint_offsets: bool = True      # compare the body with the detector's joints where the detector
     #                                    puts them on a body (learned offsets, vision.keypoint_map)
     limb_depth_weight: float = 2.0     # lambda_d, E_d: the detector's 3D joints resolve depth flips
     limb_depth_sigma: float = 0.3      # its Geman-McClure scale (a difference of sines)

@@ -18,7 +18,8 @@ head of :mod:`flowmocap.eval.real3d`'s reference) from the head joint.
 
 The tracker uses the map where it compares the body with the detector's joints (``E_j``,
 ``E_d``, ``E_3d``, the refits and their verdicts) when ``TrackerConfig.keypoint_offsets``
-is on; joints given by the user (``init.json``) are taken to be the body model's own.
+is on (the default: docs/experiments.md, "Keypoint offsets"); joints given by the user
+(``init.json``) are taken to be the body model's own.
 """
 
 from __future__ import annotations
