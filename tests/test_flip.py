@@ -165,8 +165,9 @@ def test_flip_with_a_few_iterations_polishes_the_mirrored_pose(scene32, pose):
         truth = scene32.forward(pose, trans)[0].joints[0]
     data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans),
                      keypoints=(scene32.camera.project(truth), torch.ones(24)))
+    # the "detections" are the model's own joints: no keypoint offsets
     cfg = TrackerConfig(penetration_weight=0.0, limit_weight=0.0, limb_depth_weight=2.0, flip_iterations=3,
-                        **{**DEPTH_CUES_OFF, "flip_test": True})
+                        keypoint_offsets=False, **{**DEPTH_CUES_OFF, "flip_test": True})
     s = FrameState(flipped_pose(scene32, pose, trans, SHIN).requires_grad_(), trans.clone().requires_grad_())
     minimise([s.pose, s.trans], lambda: frame_energy(scene32, s, data, cfg, None, None, None)[0], 60)
     start = s.clone()

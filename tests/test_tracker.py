@@ -559,7 +559,9 @@ def test_limb_depth_term_in_the_frame_energy(clip, model, tmp_path):
     seq = load_sequence(clip)
     gt = seq.gt
     scene = Scene(model, torch.as_tensor(gt["betas"], dtype=torch.float32)[None], seq.camera)
-    cfg = TrackerConfig(limb_depth_weight=2.0, silhouette_weight=0.0, limit_weight=0.0, penetration_weight=0.0)
+    # the "detector's" 3D joints are the model's own: no keypoint offsets
+    cfg = TrackerConfig(limb_depth_weight=2.0, silhouette_weight=0.0, limit_weight=0.0, penetration_weight=0.0,
+                        keypoint_offsets=False)
     data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_camera_joints3d(seq, 2))
     pose = torch.as_tensor(gt["poses"][2], dtype=torch.float32)
     trans = torch.as_tensor(gt["trans"][2], dtype=torch.float32)

@@ -613,7 +613,9 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         ``frames_scored``, ``joints_scored`` (mean per frame), ``skipped`` (counts:
         ``no_reference``, ``no_detection``, ``no_fit``), ``flowmocap`` and
         ``detector3d``: ``{"per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm",
-        "per_sequence_all_views_mm", "per_frame_curve_mm"}`` (the ``all_views`` ones
+        "per_sequence_all_views_mm", "per_frame_curve_mm"}``, and ``flowmocap_kp`` the
+        same for the fit at the detector's keypoints (:func:`keypoint_joints`; None for a
+        result without the body's parameters) (the ``all_views`` ones
         against the reference from every view, the run's own included, on the same
         frames), ``reference_without_vs_all_mm``: per-frame PA-MPJPE between the
         reference without the view and with it (how much leaving the view out moves
@@ -624,7 +626,8 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
     from flowmocap.vision.auto import load_detections
 
     res = load_result(res_dir)
-    kp13 = keypoint_joints(res)
+    # the body at the detector's keypoints needs the body's parameters (every result of track has them)
+    kp13 = keypoint_joints(res) if all(k in res.motion for k in ("poses", "trans", "betas")) else None
     det = load_detections(res_dir)
     if det is None or det.world is None:
         raise DataError(f"{res_dir} holds no detections with 3D landmarks; re-run the benchmark.")
@@ -671,7 +674,8 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
             continue
         used.append(f)
         ours.append(np.asarray(res.joints3d[fit_rows[f]], np.float64)[list(EVAL_JOINTS)])
-        ours_kp.append(kp13[fit_rows[f]])
+        if kp13 is not None:
+            ours_kp.append(kp13[fit_rows[f]])
         mp.append(eval_points(w))
         ref.append(got[0])
         ok_wo.append(got[1])
@@ -683,8 +687,11 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
     if not used:
         return {**out, "flowmocap": None, "detector3d": None, "flowmocap_kp": None, "det2d_px": None}
     out["joints_scored"] = float(np.mean([o.sum() for o in ok_wo]))
+    out["flowmocap_kp"] = None
     for name, pred in (("flowmocap", np.asarray(ours)), ("detector3d", np.asarray(mp)),
-                       ("flowmocap_kp", np.asarray(ours_kp))):
+                       ("flowmocap_kp", np.asarray(ours_kp) if kp13 is not None else None)):
+        if pred is None:
+            continue
         pf, ps, curve = pa_mpjpe(pred, np.asarray(ref), np.asarray(ok_wo))
         pfa, psa, _ = pa_mpjpe(pred, np.asarray(ref_all), np.asarray(ok_all))
         out[name] = {"per_frame_mm": pf, "per_sequence_mm": ps, "per_frame_all_views_mm": pfa,
