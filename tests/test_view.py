@@ -112,11 +112,19 @@ def test_a_taken_port_says_what_to_do(served):
         make_server(data, port=port)
 
 
+def _shell_signals() -> None:
+    """In the child: ctrl-c as a shell gives it (default action, not blocked). A child
+    inherits an ignored SIGINT, and Python then never raises KeyboardInterrupt; in the
+    full suite something before this test leaves the test process ignoring it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_cli_serves_until_ctrl_c_and_stops_cleanly(result, sig):
     code = "import sys; from flowmocap.cli import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", code, "view", str(result), "--no-browser", "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=_shell_signals)
     try:
         url = None
         for _ in range(20):
