@@ -151,6 +151,35 @@ def test_a_flipped_shin_is_flipped_back(scene32, pose, term):
     assert none == [] and torch.equal(kept.pose, flipped)
 
 
+def test_given_terms_of_the_tracked_state_save_one_evaluation_and_change_nothing(scene32, pose, monkeypatch):
+    """The tracker hands the flip test the energies it computed at the tracked state:
+    the result (state, terms, events) is the same as when the test evaluates them itself,
+    with one energy evaluation fewer; a non-finite given total is evaluated again."""
+    import flowmocap.fit.flip as flip_mod
+
+    pose = pose.float()
+    trans = torch.tensor([0.0, 0.0, 0.2])
+    flipped = flipped_pose(scene32, pose, trans, SHIN)
+    cfg = TrackerConfig(penetration_weight=0.0, **{**DEPTH_CUES_OFF, "limb_depth_weight": 2.0})
+    data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans))
+    prev, start = FrameState(pose, trans), FrameState(flipped, trans)
+    calls = []
+    real = flip_mod.frame_energy
+    monkeypatch.setattr(flip_mod, "frame_energy", lambda *a, **k: calls.append(1) or real(*a, **k))
+    with torch.no_grad():
+        total, known = real(scene32, start, data, cfg, len(cfg.stages) - 1, None, flipped)
+    known["total"] = float(total)
+    s1, t1, e1 = flip_limbs(scene32, start, data, cfg, prev, flipped, frame=3)
+    n_own = len(calls)
+    s2, t2, e2 = flip_limbs(scene32, start, data, cfg, prev, flipped, frame=3, terms=dict(known))
+    assert len(calls) - n_own == n_own - 1
+    assert torch.equal(s1.pose, s2.pose) and torch.equal(s1.trans, s2.trans)
+    assert t1 == t2 and e1 == e2 and [e["limb"] for e in e1] == [limb_name(SHIN)]
+    calls.clear()
+    s3, t3, _ = flip_limbs(scene32, start, data, cfg, prev, flipped, frame=3, terms={**known, "total": float("nan")})
+    assert len(calls) == n_own and torch.equal(s3.pose, s1.pose) and t3 == t1
+
+
 def test_flip_with_a_few_iterations_polishes_the_mirrored_pose(scene32, pose):
     """With ``flip_iterations`` the unflipped state and each mirrored pose are optimised
     for that many iterations before the comparison. From a converged fit to 2D joints and

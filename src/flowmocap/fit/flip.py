@@ -139,7 +139,8 @@ def flipped_pose(scene: Scene, pose: torch.Tensor, trans: torch.Tensor, limb: tu
 
 def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, prev: FrameState,
                ref_pose: torch.Tensor | None, frame: int | None = None,
-               limbs: tuple[tuple[int, int], ...] = DEPTH_LIMBS) -> tuple[FrameState, dict, list]:
+               limbs: tuple[tuple[int, int], ...] = DEPTH_LIMBS,
+               terms: dict | None = None) -> tuple[FrameState, dict, list]:
     """The depth-flip test of each limb on one frame's optimised state.
 
     Args:
@@ -148,6 +149,10 @@ def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerCon
         ref_pose: ``(72,)`` ``E_theta``'s reference (the Kalman prediction), or None.
         frame: the frame number, for the events.
         limbs: the ``(parent, child)`` bones to try, in order.
+        terms: the energies of ``state`` itself as :func:`~flowmocap.fit.tracker.track_frame`
+            returns them (``frame_energy``'s terms plus a finite ``"total"``, at the last
+            stage, with the same ``prev`` and ``ref_pose``), to save evaluating them again;
+            None: evaluated here.
 
     Returns:
         ``(state, terms, events)``: the best state found (``state`` itself when no flip
@@ -174,10 +179,13 @@ def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerCon
                  cfg.flip_iterations)
         return s.clone()
 
-    try:
-        best_e, best_terms = evaluate(state)
-    except InputError as err:
-        raise OptimizationError(f"the energy could not be evaluated at the tracked pose: {err}") from err
+    if terms is not None and math.isfinite(terms.get("total", math.nan)):
+        best_e, best_terms = float(terms["total"]), dict(terms)
+    else:
+        try:
+            best_e, best_terms = evaluate(state)
+        except InputError as err:
+            raise OptimizationError(f"the energy could not be evaluated at the tracked pose: {err}") from err
     best = state
     if cfg.flip_iterations > 0:  # the same polish for the state itself, so a flip wins by the flip alone
         try:

@@ -195,7 +195,8 @@ class SequenceTracker:
                 state, terms, ref = pred, {"total": float("nan")}, None
         if self.cfg.flip_test and ref is not None:
             try:
-                state, terms, flips = flip_limbs(self.scene, state, data, self.cfg, prev, ref.pose, frame=i)
+                state, terms, flips = flip_limbs(self.scene, state, data, self.cfg, prev, ref.pose, frame=i,
+                                                 terms=terms)
                 events += flips
             except OptimizationError as e:
                 events.append({"frame": i, "event": "depth-flip test skipped", "detail": str(e)})
