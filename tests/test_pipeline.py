@@ -58,6 +58,26 @@ def test_python_api_gives_what_the_command_line_gives(seq_dir, tmp_path, capsys)
     _same(res, again)
 
 
+def test_the_finished_motion_has_its_root_depth_smoothed_and_keeps_the_tracked_translation(seq_dir, tmp_path):
+    """motion.npz is the tracked frames with the root's distance from the camera smoothed
+    (fit.smooth.depth_smoothed_motion, depth_smoothing_s 0.5 by default) and the
+    tracker's own translation kept as trans_tracked; depth_smoothing_s 0 gives the
+    tracker's frames; poses are the same."""
+    from flowmocap.fit.smooth import depth_smoothed_motion
+
+    kw = dict(init=seq_dir.parent / "init.json", progress=False, joints3d="off", log=None)
+    smoothed = flowmocap.track(seq_dir, tmp_path / "s", config=QUICK, **kw)
+    raw = flowmocap.track(seq_dir, tmp_path / "r", config={**QUICK, "depth_smoothing_s": 0.0}, **kw)
+    assert smoothed.run["config"]["depth_smoothing_s"] == 0.5 and "trans_tracked" not in raw.motion
+    assert raw.run["config"]["depth_smoothing_s"] == 0.0
+    np.testing.assert_array_equal(smoothed.poses, raw.poses)
+    np.testing.assert_array_equal(smoothed.motion["trans_tracked"], raw.trans)
+    want = depth_smoothed_motion(dict(raw.motion), 0.5)
+    for k in ("trans", "joints3d", "joints2d"):
+        np.testing.assert_allclose(getattr(smoothed, k), want[k], atol=1e-5, err_msg=k)
+    assert np.abs(smoothed.trans - raw.trans).max() > 1e-4  # 5 noisy frames: the depth moved
+
+
 def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):
     res = flowmocap.track(seq_dir, tmp_path / "r", init=seq_dir.parent / "init.json", config=QUICK,
                           frames="0:3", profile="video", progress=False, joints3d="off", log=None)

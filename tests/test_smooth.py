@@ -8,8 +8,10 @@ from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation
 
 from flowmocap.errors import InputError
-from flowmocap.fit.smooth import (savgol_weights, smooth_motion, smooth_rotations, smooth_translations,
+from flowmocap.fit.smooth import (DEPTH_ORDER, DEPTH_WINDOW_S, depth_smoothed_motion, savgol_weights,
+                                  smooth_motion, smooth_root_depth, smooth_rotations, smooth_translations,
                                   window_frames)
+from flowmocap.geometry.camera import PinholeCamera
 
 
 @pytest.mark.parametrize("window,order", [(5, 2), (9, 2), (7, 1), (11, 3), (9, 0)])
@@ -102,3 +104,100 @@ def test_runs_of_consecutive_frames_are_smoothed_apart():
     assert np.abs(whole[15:21] - p[15:21]).max() > 1e-3  # without the index it reaches across
     with pytest.raises(InputError, match="frame_index"):
         smooth_motion(poses, trans, 30.0, frame_index=index[:5])
+
+
+def _camera():
+    R = Rotation.from_euler("xyz", [0.2, -0.7, 0.1]).as_matrix()
+    return PinholeCamera(fx=500.0, fy=500.0, cx=160.0, cy=120.0, width=320, height=240, R=R, t=[0.1, -0.2, 4.0])
+
+
+def _roots(cam, dist, pixels):
+    """World points at camera distances ``dist (T,)`` on the rays through ``pixels (T, 2)``."""
+    ray = np.stack([(pixels[:, 0] - cam.cx) / cam.fx, (pixels[:, 1] - cam.cy) / cam.fy, np.ones(len(dist))], 1)
+    c = ray / np.linalg.norm(ray, axis=1, keepdims=True) * dist[:, None]
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    return (c - t) @ R  # camera -> world
+
+
+def test_root_depth_follows_the_savgol_filter_of_its_distance_and_keeps_its_pixel():
+    """The root moves along its own camera ray (same pixel) to the Savitzky-Golay filter of
+    its distance from the camera; a distance quadratic in time is kept exactly by degree 2,
+    a straight line by the default degree."""
+    cam = _camera()
+    rng = np.random.default_rng(3)
+    T, fps = 150, 60.0
+    pixels = np.stack([100 + 0.5 * np.arange(T), 120 + 10 * np.sin(np.arange(T) / 9)], 1)
+    tt = np.arange(T) / fps
+    smooth_dist = 4.0 - 0.4 * tt + 0.05 * tt ** 2
+    noisy = smooth_dist + rng.normal(0, 0.08, T)
+    root = _roots(cam, noisy, pixels)
+    shift = smooth_root_depth(root, cam.R, cam.t, fps, window_s=2.0, order=2)
+    moved = root + shift
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    dist = np.linalg.norm(moved @ R.T + t, axis=1)
+    np.testing.assert_allclose(dist, savgol_filter(noisy, window_frames(2.0, fps, 2), 2, mode="interp"), atol=1e-9)
+    np.testing.assert_allclose(cam.project(moved), cam.project(root), atol=1e-3)  # float32 projection
+    assert np.abs(dist - smooth_dist).std() < 0.4 * np.abs(noisy - smooth_dist).std()
+    exact = _roots(cam, smooth_dist, pixels)
+    np.testing.assert_allclose(smooth_root_depth(exact, cam.R, cam.t, fps, window_s=2.0, order=2), 0.0, atol=1e-9)
+    line = _roots(cam, 4.0 - 0.4 * tt, pixels)
+    np.testing.assert_allclose(smooth_root_depth(line, cam.R, cam.t, fps), 0.0, atol=1e-9)
+    d = np.linalg.norm((root + smooth_root_depth(root, cam.R, cam.t, fps)) @ R.T + t, axis=1)
+    window = window_frames(DEPTH_WINDOW_S, fps, DEPTH_ORDER)
+    np.testing.assert_allclose(d, savgol_filter(noisy, window, DEPTH_ORDER, mode="interp"), atol=1e-9)
+
+
+def test_root_depth_runs_gaps_non_finite_frames_and_errors():
+    cam = _camera()
+    rng = np.random.default_rng(4)
+    T = 40
+    pixels = np.full((T, 2), 150.0)
+    noisy = 4.0 + rng.normal(0, 0.05, T)
+    root = _roots(cam, noisy, pixels)
+    index = np.r_[np.arange(20), np.arange(30, 50)]  # a gap of 10 input frames after the 20th row
+    whole = smooth_root_depth(root, cam.R, cam.t, 30.0, window_s=0.5, frame_index=index)
+    parts = [smooth_root_depth(root[a:b], cam.R, cam.t, 30.0, window_s=0.5) for a, b in ((0, 20), (20, 40))]
+    np.testing.assert_allclose(whole, np.concatenate(parts), atol=1e-12)
+    jumped = smooth_root_depth(root, cam.R, cam.t, 30.0, window_s=0.5, breaks=[15])  # a refit at row 15
+    parts = [smooth_root_depth(root[a:b], cam.R, cam.t, 30.0, window_s=0.5) for a, b in ((0, 15), (15, 40))]
+    np.testing.assert_allclose(jumped, np.concatenate(parts), atol=1e-12)
+    bad = root.copy()
+    bad[10] = np.nan
+    shift = smooth_root_depth(bad, cam.R, cam.t, 30.0, window_s=0.5)
+    assert np.all(shift[10] == 0) and np.isfinite(shift).all()
+    np.testing.assert_allclose(shift[11:], smooth_root_depth(root[11:], cam.R, cam.t, 30.0, window_s=0.5),
+                               atol=1e-12)
+    np.testing.assert_allclose(smooth_root_depth(root[:2], cam.R, cam.t, 30.0), 0.0)  # too short: unchanged
+    with pytest.raises(InputError):
+        smooth_root_depth(root[:, :2], cam.R, cam.t, 30.0)
+    with pytest.raises(InputError):
+        smooth_root_depth(root, cam.R, cam.t, 30.0, window_s=-1.0)
+    with pytest.raises(InputError):
+        smooth_root_depth(root, cam.R, cam.t, 30.0, frame_index=np.arange(3))
+
+
+def test_depth_smoothed_motion_moves_trans_and_joints_together_and_projects_again():
+    import json
+
+    cam = _camera()
+    rng = np.random.default_rng(5)
+    T = 30
+    root = _roots(cam, 4.0 + rng.normal(0, 0.05, T), np.full((T, 2), 140.0) + rng.normal(0, 3, (T, 2)))
+    joints = root[:, None, :] + rng.normal(0, 0.3, (1, 24, 3))
+    joints[:, 0] = root
+    motion = {"poses": rng.normal(0, 0.2, (T, 72)).astype(np.float32),
+              "trans": (root + 0.1).astype(np.float32), "joints3d": joints.astype(np.float32),
+              "joints2d": cam.project(joints.reshape(-1, 3)).reshape(T, 24, 2).astype(np.float32),
+              "fps": np.array(30.0), "camera": np.array(json.dumps(cam.to_dict())),
+              "frame_index": np.arange(T), "energies": np.zeros((T, 2))}
+    out = depth_smoothed_motion(motion)
+    shift = smooth_root_depth(joints[:, 0], cam.R, cam.t, 30.0)
+    np.testing.assert_allclose(out["trans"] - out["trans_tracked"], shift, atol=1e-6)
+    np.testing.assert_array_equal(out["trans_tracked"], motion["trans"])
+    np.testing.assert_allclose(out["joints3d"] - motion["joints3d"], np.repeat(shift[:, None], 24, 1), atol=1e-6)
+    np.testing.assert_allclose(out["joints2d"], cam.project(out["joints3d"].reshape(-1, 3)).reshape(T, 24, 2),
+                               atol=1e-3)
+    assert np.abs(shift).max() > 1e-3 and out["poses"] is motion["poses"] and out["energies"] is motion["energies"]
+    assert out["trans"].dtype == np.float32 and out["joints2d"].dtype == np.float32
+    same = depth_smoothed_motion(motion, window_s=0)
+    assert "trans_tracked" not in same and same["trans"] is motion["trans"]

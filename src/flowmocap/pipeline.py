@@ -37,6 +37,7 @@ from flowmocap.fit.objective import (
     keypoint_observation,
 )
 from flowmocap.fit.reinit import ReinitMonitor
+from flowmocap.fit.smooth import depth_smoothed_motion
 from flowmocap.fit.tracker import FrameResult, KnownStart, SequenceTracker, track_frames
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.fingerprint import (
@@ -736,20 +737,23 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
 
         track_frames(tracker, range(a + done, b), observe, on_frame, progress=progress, done=done)
     except BaseException as e:
-        _record_end(out, run, log, timings, "interrupted" if isinstance(e, KeyboardInterrupt) else "failed", e)
+        _record_end(out, run, log, timings, "interrupted" if isinstance(e, KeyboardInterrupt) else "failed", e,
+                    cfg=cfg)
         raise
     timings["total_s"] = float(timings.get("total_s", 0.0))
     run["tracker"] = tracker.state_dict()  # where it ended (the resume state lived in progress.json)
-    _record_end(out, run, log, timings, "finished")
+    _record_end(out, run, log, timings, "finished", cfg=cfg)
     log.close()
     return run
 
 
 def _record_end(out: Path, run: dict, log: FrameLog | None, timings: dict, status: str,
-                error: BaseException | None = None) -> None:
-    """Write ``motion.npz`` (the committed frames) and ``run.json`` with the final status,
-    events and timings. On a failure this is best effort (the original error matters
-    more, and the commit point already holds the finished frames)."""
+                error: BaseException | None = None, cfg: TrackerConfig | None = None) -> None:
+    """Write ``motion.npz`` (the committed frames, the root's depth smoothed over
+    ``cfg.depth_smoothing_s``: :func:`~flowmocap.fit.smooth.depth_smoothed_motion`) and
+    ``run.json`` with the final status, events and timings. On a failure this is best
+    effort (the original error matters more, and the commit point already holds the
+    finished frames)."""
     try:
         run["status"] = status
         if error is not None:
@@ -764,7 +768,11 @@ def _record_end(out: Path, run: dict, log: FrameLog | None, timings: dict, statu
             if frame_s:
                 run["timings"]["s_per_frame_median"] = float(np.median(frame_s))
             if log.rows:
-                write_motion(out, log.motion())
+                motion = log.motion()
+                if cfg is not None and cfg.depth_smoothing_s > 0:
+                    refits = [e["frame"] for e in run["events"] if e.get("event") == "re-initialised" and "frame" in e]
+                    motion = depth_smoothed_motion(motion, cfg.depth_smoothing_s, breaks=refits)
+                write_motion(out, motion)
         else:
             run.setdefault("events", [])
             run["timings"] = dict(timings)

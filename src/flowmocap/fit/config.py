@@ -78,7 +78,7 @@ _RANGES: dict[str, str] = {
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
-    "depth_temporal_weight": _AT_LEAST_0,
+    "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
@@ -140,6 +140,9 @@ class TrackerConfig:
     depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
     #                                    reference (m^2); 0: off (measured, not better: docs/experiments.md)
     depth_temporal_reference: str = "prediction"  # E_z's reference: the Kalman "prediction" or the "previous" frame
+    depth_smoothing_s: float = 0.5     # s: the finished motion's root distance from the camera smoothed over
+    #                                    this window (Savitzky-Golay, degree 1; fit.smooth.smooth_root_depth)
+    #                                    between re-initialisations; 0: off (the tracker's own frames)
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

@@ -26,13 +26,22 @@ import numpy as np
 from flowmocap.errors import InputError
 
 __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
-           "DEFAULT_WINDOW_S", "DEFAULT_ORDER"]
+           "smooth_root_depth", "depth_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
+           "DEPTH_ORDER"]
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
 #: CMU 35_01 protocol runs (8 seeds, 60 fps), the same on the held-out diverse suite;
 #: numbers in the README's "Smoothing" section (benchmarks/smooth_cmu.py).
 DEFAULT_WINDOW_S = 0.3
 DEFAULT_ORDER = 2
+
+#: The root-depth smoother's window in seconds and its degree (:func:`smooth_root_depth`,
+#: ``TrackerConfig.depth_smoothing_s``): a local straight line over half a second. Of the
+#: windows and degrees tried on finished runs of the CMU 35_01 protocol (8 seeds) and the
+#: diverse suite together (benchmarks/depth_smoothing.py), the one that made no run of
+#: either worse and cost no 2D accuracy (docs/experiments.md, "Root depth smoothed over time").
+DEPTH_WINDOW_S = 0.5
+DEPTH_ORDER = 1
 
 
 def window_frames(window_s: float, fps: float, order: int = DEFAULT_ORDER) -> int:
@@ -180,3 +189,107 @@ def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: fl
             return np.concatenate([q for q, _ in parts]), np.concatenate([t for _, t in parts])
     p = smooth_rotations(poses.reshape(T, 24, 3), window, order).reshape(T, 72)
     return p, smooth_translations(trans, window, order)
+
+
+def _runs(frame_index, T: int, ok: np.ndarray, breaks=()) -> list[tuple[int, int]]:
+    """``[(a, b), ...]``: the runs of consecutive input frames (``frame_index``, None:
+    consecutive) whose rows are all ``ok``; a frame number in ``breaks`` starts a new run."""
+    idx = np.arange(T) if frame_index is None else np.asarray(frame_index).reshape(-1)
+    if idx.shape != (T,):
+        raise InputError(f"frame_index must have {T} entries, one per frame; got {idx.shape}.")
+    starts = {int(b) for b in breaks}
+    out, a = [], None
+    for i in range(T + 1):
+        good = i < T and bool(ok[i]) and (a is None or (idx[i] == idx[i - 1] + 1 and int(idx[i]) not in starts))
+        if a is not None and not good:
+            out.append((a, i))
+            a = None
+        if i < T and bool(ok[i]) and a is None:
+            a = i
+    return out
+
+
+def smooth_root_depth(root: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray, fps: float,
+                      window_s: float = DEPTH_WINDOW_S, order: int = DEPTH_ORDER,
+                      frame_index=None, breaks=()) -> np.ndarray:
+    """How far to move the body in each frame so that its root's distance from the camera
+    follows a Savitzky-Golay filter of itself, along the camera ray through the root.
+
+    Monocular fits pin the body's image but not its distance: the depth follows the fitted
+    pose's 3D size and jitters from frame to frame while the image stays put. Moving each
+    frame along the ray through its root keeps the root's pixel where it is (the rest of
+    the body's image scales about it by the ratio of the depths, a few per cent) and
+    replaces the distance by its smoothed value. Runs of consecutive frames are smoothed
+    apart (never across a gap, a non-finite frame or a frame in ``breaks``, such as a
+    re-initialisation, where the depth may jump); a window longer than a run shrinks to
+    it; a run of at most ``order`` frames, or a frame whose smoothed distance is not
+    positive, is left where it is.
+
+    Args:
+        root: ``(T, 3)`` the root joint (pelvis) in world coordinates, metres.
+        camera_R: ``(3, 3)`` world-to-camera rotation; camera_t: ``(3,)`` metres
+            (``x_cam = R x + t``).
+        fps: frames per second (Hz). window_s: the window in seconds
+            (:func:`window_frames`). order: polynomial degree.
+        frame_index: ``(T,)`` the input's frame numbers, or None (consecutive).
+        breaks: input frame numbers that start a new run.
+
+    Returns:
+        ``(T, 3)`` float64 shift in world coordinates (metres) to add to the translation and
+        to every joint and vertex of each frame (zero where nothing moves).
+    """
+    root = np.asarray(root, np.float64)
+    if root.ndim != 2 or root.shape[1] != 3:
+        raise InputError(f"root must have shape (T, 3); got {root.shape}.")
+    R = np.asarray(camera_R, np.float64)
+    t = np.asarray(camera_t, np.float64).reshape(3)
+    if not isinstance(order, (int, np.integer)) or order < 0:
+        raise InputError(f"the smoothing order must be a whole number >= 0, got {order!r}.")
+    window = window_frames(window_s, fps, order)
+    cam = root @ R.T + t
+    dist = np.linalg.norm(cam, axis=1)
+    ok = np.isfinite(dist) & (dist > 0) & (cam[:, 2] > 0)
+    shift = np.zeros_like(root)
+    for a, b in _runs(frame_index, root.shape[0], ok, breaks):
+        d = smooth_translations(dist[a:b], window, order)
+        good = np.isfinite(d) & (d > 0)
+        moved = cam[a:b] * (np.where(good, d, dist[a:b]) / dist[a:b])[:, None]
+        shift[a:b] = (moved - cam[a:b]) @ R  # camera -> world: R^T (moved - cam)
+    return shift
+
+
+def depth_smoothed_motion(motion: dict, window_s: float = DEPTH_WINDOW_S, order: int = DEPTH_ORDER,
+                          breaks=()) -> dict:
+    """A result's ``motion.npz`` arrays with the root's depth smoothed (:func:`smooth_root_depth`).
+
+    ``trans`` and ``joints3d`` move by the shift, ``joints2d`` is projected again with the
+    result's camera; the tracker's own per-frame values are kept as ``trans_tracked``
+    (``(T, 3)`` metres; ``joints3d`` before = ``joints3d - (trans - trans_tracked)``).
+    ``window_s`` 0 returns the arrays unchanged (and no ``trans_tracked``).
+
+    Args:
+        motion: ``poses (T, 72)``, ``trans (T, 3)``, ``joints3d (T, 24, 3)``, ``joints2d
+            (T, 24, 2)``, ``fps``, ``camera`` (JSON of ``PinholeCamera.to_dict()``),
+            ``frame_index (T,)`` and anything else (kept).
+        breaks: input frame numbers where the depth may jump (re-initialisations): the
+            smoothing starts again there.
+    """
+    if window_s == 0:
+        return dict(motion)
+    import json
+
+    from flowmocap.geometry.camera import PinholeCamera
+
+    camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+    joints = np.asarray(motion["joints3d"], np.float64)
+    shift = smooth_root_depth(joints[:, 0], camera.R, camera.t, float(np.asarray(motion["fps"])), window_s, order,
+                              frame_index=motion.get("frame_index"), breaks=breaks)
+    out = dict(motion)
+    trans = np.asarray(motion["trans"])
+    out["trans_tracked"] = trans.copy()
+    out["trans"] = (trans + shift).astype(trans.dtype)
+    moved = joints + shift[:, None, :]
+    out["joints3d"] = moved.astype(np.asarray(motion["joints3d"]).dtype)
+    j2d = np.asarray(camera.project(moved.reshape(-1, 3)), np.float64).reshape(joints.shape[0], -1, 2)
+    out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    return out
