@@ -29,7 +29,10 @@ A result folder holds
 ``betas (10,)``, ``gender``, ``fps``, ``camera`` (JSON of PinholeCamera.to_dict()),
 ``joints3d (T, 24, 3)`` metres (camera/world frame of the camera), ``joints2d (T, 24, 2)``
 pixels, ``energies (T, K)`` and ``energy_names (K,)``, ``frame_index (T,)`` (the input's
-frame numbers). :func:`read_result` gives the same arrays for a run that is still going
+frame numbers); with ``depth_smoothing_s`` (the default) ``trans``, ``joints3d`` and
+``joints2d`` are the depth-smoothed ones and ``trans_tracked (T, 3)`` the tracker's own
+(:func:`flowmocap.fit.smooth.depth_smoothed_motion`), while the progress files, and so
+:func:`read_result` of an unfinished run, hold the tracker's own frames. :func:`read_result` gives the same arrays for a run that is still going
 or was killed.
 """
 
