@@ -80,7 +80,8 @@ _RANGES: dict[str, str] = {
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
-    "reinit_iterations": _AT_LEAST_1, "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
+    "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
+    "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
     "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
     "init_shape_prior_weight": _AT_LEAST_0, "init_detector3d_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
@@ -148,6 +149,8 @@ class TrackerConfig:
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
     reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
     reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
+    reinit_depth_weight: float = 1e5   # px^2 per (relative change)^2: a refit's root stays near the tracked
+    #                                    frame's distance from the camera (a 10 % jump costs 1e3); 0: off
     reinit_max_joint3d_error: float = 0.1  # m: a frame is 3D-bad above this aligned joint error; 0: off
     reinit_3d_patience: int = 3        # 3D-bad frames in a row before a refit
     reinit_max_wait: int = 1           # frames: each refit turned down doubles the wait before the next

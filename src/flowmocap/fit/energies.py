@@ -62,6 +62,8 @@ __all__ = [
     "camera_ray",
     "depth_temporal_residuals",
     "depth_temporal_energy",
+    "root_distance_residuals",
+    "root_distance_energy",
     "capsule_signed_distance",
     "silhouette_residuals",
     "silhouette_energy",
@@ -1105,3 +1107,28 @@ def depth_temporal_residuals(trans: torch.Tensor, ref_trans: Any, ray: Any) -> t
 def depth_temporal_energy(trans: torch.Tensor, ref_trans: Any, ray: Any) -> torch.Tensor:
     """``E_z``: squared :func:`depth_temporal_residuals`, ``(B,)`` in m^2."""
     return _sum_sq(depth_temporal_residuals(trans, ref_trans, ray))
+
+
+def root_distance_residuals(root_cam: torch.Tensor, ref_distance: float) -> torch.Tensor:
+    """The root's relative change of distance from the camera: ``|root| / ref - 1``.
+
+    A re-initialisation's fit explains the person's image by pose and depth together; a
+    lost body refitted to a bent-over person can put it twice as far away as the frame
+    before, which no person does between two frames. This residual keeps the refit near
+    the tracked depth (``TrackerConfig.reinit_depth_weight``).
+
+    Args:
+        root_cam: ``(B, 3)`` the root joint in camera coordinates, metres (camera at 0).
+        ref_distance: the reference distance from the camera, metres (> 0).
+
+    Returns:
+        ``(B, 1)`` unitless.
+    """
+    if not (np.isfinite(ref_distance) and ref_distance > 0):
+        raise InputError(f"the reference distance must be a positive number of metres, got {ref_distance!r}.")
+    return (torch.linalg.vector_norm(root_cam, dim=-1, keepdim=True) / float(ref_distance)) - 1.0
+
+
+def root_distance_energy(root_cam: torch.Tensor, ref_distance: float) -> torch.Tensor:
+    """Squared :func:`root_distance_residuals`, ``(B,)`` unitless."""
+    return _sum_sq(root_distance_residuals(root_cam, ref_distance))

@@ -198,7 +198,8 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
                   pose0: torch.Tensor, trans0: torch.Tensor, betas: torch.Tensor, *, fit_shape: bool,
                   iterations: int | None = None, prior_weights=None,
                   joints3d: tuple | None = None,
-                  joints_from_detector: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+                  joints_from_detector: bool = False,
+                  root_distance: float | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
     """Fit the body to one frame's 2D joints, then also to its silhouette (init steps 1-2).
 
     Translation alone first, then pose and translation (and the shape when ``fit_shape``)
@@ -226,6 +227,10 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
             ``cfg.keypoint_offsets`` they are compared with the body where the detector
             puts them (:func:`~flowmocap.vision.keypoint_map.detector_points`), as the
             3D joints always are; otherwise with the body model's joints.
+        root_distance: metres: keep the root's distance from the camera near this one
+            (:func:`~flowmocap.fit.energies.root_distance_energy`, weight
+            ``cfg.reinit_depth_weight``; the re-initialisation passes the tracked
+            frame's), or None for no such term.
 
     Returns:
         ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of the final energies.
@@ -268,6 +273,9 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
                 dp, camera, joints3d, cfg.detector3d_scale)[0]
         if cfg.init_learned_prior_weight > 0:
             t["learned_prior"] = cfg.init_learned_prior_weight * learned_pose_prior().energy(pose[None])[0]
+        if root_distance is not None and cfg.reinit_depth_weight > 0:
+            t["root_distance"] = cfg.reinit_depth_weight * en.root_distance_energy(
+                camera.to_camera(out.joints[0, :1]), root_distance)[0]
         caps = body_capsules(model, out, rest=rest)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:

@@ -103,7 +103,7 @@ def joint3d_disagreement(joints_cam: np.ndarray, j3d: np.ndarray, conf: np.ndarr
 
 def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarray, mask: np.ndarray | None,
                      pose0: torch.Tensor, trans0: torch.Tensor, iterations: int | None = None,
-                     joints3d: tuple | None = None) -> tuple:
+                     joints3d: tuple | None = None, root_distance: float | None = None) -> tuple:
     """Fit pose and translation (shape fixed) to one frame's 2D joints and mask.
 
     Steps 1 and 2 of the initialisation (:func:`flowmocap.fit.init.fit_frame0`) with the
@@ -118,6 +118,8 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
         pose0: ``(72,)`` start and prior; trans0: ``(3,)`` metres.
         joints3d: the detector's 3D joints of the frame for ``E_d`` (see
             :func:`~flowmocap.fit.init.fit_to_joints`), or None.
+        root_distance: metres: the root's distance from the camera to stay near
+            (``cfg.reinit_depth_weight``), or None.
 
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final energy (float).
@@ -125,7 +127,7 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
     sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
     pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
                                           scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d,
-                                          joints_from_detector=True)
+                                          joints_from_detector=True, root_distance=root_distance)
     return pose, trans, float(sum(terms.values()))
 
 
@@ -262,6 +264,10 @@ class ReinitMonitor:
         if collapsed_detection(j2d, conf, scene.camera.height):
             return None  # nothing sound to fit to (a hidden or folded-up person); keep tracking by flow
         joints3d = self.track.smpl_joints3d(i, scene.camera)
+        with torch.no_grad():  # the tracked frame's depth: a person does not jump in depth between frames
+            root = scene.camera.to_camera(scene.forward(state.pose, state.trans)[0].joints[0, 0])
+        distance = float(root.norm())
+        distance = distance if math.isfinite(distance) and distance > 0 and float(root[2]) > 0 else None
         starts = [(state.pose, state.trans)]
         if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
             fresh = np.zeros(72)
@@ -272,7 +278,8 @@ class ReinitMonitor:
         for pose0, trans0 in starts:
             try:
                 pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0,
-                                                  iterations=self.cfg.reinit_iterations, joints3d=joints3d)
+                                                  iterations=self.cfg.reinit_iterations, joints3d=joints3d,
+                                                  root_distance=distance)
             except OptimizationError:
                 continue
             if math.isfinite(e) and (best is None or e < best[2]):
