@@ -149,8 +149,9 @@ class TrackerConfig:
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
     reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
     reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
-    reinit_depth_weight: float = 1e5   # px^2 per (relative change)^2: a refit's root stays near the tracked
-    #                                    frame's distance from the camera (a 10 % jump costs 1e3); 0: off
+    reinit_depth_weight: float = 0.0   # px^2 per (relative change)^2: a refit's root stays near the tracked
+    #                                    frame's distance from the camera (1e5: a 10 % jump costs 1e3); 0: off
+    #                                    (1e5 made real3d worse on all 6 person-views with refits: experiments.md)
     reinit_max_joint3d_error: float = 0.1  # m: a frame is 3D-bad above this aligned joint error; 0: off
     reinit_3d_patience: int = 3        # 3D-bad frames in a row before a refit
     reinit_max_wait: int = 1           # frames: each refit turned down doubles the wait before the next
