@@ -264,10 +264,12 @@ class ReinitMonitor:
         if collapsed_detection(j2d, conf, scene.camera.height):
             return None  # nothing sound to fit to (a hidden or folded-up person); keep tracking by flow
         joints3d = self.track.smpl_joints3d(i, scene.camera)
-        with torch.no_grad():  # the tracked frame's depth: a person does not jump in depth between frames
-            root = scene.camera.to_camera(scene.forward(state.pose, state.trans)[0].joints[0, 0])
-        distance = float(root.norm())
-        distance = distance if math.isfinite(distance) and distance > 0 and float(root[2]) > 0 else None
+        distance = None  # the tracked frame's depth, for cfg.reinit_depth_weight (off by default)
+        if self.cfg.reinit_depth_weight > 0:
+            with torch.no_grad():
+                root = scene.camera.to_camera(scene.forward(state.pose, state.trans)[0].joints[0, 0])
+            d = float(root.norm())
+            distance = d if math.isfinite(d) and d > 0 and float(root[2]) > 0 else None
         starts = [(state.pose, state.trans)]
         if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
             fresh = np.zeros(72)
