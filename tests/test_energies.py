@@ -350,6 +350,22 @@ def test_silhouette_residuals_match_a_full_image_evaluation(body, scene):
     torch.testing.assert_close(silhouette_energy(caps, cam, tgt, a=0.7, grid_step=2, softness=1.5), (r ** 2).sum(1))
 
 
+@pytest.mark.parametrize("step", [1, 3, 4])
+def test_silhouette_energy_gradient_equals_that_of_its_residuals(body, scene, step):
+    # the energy's compiled pass (value and gradient together) against autograd through
+    # the residuals' torch form, with a shift that puts part of the body off the image
+    for shift in ([0.03, -0.02, 0.05], [0.9, 0.1, 0.0]):
+        trans = torch.tensor([shift], dtype=torch.float64, requires_grad=True)
+        caps = body_capsules(body, body(pose=scene["pose"], trans=trans))
+        kw = dict(a=0.7, grid_step=step, softness=1.5)
+        e = silhouette_energy(caps, scene["cam"], scene["target"], **kw)
+        ref = (silhouette_residuals(caps, scene["cam"], scene["target"], **kw) ** 2).sum(1)
+        (g,) = torch.autograd.grad(e.sum(), trans, retain_graph=True)
+        (g_ref,) = torch.autograd.grad(ref.sum(), trans)
+        torch.testing.assert_close(e, ref, rtol=1e-12, atol=0)
+        torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-12 * float(g_ref.abs().max()))
+
+
 def test_silhouette_bad_input(body, scene):
     caps = body_capsules(body, body(pose=scene["pose"]))
     with pytest.raises(NoPersonError):

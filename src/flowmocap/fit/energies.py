@@ -37,6 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numba import njit
 
 from flowmocap.body.capsules import CAPSULE_BONES, CAPSULE_NAMES, Capsules, body_capsules
 from flowmocap.body.files import load_body_model
@@ -47,7 +48,7 @@ from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from flowmocap.render.capsules import capsule_signed_distance, project_capsules
+from flowmocap.render.capsules import capsule_distance_grid, capsule_signed_distance, project_capsules
 from flowmocap.vision.masks import chamfer_map
 
 __all__ = [
@@ -530,9 +531,10 @@ def silhouette_residuals(
     return full.reshape(B, H * W)
 
 
-def _silhouette_window(capsules, camera, target, a, grid_step, softness):
-    """Residuals of E_c on the window that holds the mask and the model (see
-    :func:`silhouette_residuals`): ``(B, h, w)`` and the window's corner ``(y0, x0)``."""
+def _silhouette_setup(capsules, camera, target, a, grid_step, softness):
+    """Checks, the projected capsules ``(s, e, r)`` and the window of E_c (the mask's box
+    and the capsules' box, plus the soft edge and a grid cell): ``(s, e, r), (y0, x0, y1, x1)``
+    with ``y0, x0`` on the grid."""
     if (target.height, target.width) != (camera.height, camera.width):
         raise InputError(
             f"the mask is {target.width}x{target.height} but the camera is "
@@ -546,7 +548,6 @@ def _silhouette_window(capsules, camera, target, a, grid_step, softness):
         raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
     step, H, W = int(grid_step), target.height, target.width
     s, e, r = _project(capsules, camera)
-    # window: the mask's box and the capsules' box, plus the soft edge and a grid cell
     with torch.no_grad():
         lo = torch.minimum(s, e) - r[..., None]
         hi = torch.maximum(s, e) + r[..., None]
@@ -559,12 +560,89 @@ def _silhouette_window(capsules, camera, target, a, grid_step, softness):
     y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
     x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
     y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
-    sd = capsule_signed_distance(s, e, r, y1 - y0, x1 - x0, step, origin=(y0, x0))  # (B, h, w)
+    return (s, e, r), (y0, x0, y1, x1)
+
+
+def _silhouette_window(capsules, camera, target, a, grid_step, softness):
+    """Residuals of E_c on the window that holds the mask and the model (see
+    :func:`silhouette_residuals`): ``(B, h, w)`` and the window's corner ``(y0, x0)``."""
+    (s, e, r), (y0, x0, y1, x1) = _silhouette_setup(capsules, camera, target, a, grid_step, softness)
+    sd = capsule_signed_distance(s, e, r, y1 - y0, x1 - x0, int(grid_step), origin=(y0, x0))  # (B, h, w)
     mask = target.mask[y0:y1, x0:x1].to(sd.dtype)
     cham = target.chamfer[y0:y1, x0:x1].to(sd.dtype)
     soft = torch.sigmoid(-sd / softness)
     res = (a * soft * cham + (1.0 - a) * mask * torch.relu(sd)) / math.sqrt(target.count)
     return res, (y0, x0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _coverage_energy_kernel(grid, step, mask, cham, a, softness, scale, energy, grad):
+    """E_c of :func:`silhouette_energy` and its gradient w.r.t. the exact distance samples
+    in one pass: for each pixel ``(v, u)`` of the ``mask``/``cham`` window, ``sd`` is the
+    bilinear interpolation of ``grid (B, gh, gw)`` at ``(v / step, u / step)`` (what
+    :func:`~flowmocap.render.capsules.capsule_signed_distance` gives), the residual is
+    ``scale (a sigmoid(-sd / softness) cham + (1 - a) mask max(sd, 0))`` and ``energy[b]``
+    its sum of squares; ``grad (B, gh, gw)`` (zeroed by the caller) receives
+    ``d energy[b] / d grid[b]``. float64 throughout."""
+    B = grid.shape[0]
+    h, w = mask.shape
+    inv_step = 1.0 / step
+    for b in range(B):
+        total = 0.0
+        for v in range(h):
+            i = v // step
+            fy = (v - i * step) * inv_step
+            for u in range(w):
+                j = u // step
+                fx = (u - j * step) * inv_step
+                w00 = (1.0 - fy) * (1.0 - fx)
+                w01 = (1.0 - fy) * fx
+                w10 = fy * (1.0 - fx)
+                w11 = fy * fx
+                sd = (w00 * grid[b, i, j] + w01 * grid[b, i, j + 1] + w10 * grid[b, i + 1, j]
+                      + w11 * grid[b, i + 1, j + 1])
+                x = -sd / softness
+                if x >= 0.0:
+                    soft = 1.0 / (1.0 + math.exp(-x))
+                else:
+                    z = math.exp(x)
+                    soft = z / (1.0 + z)
+                c = cham[v, u]
+                m = mask[v, u]
+                res = a * soft * c
+                dres = -a * c * soft * (1.0 - soft) / softness
+                if sd > 0.0:  # C_M = max(sd, 0); no gradient at 0, as torch's relu
+                    res += (1.0 - a) * m * sd
+                    dres += (1.0 - a) * m
+                res *= scale
+                total += res * res
+                g = 2.0 * res * scale * dres
+                if g != 0.0:
+                    grad[b, i, j] += g * w00
+                    grad[b, i, j + 1] += g * w01
+                    grad[b, i + 1, j] += g * w10
+                    grad[b, i + 1, j + 1] += g * w11
+        energy[b] = total
+
+
+class _CoverageEnergy(torch.autograd.Function):
+    """E_c ``(B,)`` from the exact distance samples ``grid (B, gh, gw)``, value and gradient
+    in one compiled pass (:func:`_coverage_energy_kernel`): the interpolated distance map
+    and the per-pixel residuals are never made as tensors."""
+
+    @staticmethod
+    def forward(ctx, grid, mask, cham, step, a, softness, scale):  # noqa: D102
+        g64 = grid.detach().to(torch.float64).numpy()
+        energy = np.zeros(g64.shape[0])
+        grad = np.zeros_like(g64)
+        _coverage_energy_kernel(g64, step, mask, cham, a, softness, scale, energy, grad)
+        ctx.save_for_backward(torch.from_numpy(grad).to(dtype=grid.dtype, device=grid.device))
+        return torch.from_numpy(energy).to(dtype=grid.dtype, device=grid.device)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: D102
+        (grad,) = ctx.saved_tensors
+        return grad_out[:, None, None] * grad, None, None, None, None, None, None
 
 
 def silhouette_energy(
@@ -577,10 +655,20 @@ def silhouette_energy(
     grid_step: int = 4,
     softness: float = 1.0,
 ) -> torch.Tensor:
-    """E_c: sum of squared :func:`silhouette_residuals`, ``(B,)`` in px^2 per mask pixel."""
+    """E_c: sum of squared :func:`silhouette_residuals`, ``(B,)`` in px^2 per mask pixel.
+
+    The same arithmetic as the residuals (in float64, returned in the capsules' dtype),
+    computed with its gradient in one compiled pass over the window from the exact
+    distance samples (:func:`~flowmocap.render.capsules.capsule_distance_grid`), without
+    making the interpolated map or the residuals as tensors: what the tracker evaluates.
+    """
     target = _as_target(target, chamfer, capsules.start.dtype)
-    res, _ = _silhouette_window(capsules, camera, target, a, grid_step, softness)
-    return (res * res).sum((1, 2))
+    (s, e, r), (y0, x0, y1, x1) = _silhouette_setup(capsules, camera, target, a, grid_step, softness)
+    grid = capsule_distance_grid(s, e, r, y1 - y0, x1 - x0, int(grid_step), origin=(y0, x0))
+    mask = target.mask[y0:y1, x0:x1].detach().cpu().numpy()
+    cham = target.chamfer[y0:y1, x0:x1].detach().cpu().numpy()
+    return _CoverageEnergy.apply(grid, mask, cham, int(grid_step), float(a), float(softness),
+                                 1.0 / math.sqrt(target.count))
 
 
 def _bilinear(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:

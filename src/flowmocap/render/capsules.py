@@ -26,7 +26,7 @@ from numba import njit
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_size
 
-__all__ = ["capsule_signed_distance", "project_capsules"]
+__all__ = ["capsule_distance_grid", "capsule_signed_distance", "project_capsules"]
 
 
 def _as_tensor(x: Any, name: str, shape_tail: tuple[int, ...], ref: torch.Tensor | None) -> torch.Tensor:
@@ -129,6 +129,50 @@ class _GridSignedDistance(torch.autograd.Function):
         return None, ga, gb, gr
 
 
+def capsule_distance_grid(
+    starts_px: torch.Tensor,
+    ends_px: torch.Tensor,
+    radii_px: torch.Tensor,
+    height: int,
+    width: int,
+    grid_step: int = 4,
+    origin: tuple[int, int] = (0, 0),
+) -> torch.Tensor:
+    """The exact samples behind :func:`capsule_signed_distance`: the signed distance
+    (pixels) to the union of 2D capsules at the pixel centres ``(x0 + j grid_step + 0.5,
+    y0 + i grid_step + 0.5)`` of a ``height x width`` window at ``origin = (y0, x0)``.
+
+    Args: as :func:`capsule_signed_distance`.
+
+    Returns:
+        ``(B, gh, gw)`` tensor of the inputs' dtype with ``gh = (height - 1) // grid_step + 2``
+        and ``gw = (width - 1) // grid_step + 2`` (one sample past the window's last pixel,
+        so that every pixel lies in a grid cell), differentiable w.r.t. the end points
+        and radii. Pixel ``(v, u)`` of the window lies at grid coordinate
+        ``(v / grid_step, u / grid_step)``.
+
+    Raises:
+        InputError: wrong shapes, a bad step, or an origin off the grid.
+    """
+    if int(grid_step) != grid_step or grid_step < 1:
+        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
+    step = int(grid_step)
+    a, b, r = starts_px, ends_px, radii_px
+    if a.dim() != 3 or a.shape[-1] != 2 or b.shape != a.shape:
+        raise InputError(f"starts_px and ends_px must have shape (B, K, 2), got {tuple(a.shape)} and {tuple(b.shape)}")
+    if r.shape != a.shape[:2]:
+        raise InputError(f"radii_px must have shape (B, K) = {tuple(a.shape[:2])}, got {tuple(r.shape)}")
+    h, w = check_size(height, width)
+    y0, x0 = (int(o) for o in origin)
+    if y0 % step or x0 % step:
+        raise InputError(f"origin {origin} must be a multiple of grid_step ({step})")
+    gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
+    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + (y0 + 0.5)
+    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + (x0 + 0.5)
+    pts = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).reshape(-1, 2)
+    return _GridSignedDistance.apply(pts, a, b, r).reshape(-1, gh, gw)
+
+
 def capsule_signed_distance(
     starts_px: torch.Tensor,
     ends_px: torch.Tensor,
@@ -161,23 +205,9 @@ def capsule_signed_distance(
     Raises:
         InputError: wrong shapes, a bad step, or an origin off the grid.
     """
-    if int(grid_step) != grid_step or grid_step < 1:
-        raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
-    step = int(grid_step)
-    a, b, r = starts_px, ends_px, radii_px
-    if a.dim() != 3 or a.shape[-1] != 2 or b.shape != a.shape:
-        raise InputError(f"starts_px and ends_px must have shape (B, K, 2), got {tuple(a.shape)} and {tuple(b.shape)}")
-    if r.shape != a.shape[:2]:
-        raise InputError(f"radii_px must have shape (B, K) = {tuple(a.shape[:2])}, got {tuple(r.shape)}")
-    h, w = check_size(height, width)
-    y0, x0 = (int(o) for o in origin)
-    if y0 % step or x0 % step:
-        raise InputError(f"origin {origin} must be a multiple of grid_step ({step})")
-    gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
-    gy = torch.arange(gh, dtype=a.dtype, device=a.device) * step + (y0 + 0.5)
-    gx = torch.arange(gw, dtype=a.dtype, device=a.device) * step + (x0 + 0.5)
-    pts = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).reshape(-1, 2)
-    grid = _GridSignedDistance.apply(pts, a, b, r).reshape(-1, 1, gh, gw)
+    grid = capsule_distance_grid(starts_px, ends_px, radii_px, height, width, grid_step, origin)
+    step, (h, w), (gh, gw) = int(grid_step), check_size(height, width), grid.shape[1:]
+    grid = grid[:, None]
     if step == 1:
         return grid[:, 0, :h, :w]
     # pixel u sits at grid coordinate u / step: align_corners interpolation onto
