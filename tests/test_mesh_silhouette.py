@@ -103,3 +103,23 @@ def test_bad_arguments(setup):
         mesh_silhouette_residuals(px[:, :1], d, setup["faces"], setup["target"])
     with pytest.raises(InputError):
         mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], grid_step=0)
+
+
+def test_nearest_vertex_by_scan_or_tree_gives_the_same_residuals(setup, monkeypatch):
+    from scipy.spatial import cKDTree
+
+    from flowmocap.fit import energies
+
+    rng = np.random.default_rng(0)
+    pts, queries = rng.uniform(0, 100, (500, 2)), rng.uniform(-10, 110, (40, 2))
+    nn = np.empty(40, dtype=np.int64)
+    energies._nearest_points(queries, pts, nn)
+    np.testing.assert_array_equal(nn, cKDTree(pts).query(queries)[1])
+    px, d = setup["project"]([0.05, 0.03, 0.1])
+    for step in (2, 8):  # many uncovered samples (a k-d tree) and few (a scan)
+        scanned = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], grid_step=step)
+        monkeypatch.setattr(energies, "_BRUTE_FORCE_QUERIES", 0 if scanned.shape[0] - px.shape[0] <= 150 else 10**6)
+        other = mesh_silhouette_residuals(px, d, setup["faces"], setup["target"], grid_step=step)
+        monkeypatch.undo()
+        assert scanned.shape[0] > px.shape[0]
+        assert torch.equal(scanned, other)

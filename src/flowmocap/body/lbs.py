@@ -8,6 +8,8 @@ and differentiable. Units: metres for positions, radians for axis-angle rotation
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from flowmocap.geometry.rotations import axis_angle_to_matrix
@@ -71,22 +73,44 @@ def rigid_transforms(
         location removed: ``x_posed = R x_rest + t``), which is what skinning blends.
     """
     B, J = joints.shape[:2]
-    rel_joints = joints.clone()
-    rel_joints[:, 1:] = joints[:, 1:] - joints[:, parents[1:]]
-    local = torch.zeros(B, J, 4, 4, dtype=rotmats.dtype, device=rotmats.device)
-    local[..., :3, :3] = rotmats
-    local[..., :3, 3] = rel_joints
-    local[..., 3, 3] = 1.0
-    chain = [local[:, 0]]
-    for j in range(1, J):
-        chain.append(chain[int(parents[j])] @ local[:, j])
-    world = torch.stack(chain, dim=1)
+    order, levels, inverse = _chain_levels(tuple(int(p) for p in parents.tolist()))
+    rel_joints = torch.cat([joints[:, :1], joints[:, 1:] - joints[:, parents[1:]]], dim=1)
+    local = _affine(rotmats, rel_joints)[:, order]  # (B, J, 4, 4), a level of the tree after another
+    # the chain one level of the tree at a time: a level's transforms are their parents'
+    # (all in the level before) times their own, one batched product per level
+    chain = [local[:, :1]]
+    start = 1
+    for count, parent_pos in levels:
+        chain.append(chain[-1][:, parent_pos] @ local[:, start:start + count])
+        start += count
+    world = torch.cat(chain, dim=1)[:, inverse]
     posed_joints = world[..., :3, 3]
     # Remove the rest-pose joint location: rel = world @ [I, -J_rest; 0, 1].
     offset = torch.einsum("bjcd,bjd->bjc", world[..., :3, :3], joints)
-    rel = world.clone()
-    rel[..., :3, 3] = world[..., :3, 3] - offset
-    return posed_joints, rel
+    return posed_joints, _affine(world[..., :3, :3], posed_joints - offset)
+
+
+def _affine(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``(..., 4, 4)`` homogeneous transforms ``[R t; 0 1]`` of ``R (..., 3, 3)`` and ``t (..., 3)``."""
+    top = torch.cat([R, t[..., None]], dim=-1)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(*R.shape[:-2], 1, 4)
+    return torch.cat([top, bottom], dim=-2)
+
+
+@functools.cache
+def _chain_levels(parents: tuple[int, ...]) -> tuple[list[int], list[tuple[int, list[int]]], list[int]]:
+    """The kinematic tree by depth: the joints in order of depth (the root first), per
+    level after the root its joint count and each joint's parent's position in the level
+    before, and the permutation back to joint order."""
+    depth = [0] * len(parents)
+    for j in range(1, len(parents)):
+        depth[j] = depth[parents[j]] + 1
+    by_level = [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
+    order = [j for level in by_level for j in level]
+    levels = [(len(level), [by_level[d - 1].index(parents[j]) for j in level])
+              for d, level in enumerate(by_level) if d > 0]
+    inverse = [order.index(j) for j in range(len(parents))]
+    return order, levels, inverse
 
 
 def skin(
@@ -109,6 +133,14 @@ def skin(
     return (T[..., :3] * vertices[:, :, None, :]).sum(-1) + T[..., 3]
 
 
+def shaped_rest(betas: torch.Tensor, v_template: torch.Tensor, shapedirs: torch.Tensor,
+                J_regressor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The shaped body in the rest pose: ``v_shaped (B, V, 3)`` and its regressed
+    ``rest_joints (B, J, 3)``, metres (arguments as :func:`lbs`)."""
+    v_shaped = v_template + blend_shapes(betas, shapedirs)
+    return v_shaped, vertices_to_joints(J_regressor, v_shaped)
+
+
 def lbs(
     betas: torch.Tensor,
     pose: torch.Tensor,
@@ -118,6 +150,7 @@ def lbs(
     J_regressor: torch.Tensor,
     parents: torch.Tensor,
     weights: torch.Tensor,
+    shaped: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> dict[str, torch.Tensor]:
     """The whole SMPL function M(beta, theta) without global translation.
 
@@ -130,6 +163,9 @@ def lbs(
         J_regressor: ``(J, V)``.
         parents: ``(J,)`` parent indices.
         weights: ``(V, J)`` skinning weights.
+        shaped: ``(v_shaped (B, V, 3), rest_joints (B, J, 3))`` of ``betas`` when already
+            known (:func:`shaped_rest`), to skip the shape blend shapes and the joint
+            regressor for a shape that stays fixed (the tracker's).
 
     Returns:
         dict with ``vertices (B, V, 3)``, ``joints (B, J, 3)`` (posed),
@@ -139,8 +175,7 @@ def lbs(
     """
     B = pose.shape[0]
     J = J_regressor.shape[0]
-    v_shaped = v_template + blend_shapes(betas, shapedirs)
-    rest_joints = vertices_to_joints(J_regressor, v_shaped)
+    v_shaped, rest_joints = shaped if shaped is not None else shaped_rest(betas, v_template, shapedirs, J_regressor)
     rotmats = axis_angle_to_matrix(pose.reshape(B, J, 3))
     v_posed = v_shaped
     if posedirs is not None:

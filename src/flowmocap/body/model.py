@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from flowmocap.body.lbs import lbs
+from flowmocap.body.lbs import lbs, shaped_rest
 from flowmocap.body.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from flowmocap.errors import InputError
 
@@ -100,11 +100,18 @@ class BodyModel(torch.nn.Module):
         """``(F, 3)`` int32 faces as a numpy array (for the renderer)."""
         return self.faces.cpu().numpy().astype(np.int32)
 
+    def shaped(self, betas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The shaped body in the rest pose, ``(v_shaped (B, V, 3), rest_joints (B, J, 3))``
+        metres, for :meth:`forward`'s ``shaped`` (``betas`` as there)."""
+        betas = _batch(betas, self.num_betas, "betas", self.v_template.device, self.v_template.dtype)
+        return shaped_rest(betas, self.v_template, self.shapedirs, self.J_regressor)
+
     def forward(
         self,
         betas: torch.Tensor | None = None,
         pose: torch.Tensor | None = None,
         trans: torch.Tensor | None = None,
+        shaped: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> BodyOutput:
         """Pose and shape the body.
 
@@ -114,6 +121,8 @@ class BodyModel(torch.nn.Module):
             pose: ``(B, 72)``, ``(B, 24, 3)`` or ``(72,)`` axis-angle in radians.
                 Default: the rest pose.
             trans: ``(B, 3)`` or ``(3,)`` global translation in metres. Default: zero.
+            shaped: :meth:`shaped` of these ``betas``, to skip recomputing the shaped
+                rest body when the shape stays fixed (its batch must be 1 or B).
 
         A batch of 1 broadcasts against the others' batch size.
 
@@ -132,9 +141,11 @@ class BodyModel(torch.nn.Module):
                     "give equal batch sizes or a batch of 1 to broadcast."
                 )
         betas, pose, trans = (x.expand(B, -1) for x in (betas, pose, trans))
+        if shaped is not None:
+            shaped = tuple(x.expand(B, -1, -1) for x in shaped)
         out = lbs(
             betas, pose, self.v_template, self.shapedirs, self.posedirs,
-            self.J_regressor, self.parents, self.weights,
+            self.J_regressor, self.parents, self.weights, shaped=shaped,
         )
         transforms = out["transforms"].clone()
         transforms[..., :3, 3] = transforms[..., :3, 3] + trans[:, None]

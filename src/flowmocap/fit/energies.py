@@ -587,41 +587,52 @@ def _coverage_energy_kernel(grid, step, mask, cham, a, softness, scale, energy, 
     B = grid.shape[0]
     h, w = mask.shape
     inv_step = 1.0 / step
+    inv_soft = 1.0 / softness
     for b in range(B):
         total = 0.0
-        for v in range(h):
-            i = v // step
-            fy = (v - i * step) * inv_step
-            for u in range(w):
-                j = u // step
-                fx = (u - j * step) * inv_step
-                w00 = (1.0 - fy) * (1.0 - fx)
-                w01 = (1.0 - fy) * fx
-                w10 = fy * (1.0 - fx)
-                w11 = fy * fx
-                sd = (w00 * grid[b, i, j] + w01 * grid[b, i, j + 1] + w10 * grid[b, i + 1, j]
-                      + w11 * grid[b, i + 1, j + 1])
-                x = -sd / softness
-                if x >= 0.0:
-                    soft = 1.0 / (1.0 + math.exp(-x))
-                else:
-                    z = math.exp(x)
-                    soft = z / (1.0 + z)
-                c = cham[v, u]
-                m = mask[v, u]
-                res = a * soft * c
-                dres = -a * c * soft * (1.0 - soft) / softness
-                if sd > 0.0:  # C_M = max(sd, 0); no gradient at 0, as torch's relu
-                    res += (1.0 - a) * m * sd
-                    dres += (1.0 - a) * m
-                res *= scale
-                total += res * res
-                g = 2.0 * res * scale * dres
-                if g != 0.0:
-                    grad[b, i, j] += g * w00
-                    grad[b, i, j + 1] += g * w01
-                    grad[b, i + 1, j] += g * w10
-                    grad[b, i + 1, j + 1] += g * w11
+        for i in range((h + step - 1) // step):  # one grid cell at a time: its 4 samples
+            for j in range((w + step - 1) // step):
+                g00 = grid[b, i, j]
+                g01 = grid[b, i, j + 1]
+                g10 = grid[b, i + 1, j]
+                g11 = grid[b, i + 1, j + 1]
+                d00 = d01 = d10 = d11 = 0.0
+                for v in range(i * step, min(i * step + step, h)):
+                    fy = (v - i * step) * inv_step
+                    for u in range(j * step, min(j * step + step, w)):
+                        fx = (u - j * step) * inv_step
+                        w00 = (1.0 - fy) * (1.0 - fx)
+                        w01 = (1.0 - fy) * fx
+                        w10 = fy * (1.0 - fx)
+                        w11 = fy * fx
+                        sd = w00 * g00 + w01 * g01 + w10 * g10 + w11 * g11
+                        c = cham[v, u]
+                        m = mask[v, u]
+                        res = 0.0
+                        dres = 0.0
+                        x = -sd * inv_soft
+                        if c != 0.0 and x > -40.0:  # S_M C_I: C_I is 0 in the mask, S_M < 5e-18 past 40 softness
+                            if x >= 0.0:
+                                soft = 1.0 / (1.0 + math.exp(-x))
+                            else:
+                                z = math.exp(x)
+                                soft = z / (1.0 + z)
+                            res = a * soft * c
+                            dres = -a * c * soft * (1.0 - soft) * inv_soft
+                        if sd > 0.0:  # C_M = max(sd, 0); no gradient at 0, as torch's relu
+                            res += (1.0 - a) * m * sd
+                            dres += (1.0 - a) * m
+                        res *= scale
+                        total += res * res
+                        g = 2.0 * res * scale * dres
+                        d00 += g * w00
+                        d01 += g * w01
+                        d10 += g * w10
+                        d11 += g * w11
+                grad[b, i, j] += d00
+                grad[b, i, j + 1] += d01
+                grad[b, i + 1, j] += d10
+                grad[b, i + 1, j + 1] += d11
         energy[b] = total
 
 
@@ -770,10 +781,38 @@ def mesh_silhouette_residuals(
         uncovered = grid[face_id[grid[:, 1], grid[:, 0]] < 0]
     if len(uncovered) == 0 or a == 1.0:
         return inside
-    _, nn = cKDTree(xy).query(uncovered + 0.5)
+    queries = uncovered + 0.5
+    if len(queries) <= _BRUTE_FORCE_QUERIES:  # a k-d tree of the body costs more than a few scans
+        nn = np.empty(len(queries), dtype=np.int64)
+        _nearest_points(queries, xy, nn)
+    else:
+        _, nn = cKDTree(xy).query(queries)
     p = torch.as_tensor(uncovered + 0.5, dtype=verts_px.dtype)
     d = torch.sqrt(((p - verts_px[torch.as_tensor(nn)]) ** 2).sum(-1) + 1e-12)
     return torch.cat([inside, d * math.sqrt((1.0 - a) / n)])
+
+
+#: Up to this many uncovered mask samples, :func:`mesh_silhouette_residuals` finds their
+#: nearest vertices by scanning all of them (about 1.4 ms for a k-d tree of the body's
+#: 6890 vertices, against about 6 us per sample scanned).
+_BRUTE_FORCE_QUERIES = 150
+
+
+@njit(cache=True, nogil=True)
+def _nearest_points(queries, points, out):
+    """``out[q]``: the index of the point of ``points (N, 2)`` nearest to ``queries[q]``
+    (the first on ties), by scanning them all."""
+    for q in range(queries.shape[0]):
+        best = np.inf
+        arg = 0
+        for n in range(points.shape[0]):
+            dx = points[n, 0] - queries[q, 0]
+            dy = points[n, 1] - queries[q, 1]
+            d = dx * dx + dy * dy
+            if d < best:
+                best = d
+                arg = n
+        out[q] = arg
 
 
 def _mask_grid(target: SilhouetteTarget, step: int) -> np.ndarray:

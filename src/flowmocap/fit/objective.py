@@ -83,6 +83,7 @@ class Scene:
             self.faces = prepare_faces(self.model.faces_np)
         with torch.no_grad():
             self.rest_capsules = rest_capsules(self.model, self.model(betas=self.betas))
+            self.shaped = self.model.shaped(self.betas)  # the shape is fixed: shape it once
 
     def capsules(self, out) -> Capsules:
         """Posed capsules of a forward pass with this scene's (fixed) shape."""
@@ -90,9 +91,8 @@ class Scene:
 
     def forward(self, pose: torch.Tensor, trans: torch.Tensor):
         """Body output, ``(V, 2)`` projected vertices (pixels) and ``(V,)`` depths (metres)."""
-        out = self.model(betas=self.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3))
-        v = out.vertices[0]
-        return out, self.camera.project(v), self.camera.depth(v)
+        out = self.model(betas=self.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3), shaped=self.shaped)
+        return (out, *self.camera.project_with_depth(out.vertices[0]))
 
 
 @dataclass
@@ -209,12 +209,14 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.anchor is not None and cfg.anchor_weight > 0:
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
-    if data.joints3d is not None and cfg.limb_depth_weight > 0:
-        terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
-            detector_points(out, cfg), scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
-    if data.joints3d is not None and cfg.detector3d_weight > 0:
-        terms["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(
-            detector_points(out, cfg), scene.camera, data.joints3d, cfg.detector3d_scale)[0]
+    if data.joints3d is not None and (cfg.limb_depth_weight > 0 or cfg.detector3d_weight > 0):
+        points = detector_points(out, cfg)  # where the detector would put the model's joints
+        if cfg.limb_depth_weight > 0:
+            terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
+                points, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
+        if cfg.detector3d_weight > 0:
+            terms["detector3d"] = cfg.detector3d_weight * en.world_detector_joints_energy(
+                points, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
     if cfg.pose_prior_weight > 0:
         terms["learned_prior"] = cfg.pose_prior_weight * learned_pose_prior().energy(state.pose.reshape(1, 72))[0]
     if data.depth_ref is not None and cfg.depth_temporal_weight > 0:

@@ -307,9 +307,18 @@ class PinholeCamera:
         if isinstance(points, np.ndarray):
             return self.to_camera(_from_numpy(points)).numpy()
         _check_points(points, 3, "points")
-        R = torch.tensor(self.R, dtype=points.dtype, device=points.device)
-        t = torch.tensor(self.t, dtype=points.dtype, device=points.device)
+        R, t, _, _ = self._tensors(points.dtype, points.device)
         return points @ R.T + t
+
+    def _tensors(self, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``R (3, 3)``, ``t (3,)``, ``(fx, fy)`` and ``(cx, cy)`` as tensors of ``dtype`` on
+        ``device``, made once per dtype and device (the camera is immutable)."""
+        cache = self.__dict__.setdefault("_tensor_cache", {})
+        key = (dtype, device)
+        if key not in cache:
+            cache[key] = tuple(torch.tensor(x, dtype=dtype, device=device) for x in
+                               (self.R, self.t, [self.fx, self.fy], [self.cx, self.cy]))
+        return cache[key]
 
     def depth(self, points):
         """Camera-frame depth ``Z`` of world points.
@@ -341,11 +350,24 @@ class PinholeCamera:
         """
         if isinstance(points, np.ndarray):
             return self.project(_from_numpy(points)).numpy()
+        return self._pixels(self.to_camera(points))
+
+    def project_with_depth(self, points):
+        """:meth:`project` and :meth:`depth` of the same points from one change of frame.
+
+        Args:
+            points: ``(..., 3)`` world points in metres, torch (differentiable).
+
+        Returns:
+            ``(..., 2)`` pixel coordinates and ``(...)`` depths in metres, equal to what
+            :meth:`project` and :meth:`depth` give.
+        """
         pc = self.to_camera(points)
-        z = pc[..., 2:3]
-        f = torch.tensor([self.fx, self.fy], dtype=pc.dtype, device=pc.device)
-        c = torch.tensor([self.cx, self.cy], dtype=pc.dtype, device=pc.device)
-        return pc[..., :2] / z * f + c
+        return self._pixels(pc), pc[..., 2]
+
+    def _pixels(self, pc: torch.Tensor) -> torch.Tensor:
+        _, _, f, c = self._tensors(pc.dtype, pc.device)
+        return pc[..., :2] / pc[..., 2:3] * f + c
 
     def unproject(self, pixels, depth):
         """Back-project pixels at given camera depths to world points (inverse of :meth:`project`).

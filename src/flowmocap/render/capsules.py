@@ -9,8 +9,9 @@ pixels from pixel centre ``p`` is
 To keep it cheap it is evaluated exactly on a coarse grid of pixel centres, every
 ``grid_step`` pixels starting at pixel (0, 0), and bilinearly interpolated in between
 (exact at grid pixels ``(u, v)`` with ``u % grid_step == 0`` and ``v % grid_step == 0``).
-Differentiable w.r.t. the segment end points and radii: the minimum over the capsules is
-one compiled (Numba) pass, its gradient and the interpolation are torch.
+Differentiable w.r.t. the segment end points and radii: the minimum over the capsules and
+its gradient are compiled (Numba) passes, the interpolation is torch (the tracker's E_c
+interpolates inside its own compiled pass: ``flowmocap.fit.energies.silhouette_energy``).
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ class _GridSignedDistance(torch.autograd.Function):
     Inputs ``a, b (B, K, 2)``, ``r (B, K)``; output ``(B, N)``. The forward pass keeps the
     nearest capsule of each point, so the backward pass costs O(B N) (the gradient of
     a minimum flows to its arg-min; for the distance to a segment it is that of the
-    distance to the fixed closest point ``c = a + t (b - a)``).
+    distance to the fixed closest point ``c = a + t (b - a)``); both passes are compiled.
     """
 
     @staticmethod
@@ -116,17 +117,43 @@ class _GridSignedDistance(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
         pts, a, b, arg = ctx.saved_tensors
-        ak = torch.gather(a, 1, arg[..., None].expand(-1, -1, 2))  # (B, N, 2)
-        bk = torch.gather(b, 1, arg[..., None].expand(-1, -1, 2))
-        d = bk - ak
-        t = (((pts[None] - ak) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
-        e = pts[None] - ak - t[..., None] * d
-        dist = torch.sqrt((e * e).sum(-1))
-        n = torch.where(dist[..., None] > 1e-12, e / dist.clamp_min(1e-12)[..., None], torch.zeros_like(e))
-        ga = torch.zeros_like(a).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * ((1.0 - t) * grad)[..., None])
-        gb = torch.zeros_like(b).scatter_add_(1, arg[..., None].expand(-1, -1, 2), -n * (t * grad)[..., None])
-        gr = torch.zeros_like(a[..., 0]).scatter_add_(1, arg, -grad)
-        return None, ga, gb, gr
+        f64 = lambda x: x.detach().to(torch.float64).contiguous().numpy()  # noqa: E731
+        ga, gb, gr = np.zeros(a.shape), np.zeros(b.shape), np.zeros(a.shape[:2])
+        _grid_signed_distance_grad_kernel(f64(pts), f64(a), f64(b), arg.numpy(), f64(grad), ga, gb, gr)
+        as_a = lambda x: torch.from_numpy(x).to(dtype=a.dtype, device=a.device)  # noqa: E731
+        return None, as_a(ga), as_a(gb), as_a(gr)
+
+
+@njit(cache=True, nogil=True)
+def _grid_signed_distance_grad_kernel(pts, a, b, arg, grad, ga, gb, gr):
+    """The gradient of :class:`_GridSignedDistance`: each point's ``grad[b, n]`` goes to
+    its nearest capsule ``arg[b, n]`` as that of the distance to the fixed closest point
+    ``c = a + t (b - a)`` of its segment (``ga, gb (B, K, 2)``, ``gr (B, K)``, zeroed by the
+    caller, accumulate). float64."""
+    B, N = arg.shape
+    for bi in range(B):
+        for n in range(N):
+            g = grad[bi, n]
+            if g == 0.0:
+                continue
+            k = arg[bi, n]
+            dx = b[bi, k, 0] - a[bi, k, 0]
+            dy = b[bi, k, 1] - a[bi, k, 1]
+            px = pts[n, 0] - a[bi, k, 0]
+            py = pts[n, 1] - a[bi, k, 1]
+            t = (px * dx + py * dy) / max(dx * dx + dy * dy, 1e-12)
+            t = min(max(t, 0.0), 1.0)
+            ex = px - t * dx
+            ey = py - t * dy
+            dist = math.sqrt(ex * ex + ey * ey)
+            if dist > 1e-12:
+                nx = ex / dist
+                ny = ey / dist
+                ga[bi, k, 0] -= nx * (1.0 - t) * g
+                ga[bi, k, 1] -= ny * (1.0 - t) * g
+                gb[bi, k, 0] -= nx * t * g
+                gb[bi, k, 1] -= ny * t * g
+            gr[bi, k] -= g
 
 
 def capsule_distance_grid(
