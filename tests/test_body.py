@@ -109,6 +109,25 @@ def test_gradients_match_finite_differences(toy_model):
     assert torch.autograd.gradcheck(f, (betas, pose, trans), eps=1e-6, atol=1e-6)
 
 
+def test_a_given_shaped_body_and_joints_only_give_the_same_pose(toy_model):
+    torch.manual_seed(2)
+    betas = 0.5 * torch.randn(1, 10, dtype=torch.float64)
+    pose = (0.3 * torch.randn(3, 72, dtype=torch.float64)).requires_grad_()
+    trans = torch.randn(3, 3, dtype=torch.float64)
+    full = toy_model(betas=betas, pose=pose, trans=trans)
+    shaped = toy_model.shaped(betas)
+    given = toy_model(betas=betas, pose=pose, trans=trans, shaped=shaped)
+    joints_only = toy_model(betas=betas, pose=pose, trans=trans, shaped=shaped, with_vertices=False)
+    assert joints_only.vertices is None
+    torch.testing.assert_close(given.vertices, full.vertices, rtol=1e-12, atol=1e-12)
+    for out in (given, joints_only):
+        torch.testing.assert_close(out.joints, full.joints, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.transforms, full.transforms, rtol=1e-12, atol=1e-12)
+    (g_full,) = torch.autograd.grad(full.joints.sum() + full.transforms.sum(), pose)
+    (g_only,) = torch.autograd.grad(joints_only.joints.sum() + joints_only.transforms.sum(), pose)
+    torch.testing.assert_close(g_only, g_full)
+
+
 def test_batch_broadcast_and_pose_shapes(toy_model):
     pose = 0.2 * torch.randn(4, 24, 3, dtype=torch.float64)
     out = toy_model(betas=torch.zeros(10, dtype=torch.float64), pose=pose)

@@ -151,7 +151,8 @@ def lbs(
     parents: torch.Tensor,
     weights: torch.Tensor,
     shaped: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> dict[str, torch.Tensor]:
+    with_vertices: bool = True,
+) -> dict[str, torch.Tensor | None]:
     """The whole SMPL function M(beta, theta) without global translation.
 
     Args:
@@ -166,6 +167,8 @@ def lbs(
         shaped: ``(v_shaped (B, V, 3), rest_joints (B, J, 3))`` of ``betas`` when already
             known (:func:`shaped_rest`), to skip the shape blend shapes and the joint
             regressor for a shape that stays fixed (the tracker's).
+        with_vertices: False: skip the pose blend shapes and the skinning (``vertices``
+            is None), for objectives of the joints alone.
 
     Returns:
         dict with ``vertices (B, V, 3)``, ``joints (B, J, 3)`` (posed),
@@ -177,11 +180,13 @@ def lbs(
     J = J_regressor.shape[0]
     v_shaped, rest_joints = shaped if shaped is not None else shaped_rest(betas, v_template, shapedirs, J_regressor)
     rotmats = axis_angle_to_matrix(pose.reshape(B, J, 3))
-    v_posed = v_shaped
-    if posedirs is not None:
-        v_posed = v_shaped + (pose_feature(rotmats) @ posedirs).reshape(B, -1, 3)
     joints, transforms = rigid_transforms(rotmats, rest_joints, parents)
-    vertices = skin(v_posed, weights, transforms)
+    vertices = None
+    if with_vertices:
+        v_posed = v_shaped
+        if posedirs is not None:
+            v_posed = v_shaped + (pose_feature(rotmats) @ posedirs).reshape(B, -1, 3)
+        vertices = skin(v_posed, weights, transforms)
     return {
         "vertices": vertices,
         "joints": joints,

@@ -17,7 +17,8 @@ class BodyOutput:
     """Result of :meth:`BodyModel.forward`; B is the batch size, V the vertex count.
 
     Attributes:
-        vertices: ``(B, V, 3)`` posed, translated vertices in metres.
+        vertices: ``(B, V, 3)`` posed, translated vertices in metres (None when the
+            forward pass was asked for the joints only).
         joints: ``(B, 24, 3)`` posed, translated SMPL joints in metres.
         rest_vertices: ``(B, V, 3)`` shaped vertices in the rest pose (no translation).
         rest_joints: ``(B, 24, 3)`` joints of the shaped rest pose.
@@ -25,7 +26,7 @@ class BodyOutput:
             bone, translation included (``x_posed = R @ x_rest + t``).
     """
 
-    vertices: torch.Tensor
+    vertices: torch.Tensor | None
     joints: torch.Tensor
     rest_vertices: torch.Tensor
     rest_joints: torch.Tensor
@@ -112,6 +113,7 @@ class BodyModel(torch.nn.Module):
         pose: torch.Tensor | None = None,
         trans: torch.Tensor | None = None,
         shaped: tuple[torch.Tensor, torch.Tensor] | None = None,
+        with_vertices: bool = True,
     ) -> BodyOutput:
         """Pose and shape the body.
 
@@ -123,6 +125,8 @@ class BodyModel(torch.nn.Module):
             trans: ``(B, 3)`` or ``(3,)`` global translation in metres. Default: zero.
             shaped: :meth:`shaped` of these ``betas``, to skip recomputing the shaped
                 rest body when the shape stays fixed (its batch must be 1 or B).
+            with_vertices: False: joints and transforms only (``vertices`` is None),
+                without the pose blend shapes and the skinning.
 
         A batch of 1 broadcasts against the others' batch size.
 
@@ -145,12 +149,12 @@ class BodyModel(torch.nn.Module):
             shaped = tuple(x.expand(B, -1, -1) for x in shaped)
         out = lbs(
             betas, pose, self.v_template, self.shapedirs, self.posedirs,
-            self.J_regressor, self.parents, self.weights, shaped=shaped,
+            self.J_regressor, self.parents, self.weights, shaped=shaped, with_vertices=with_vertices,
         )
         transforms = out["transforms"].clone()
         transforms[..., :3, 3] = transforms[..., :3, 3] + trans[:, None]
         return BodyOutput(
-            vertices=out["vertices"] + trans[:, None],
+            vertices=out["vertices"] + trans[:, None] if with_vertices else None,
             joints=out["joints"] + trans[:, None],
             rest_vertices=out["rest_vertices"],
             rest_joints=out["rest_joints"],

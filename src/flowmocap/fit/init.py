@@ -249,13 +249,16 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     if prior_w.shape != (24,):
         raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
-    rest = None  # the capsules in the rest pose depend on the shape only: made once when it is fixed
+    rest = shaped = None  # the shaped body and its capsules depend on the shape only: made once when it is fixed
     if not fit_shape:
         with torch.no_grad():
             rest = rest_capsules(model, model(betas=betas))
+            shaped = model.shaped(betas)
 
     def energy(with_silhouette: bool, terms: dict | None = None):
-        out = model(betas=betas, pose=pose[None], trans=trans[None])
+        mesh = with_silhouette and silhouette is not None and cfg.silhouette_model == "mesh"
+        # only the mesh silhouette needs the vertices: the other terms are the joints' and the capsules'
+        out = model(betas=betas, pose=pose[None], trans=trans[None], shaped=shaped, with_vertices=mesh)
         dp = detector_points(out, cfg)
         pj = camera.project((dp if joints_from_detector else out.joints)[0])
         t = {
@@ -279,9 +282,8 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
         caps = body_capsules(model, out, rest=rest)
         t["penetration"] = cfg.penetration_weight * en.interpenetration_energy(caps)[0]
         if with_silhouette and silhouette is not None:
-            if cfg.silhouette_model == "mesh":
-                v = out.vertices[0]
-                ec = en.mesh_silhouette_energy(camera.project(v), camera.depth(v), faces, silhouette,
+            if mesh:
+                ec = en.mesh_silhouette_energy(*camera.project_with_depth(out.vertices[0]), faces, silhouette,
                                                a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step)
             else:
                 ec = en.silhouette_energy(caps, camera, silhouette, a=cfg.silhouette_a,
