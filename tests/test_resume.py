@@ -313,6 +313,24 @@ def test_a_folder_holding_only_flowmocap_caches_is_accepted(tmp_path):
         _check_out(out, force=False)
 
 
+def test_a_run_killed_while_writing_its_first_file_resumes(clip, ctx, reference_known, tmp_path):
+    # SIGKILL inside the first atomic write of run.json leaves only its temporary behind:
+    # that folder is flowmocap's, and --resume starts the run (removing the temporary)
+    from flowmocap.pipeline import _check_out
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "run.json.k2x9_abc.tmp").write_text('{"status": "prep')
+    _check_out(out, force=False)
+    (out / "results.json.k2x9_abc.tmp").write_text("not ours")  # not one of flowmocap's files
+    with pytest.raises(InputError, match=r"not empty \(results.json.k2x9_abc.tmp\)"):
+        _check_out(out, force=False)
+    (out / "results.json.k2x9_abc.tmp").unlink()
+    p = _child(ctx, clip, out, known=True)
+    p.join(300)
+    assert p.exitcode == 0 and not list(out.glob("*.tmp"))
+    np.testing.assert_array_equal(read_result(out)[0]["poses"], reference_known["poses"])
+
+
 def test_results_get_normal_permissions(clip, tmp_path):
     old = os.umask(0o022)
     try:

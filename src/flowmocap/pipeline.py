@@ -431,12 +431,19 @@ def _check_out(out: Path, force: bool) -> None:
                          "flowmocap result.")
     if out.is_dir() and not force and not is_result_folder(out):
         # the lock and flowmocap's own caches (e.g. detections run before tracking) are ours
+        # and so are the half-written files of a run killed while it wrote its first ones
         ours = (".lock", ".lock.json", "detections", "flow_cache")
-        others = sorted(p.name for p in out.iterdir() if p.name not in ours)
+        others = sorted(p.name for p in out.iterdir() if p.name not in ours and not _is_half_written(p.name))
         if others:
             shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
             raise InputError(f"{out} is not empty ({shown}) and holds no flowmocap result; give a new or empty "
                              "folder, or pass force=True (--force) to write the result into it anyway.")
+
+
+def _is_half_written(name: str) -> bool:
+    """Whether ``name`` is the temporary of one of flowmocap's result files
+    (:func:`~flowmocap.atomic.atomic_write`'s ``NAME.XXXX.tmp``), left by a killed run."""
+    return name.endswith(".tmp") and any(name.startswith(f"{r}.") for r in RESULT_FILES)
 
 
 def read_init(init, size: tuple[int, int], num_frames: int) -> InitSpec:
