@@ -12,6 +12,12 @@ folder's size, and the seconds per frame of each stretch, and writes JSON.
 the whole video before tracking) and the ``video`` profile tracks. ``--masks given``
 passes the rendered masks and an init.json (the ``synthetic`` profile, no detector).
 
+The same command again goes on with a run that was stopped (``--stop-after``) or
+killed: the tracker resumes its result folder and the samples of every invocation are
+kept beside it (``RESULT.trace.jsonl``), so the marks and the peak cover the whole video
+(each row says which invocation, that is which process, it was measured in; the
+seconds per frame of a stretch that spans a restart include the restart).
+
 Usage: python benchmarks/long_video.py [--minutes 10] [--work DIR] [--masks auto|given] [--fast]
        [--out benchmarks/results/long_video.json] [--cycle 60] [--stop-after SECONDS]
 """
@@ -127,21 +133,32 @@ def main() -> int:
     if (res / "run.json").exists():
         cmd.append("--resume")
     print(" ".join(cmd), flush=True)
+    # the samples of every invocation on this result (a run stopped by --stop-after, or
+    # killed, goes on with the same command): seconds count on from the previous ones
+    trace = res.parent / f"{res.name}.trace.jsonl"
+    earlier = [json.loads(line) for line in trace.read_text().splitlines()] if trace.exists() else []
+    invocation = 1 + max((e["run"] for e in earlier), default=-1)
+    offset = max((e["t"] for e in earlier), default=0.0) + 1.0
+    samples = [(e["t"], e["frames"], e["rss"], e["peak"], e["folder"], e["run"]) for e in earlier]
     start = time.time()
     proc = subprocess.Popen(cmd)
-    samples = []  # (seconds, frames committed, rss MB, peak MB, folder MB)
     stopped = False
-    while proc.poll() is None:
-        if args.stop_after is not None and time.time() - start > args.stop_after:
-            proc.kill()  # the commit point holds every finished frame
-            proc.wait()
-            stopped = True
-            break
-        rss, hwm = rss_mb(proc.pid)
-        n = committed(res)
-        size = folder_mb(res) if res.exists() and len(samples) % 30 == 0 else (samples[-1][4] if samples else 0.0)
-        samples.append((time.time() - start, n, rss, hwm, size))
-        time.sleep(1.0)
+    with trace.open("a") as log:
+        while proc.poll() is None:
+            if args.stop_after is not None and time.time() - start > args.stop_after:
+                proc.kill()  # the commit point holds every finished frame
+                proc.wait()
+                stopped = True
+                break
+            rss, hwm = rss_mb(proc.pid)
+            n = committed(res)
+            size = folder_mb(res) if res.exists() and len(samples) % 30 == 0 else (samples[-1][4] if samples else 0.0)
+            samples.append((offset + time.time() - start, n, rss, hwm, size, invocation))
+            log.write(json.dumps(dict(zip(("t", "frames", "rss", "peak", "folder", "run"),
+                                          (round(samples[-1][0], 1), n, round(rss, 1), round(hwm, 1),
+                                           round(size, 2), invocation)))) + "\n")
+            log.flush()
+            time.sleep(1.0)
     wall = time.time() - start
     if proc.returncode != 0 and not stopped:
         print(f"tracking failed with exit status {proc.returncode}")
@@ -149,6 +166,7 @@ def main() -> int:
     run = json.loads((res / "run.json").read_text())
     total = int(round(args.minutes * 60 * FPS))
     reached = max((s[1] for s in samples), default=0)
+    stopped = stopped or reached < total
     quarters = {int(reached * q / 4) for q in (1, 2, 3)} if stopped else set()
     marks = sorted(({min(total, int(m * 60 * FPS)) for m in [1, 5, 10] if m <= args.minutes} | {total} | quarters)
                    & set(range(3, reached + 1)) | ({reached} if stopped else set()))
@@ -159,13 +177,14 @@ def main() -> int:
         if at is None:
             continue
         rows.append({"video_minutes": round(m / (60 * FPS), 2), "frame": m, "rss_mb": round(at[2], 1),
-                     "peak_mb": round(at[3], 1), "folder_mb": round(at[4], 1), "seconds": round(at[0], 1)})
+                     "peak_mb": round(at[3], 1), "folder_mb": round(at[4], 1), "seconds": round(at[0], 1),
+                     "invocation": at[5]})
     for a, b in zip([None] + rows[:-1], rows):
         t_a, f_a = (next(s[0] for s in tracking), 2) if a is None else (a["seconds"], a["frame"])
         b["s_per_frame"] = round((b["seconds"] - t_a) / max(1, b["frame"] - f_a), 3)
     result = {
         "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "fast": args.fast,
-        "wall_s": round(wall, 1),
+        "wall_s": round(wall, 1), "invocations": invocation + 1,
         "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),
         "result_folder_mb": round(folder_mb(res), 2), "video_mb": round(video.stat().st_size / 2 ** 20, 1),
         "s_per_frame_median": run.get("timings", {}).get("s_per_frame_median"), "marks": rows,

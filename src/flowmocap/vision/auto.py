@@ -44,6 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from flowmocap.errors import NoPersonError
+from flowmocap.memory import release_free_memory
 from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetector
 from flowmocap.vision.person import (box_iou, choose_person, clean_mask, describe_person, parse_person, person_box,
                                      same_person)
@@ -52,6 +53,8 @@ __all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "detect_for_give
            "first_person_frame", "frame_runs", "facing_rotvec", "MIN_INIT_JOINTS", "find_people", "split_tracks",
            "track_scores", "follow_person", "Candidate"]
 
+#: Frames between two hand-backs of freed C-heap pages in a detection pass (:mod:`flowmocap.memory`).
+TRIM_EVERY = 50
 #: Confident SMPL keypoints a frame needs to initialise the body on it.
 MIN_INIT_JOINTS = 8
 #: Keypoint confidence that counts as confident.
@@ -189,6 +192,7 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     choice = parse_person(person)
     if choice == ("index", 0):
         choice = ("largest", None)
+    own = detector is None  # made here: closed here once the pass is over
     if detector is None:
         from flowmocap.vision.detect import MediaPipePoseDetector
 
@@ -201,6 +205,18 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     if choice[0] != "largest":
         name += f"+person:{describe_person(choice)}"
     out_dir = Path(out_dir)
+    try:
+        return _detect_sequence(seq, out_dir, detector, searcher, name, choice, reuse, progress)
+    finally:
+        if own:  # MediaPipe's graphs hold ~0.5 GB (the augmented detector's four): not kept while tracking
+            for d in (detector, searcher):
+                getattr(d, "close", lambda: None)()
+        release_free_memory()
+
+
+def _detect_sequence(seq, out_dir: Path, detector: PersonDetector, searcher, name: str, choice: tuple, reuse: bool,
+                     progress: bool) -> PersonTrack:
+    """:func:`detect_sequence` once its detectors are made."""
     T = len(seq)
     W, H = seq.size
     if reuse:
@@ -352,6 +368,8 @@ def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = 
     T = len(seq)
     cands: list[list[Candidate]] = [[] for _ in range(T)]
     for i in tqdm(range(T), disable=not progress, unit="frame", desc="finding the person"):
+        if i % TRIM_EVERY == 0:
+            release_free_memory()
         img = seq.frame(i)
         det = _usable(detector.detect(img))
         if det is None:
@@ -413,6 +431,8 @@ def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], t
     out: list[Candidate | None] = [None] * T
     last = None
     for i in tqdm(range(T), disable=not progress, unit="frame", desc="following the chosen person"):
+        if i % TRIM_EVERY == 0:
+            release_free_memory()
         ref, gap = nearest(own, i, max_gap)
         if ref is None and last is not None and i - last[1] <= max_gap:
             ref, gap = last[0], i - last[1]
@@ -454,10 +474,14 @@ def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> t
     from flowmocap.errors import InputError
     from flowmocap.vision.detect import MediaPipePoseDetector
 
+    detector = MediaPipePoseDetector(augment=False)
     try:
-        track = detect_sequence(seq, out_dir, detector=MediaPipePoseDetector(augment=False), progress=progress)
+        track = detect_sequence(seq, out_dir, detector=detector, progress=progress)
     except (InputError, NoPersonError) as e:
         return None, f"no detector joints: {e}"
+    finally:
+        getattr(detector, "close", lambda: None)()
+        release_free_memory()
     return track, f"detector joints: {track.info['detector']}, {track.info['frames_with_person']} frames"
 
 
