@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from flowmocap.body.fused import posed_body
 from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
 from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit.config import TrackerConfig
@@ -119,7 +120,7 @@ def flipped_pose(scene: Scene, pose: torch.Tensor, trans: torch.Tensor, limb: tu
     if not (0 < p < len(PARENTS) and 0 < c < len(PARENTS) and PARENTS[c] == p):
         raise InputError(f"a limb is (parent, child) joint indices of one bone, not the root's; got {limb!r}.")
     with torch.no_grad():
-        out = scene.model(betas=scene.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3), shaped=scene.shaped)
+        out = posed_body(scene.rig, pose, trans, with_vertices=False)
     joints = out.joints[0].double().numpy()
     G = out.transforms[0, :, :3, :3].double().numpy()
     R = np.asarray(scene.camera.R, np.float64)

@@ -39,6 +39,7 @@ import torch
 
 from flowmocap.body import JOINT_INDEX, BodyModel, body_capsules
 from flowmocap.body.capsules import rest_capsules
+from flowmocap.body.fused import make_rig, posed_body
 from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
@@ -249,16 +250,17 @@ def fit_to_joints(model: BodyModel, camera: PinholeCamera, joints2d, confidence,
     if prior_w.shape != (24,):
         raise InputError(f"prior_weights must have shape (24,); got {tuple(prior_w.shape)}.")
 
-    rest = shaped = None  # the shaped body and its capsules depend on the shape only: made once when it is fixed
+    rest = rig = None  # the shaped body and its capsules depend on the shape only: made once when it is fixed
     if not fit_shape:
         with torch.no_grad():
             rest = rest_capsules(model, model(betas=betas))
-            shaped = model.shaped(betas)
+            rig = make_rig(model, model.shaped(betas))  # posed in one compiled pass (flowmocap.body.fused)
 
     def energy(with_silhouette: bool, terms: dict | None = None):
         mesh = with_silhouette and silhouette is not None and cfg.silhouette_model == "mesh"
         # only the mesh silhouette needs the vertices: the other terms are the joints' and the capsules'
-        out = model(betas=betas, pose=pose[None], trans=trans[None], shaped=shaped, with_vertices=mesh)
+        out = (posed_body(rig, pose, trans, with_vertices=mesh) if rig is not None
+               else model(betas=betas, pose=pose[None], trans=trans[None], with_vertices=mesh))
         dp = detector_points(out, cfg)
         pj = camera.project((dp if joints_from_detector else out.joints)[0])
         t = {

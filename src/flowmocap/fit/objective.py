@@ -32,6 +32,7 @@ import torch
 
 from flowmocap.body import BodyModel, Capsules, body_capsules
 from flowmocap.body.capsules import rest_capsules
+from flowmocap.body.fused import make_rig, posed_body
 from flowmocap.errors import InputError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
@@ -84,6 +85,7 @@ class Scene:
         with torch.no_grad():
             self.rest_capsules = rest_capsules(self.model, self.model(betas=self.betas))
             self.shaped = self.model.shaped(self.betas)  # the shape is fixed: shape it once
+        self.rig = make_rig(self.model, self.shaped)  # and pose it in one compiled pass (flowmocap.body.fused)
 
     def capsules(self, out) -> Capsules:
         """Posed capsules of a forward pass with this scene's (fixed) shape."""
@@ -91,7 +93,7 @@ class Scene:
 
     def forward(self, pose: torch.Tensor, trans: torch.Tensor):
         """Body output, ``(V, 2)`` projected vertices (pixels) and ``(V,)`` depths (metres)."""
-        out = self.model(betas=self.betas, pose=pose.reshape(1, 72), trans=trans.reshape(1, 3), shaped=self.shaped)
+        out = posed_body(self.rig, pose, trans)
         return (out, *self.camera.project_with_depth(out.vertices[0]))
 
 
