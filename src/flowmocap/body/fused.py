@@ -30,12 +30,12 @@ import torch
 from numba import njit
 
 from flowmocap.errors import InputError
-from flowmocap.geometry.rotations import _SMALL_ANGLE_SQ
+from flowmocap.geometry.rotations import SINC_SERIES, SMALL_ANGLE_SQ, VERSINE_SERIES
 
-#: Taylor coefficients of a(t^2) = sin t / t and b(t^2) = (1 - cos t) / t^2 (as in
+#: Taylor coefficients of a(t^2) = sin t / t and b(t^2) = (1 - cos t) / t^2 (those of
 #: :func:`flowmocap.geometry.rotations.axis_angle_to_matrix`).
-_A = np.array([1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880])
-_B = np.array([1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800])
+_CA = np.array(SINC_SERIES)
+_CB = np.array(VERSINE_SERIES)
 
 
 @njit(cache=True, nogil=True)
@@ -238,10 +238,6 @@ def make_rig(model, shaped: tuple[torch.Tensor, torch.Tensor]) -> Rig:
                posedirs, tuple(x.detach() for x in shaped))
 
 
-_CA = _A.copy()
-_CB = _B.copy()
-
-
 class _PosedBody(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pose, trans, rig, with_vertices):  # noqa: D102
@@ -253,7 +249,7 @@ class _PosedBody(torch.autograd.Function):
         J = p.shape[0]
         R, G = np.empty((J, 3, 3)), np.empty((J, 3, 3))
         o, A, coef = np.empty((J, 3)), np.empty((J, 3, 4)), np.empty((J, 4))
-        _chain_forward(p, rig.rest_joints, rig.parents, _SMALL_ANGLE_SQ, _CA, _CB, R, G, o, A, coef)
+        _chain_forward(p, rig.rest_joints, rig.parents, SMALL_ANGLE_SQ, _CA, _CB, R, G, o, A, coef)
         vp = rig.v_shaped
         if with_vertices and rig.posedirs is not None:
             feature = (R[1:] - np.eye(3)).reshape(-1)

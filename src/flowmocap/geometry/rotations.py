@@ -47,7 +47,11 @@ __all__ = [
 # Below this squared angle (rad^2) the sin/cos ratios are evaluated by Taylor series.
 # The series below are truncated after the theta^8 term; at theta^2 = 1e-2 the first
 # omitted term is < 3e-18 relative, i.e. below float64 resolution.
-_SMALL_ANGLE_SQ = 1e-2
+SMALL_ANGLE_SQ = 1e-2
+#: Taylor series in theta^2 of ``sin(theta) / theta`` and ``(1 - cos(theta)) / theta^2``
+#: (Rodrigues' coefficients), used below :data:`SMALL_ANGLE_SQ`.
+SINC_SERIES = (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)
+VERSINE_SERIES = (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800)
 
 
 def _check(x: torch.Tensor, tail: tuple[int, ...], name: str, what: str) -> None:
@@ -68,7 +72,7 @@ def _poly(x: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
     return out
 
 
-def _split_small(theta_sq: torch.Tensor, threshold: float = _SMALL_ANGLE_SQ):
+def _split_small(theta_sq: torch.Tensor, threshold: float = SMALL_ANGLE_SQ):
     """Mask of small squared angles, and safe inputs for the Taylor and exact branches.
 
     Each branch only sees values it is well defined on, so ``torch.where`` never routes
@@ -110,13 +114,13 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     small, t2, theta = _split_small(theta_sq)
     a = torch.where(
         small,
-        _poly(t2, (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)),
+        _poly(t2, SINC_SERIES),
         torch.sin(theta) / theta,
     )
     half_sinc = torch.sin(0.5 * theta) / theta  # B = 2 sin^2(theta/2) / theta^2, no cancellation
     b = torch.where(
         small,
-        _poly(t2, (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800)),
+        _poly(t2, VERSINE_SERIES),
         2.0 * half_sinc * half_sinc,
     )
     k = _skew(rotvec)
