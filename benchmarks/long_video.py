@@ -4,7 +4,8 @@ Makes a video of the built-in walk played forwards and backwards in turn (a cont
 motion of any length) at 30 fps, 640x480: ``flowmocap synth`` renders one cycle, PyAV
 encodes the ping-pong of it (H.264). Then ``flowmocap track VIDEO --out DIR`` runs in a
 child process while this script samples, once a second, the child's resident memory
-(``VmRSS``, and ``VmHWM`` its peak) and the frames it has committed (``progress.json``).
+(``VmRSS``, and ``VmHWM`` its peak; summed over the child and its own children, the
+person detector's processes) and the frames it has committed (``progress.json``).
 Prints a table at each minute mark of the video (and the end), the peak, the result
 folder's size, and the seconds per frame of each stretch, and writes JSON.
 
@@ -96,6 +97,41 @@ def rss_mb(pid: int) -> tuple[float, float]:
     return vals.get("VmRSS", 0.0), vals.get("VmHWM", 0.0)
 
 
+def tree_rss_mb(pid: int) -> tuple[float, float, float]:
+    """``(VmRSS, VmHWM, Pss)`` in MB summed over ``pid`` and its descendants (the detector's
+    processes, :mod:`flowmocap.vision.detect_worker`), read from ``/proc``."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+    tree, grew = {pid}, True
+    while grew:
+        more = {p for p, pp in parent.items() if pp in tree} - tree
+        tree |= more
+        grew = bool(more)
+    rss = hwm = 0.0
+    for p in tree:
+        r, h = rss_mb(p)
+        rss, hwm = rss + r, hwm + h
+    return rss, hwm, sum(pss_mb(p) for p in tree)
+
+
+def pss_mb(pid: int) -> float:
+    """A process's proportional set size in MB (``smaps_rollup``): its own pages plus its
+    share of the pages it shares (libraries). Summed over processes it counts a shared
+    page once (shared with processes outside them, e.g. a benchmark beside, it counts less)."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0.0
+
+
 def folder_mb(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2 ** 20
 
@@ -139,7 +175,7 @@ def main() -> int:
     earlier = [json.loads(line) for line in trace.read_text().splitlines()] if trace.exists() else []
     invocation = 1 + max((e["run"] for e in earlier), default=-1)
     offset = max((e["t"] for e in earlier), default=0.0) + 1.0
-    samples = [(e["t"], e["frames"], e["rss"], e["peak"], e["folder"], e["run"]) for e in earlier]
+    samples = [(e["t"], e["frames"], e["rss"], e["peak"], e["folder"], e["run"], e.get("pss", 0.0)) for e in earlier]
     start = time.time()
     proc = subprocess.Popen(cmd)
     stopped = False
@@ -150,13 +186,13 @@ def main() -> int:
                 proc.wait()
                 stopped = True
                 break
-            rss, hwm = rss_mb(proc.pid)
+            rss, hwm, pss = tree_rss_mb(proc.pid)  # the tracker and its detector process, together
             n = committed(res)
             size = folder_mb(res) if res.exists() and len(samples) % 30 == 0 else (samples[-1][4] if samples else 0.0)
-            samples.append((offset + time.time() - start, n, rss, hwm, size, invocation))
-            log.write(json.dumps(dict(zip(("t", "frames", "rss", "peak", "folder", "run"),
+            samples.append((offset + time.time() - start, n, rss, hwm, size, invocation, pss))
+            log.write(json.dumps(dict(zip(("t", "frames", "rss", "peak", "folder", "run", "pss"),
                                           (round(samples[-1][0], 1), n, round(rss, 1), round(hwm, 1),
-                                           round(size, 2), invocation)))) + "\n")
+                                           round(size, 2), invocation, round(pss, 1))))) + "\n")
             log.flush()
             time.sleep(1.0)
     wall = time.time() - start
@@ -177,7 +213,7 @@ def main() -> int:
         if at is None:
             continue
         rows.append({"video_minutes": round(m / (60 * FPS), 2), "frame": m, "rss_mb": round(at[2], 1),
-                     "peak_mb": round(at[3], 1), "folder_mb": round(at[4], 1), "seconds": round(at[0], 1),
+                     "peak_mb": round(at[3], 1), "pss_mb": round(at[6], 1), "folder_mb": round(at[4], 1), "seconds": round(at[0], 1),
                      "invocation": at[5]})
     for a, b in zip([None] + rows[:-1], rows):
         t_a, f_a = (next(s[0] for s in tracking), 2) if a is None else (a["seconds"], a["frame"])
@@ -185,18 +221,25 @@ def main() -> int:
     result = {
         "video": str(video), "frames": total, "size": args.size, "masks": args.masks, "fast": args.fast,
         "wall_s": round(wall, 1), "invocations": invocation + 1,
-        "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),
+        "peak_rss_mb": round(max((s[3] for s in samples), default=0.0), 1),  # summed peaks: an upper bound
+        "peak_rss_sampled_mb": round(max((s[2] for s in samples), default=0.0), 1),  # the largest 1-s sample
+        "peak_pss_mb": round(max((s[6] for s in samples), default=0.0), 1),
+        "detection": {"peak_rss_sampled_mb": round(max((s[2] for s in samples if s[1] < 2), default=0.0), 1),
+                      "peak_pss_mb": round(max((s[6] for s in samples if s[1] < 2), default=0.0), 1)},
         "result_folder_mb": round(folder_mb(res), 2), "video_mb": round(video.stat().st_size / 2 ** 20, 1),
         "s_per_frame_median": run.get("timings", {}).get("s_per_frame_median"), "marks": rows,
         "stopped_after_s": args.stop_after if stopped else None, "frames_reached": reached,
         "rss_trace": [(round(s[0]), s[1], round(s[2])) for s in samples[:: max(1, len(samples) // 200)]],
         "machine": f"{os.cpu_count()} cores",
     }
-    print(f"\n{'video min':>9}{'frame':>8}{'RSS MB':>9}{'peak MB':>9}{'folder MB':>11}{'s/frame':>9}")
+    print(f"\n{'video min':>9}{'frame':>8}{'RSS MB':>9}{'peak MB':>9}{'PSS MB':>9}{'folder MB':>11}{'s/frame':>9}")
     for r in rows:
-        print(f"{r['video_minutes']:>9}{r['frame']:>8}{r['rss_mb']:>9}{r['peak_mb']:>9}{r['folder_mb']:>11}"
-              f"{r['s_per_frame']:>9}")
-    print(f"peak RSS {result['peak_rss_mb']} MB; result folder {result['result_folder_mb']} MB; wall {wall:.0f} s")
+        print(f"{r['video_minutes']:>9}{r['frame']:>8}{r['rss_mb']:>9}{r['peak_mb']:>9}{r['pss_mb']:>9}"
+              f"{r['folder_mb']:>11}{r['s_per_frame']:>9}")
+    print(f"detection pass: largest sample {result['detection']['peak_rss_sampled_mb']} MB RSS, "
+          f"{result['detection']['peak_pss_mb']} MB PSS (tracker and detector processes together)")
+    print(f"peak RSS {result['peak_rss_mb']} MB (summed peaks), largest sample {result['peak_rss_sampled_mb']} MB, "
+          f"PSS {result['peak_pss_mb']} MB; result folder {result['result_folder_mb']} MB; wall {wall:.0f} s")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import flowmocap.vision.auto as auto
 from flowmocap.body.skeleton import JOINT_INDEX
 from flowmocap.errors import NoPersonError
 from flowmocap.vision.auto import (auto_init, detect_sequence, facing_rotvec, first_person_frame, frame_runs,
@@ -175,6 +176,7 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     seq = load_sequence(small_clip)
     video = write_video(tmp_path / "walk.mp4", [seq.frame(i) for i in range(len(seq))])
     fake = GroundTruthDetector(seq, absent={0, 4})
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: fake if augment else Nobody())
     cfg = tmp_path / "fast.json"
     cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
@@ -240,6 +242,7 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     old = load_detections(tmp_path / "a")
     assert old.world is None and old.smpl_joints3d(2) is None
     # the tracker's source of them for an input with its own masks and init.json
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
     joints3d, note = detect_joints3d(seq, tmp_path / "b", progress=False)
     assert joints3d is not None and joints3d(2) is not None and "3D joints" in note
@@ -276,6 +279,7 @@ def test_own_masks_and_init_can_use_the_detectors_joints_in_every_frame(small_cl
     from flowmocap.io.sequence import load_sequence
 
     seq = load_sequence(small_clip)
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
     judged = []
 

@@ -17,8 +17,23 @@ from flowmocap.errors import (
     NoPersonError,
     OptimizationError,
 )
-from flowmocap.pipeline import Result, load_result, track
 from flowmocap.version import __version__
+
+#: Imported on first use (PEP 562), so that ``import flowmocap.vision...`` in a helper
+#: process (the person detector's, :mod:`flowmocap.vision.detect_worker`) does not load
+#: the tracker and torch.
+_LAZY = {"track": "flowmocap.pipeline", "load_result": "flowmocap.pipeline", "Result": "flowmocap.pipeline"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'flowmocap' has no attribute {name!r}")
+
 
 __all__ = [
     "__version__",

@@ -49,6 +49,13 @@ class OutputError(FlowMocapError):
     exit_code = 5
 
 
+class DetectorError(FlowMocapError):
+    """The person detector's own process failed (killed, e.g. out of memory, or crashed);
+    the stretches of frames it finished are kept and a rerun (``--resume``) goes on."""
+
+    exit_code = 7
+
+
 #: The command line's exit statuses (also in docs/errors.md).
 EXIT_CODES = {
     0: "success",
@@ -59,6 +66,7 @@ EXIT_CODES = {
     4: "the result folder is in use by another run (FolderBusyError)",
     5: "a result file could not be written: disk full, no permission (OutputError); finished frames are kept",
     6: "some inputs of a batch failed (flowmocap track with several inputs); the others finished",
+    7: "the person detector's process failed (DetectorError); the frames it finished are kept and --resume continues",
     130: "interrupted (Ctrl-C); the finished frames are kept and --resume continues",
 }
 
@@ -72,5 +80,6 @@ __all__ = [
     "OptimizationError",
     "FolderBusyError",
     "OutputError",
+    "DetectorError",
     "EXIT_CODES",
 ]

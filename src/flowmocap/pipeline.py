@@ -356,6 +356,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     cache_key = digest_value([fingerprint["input"], list(seq.size)])
     _fresh_cache(out / "detections", cache_key, say)
     _fresh_cache(out / "flow_cache", cache_key, say)
+    if uses_detector:  # before the pass: a pass that is stopped goes on from its stored stretches
+        write_json(out / "detections" / "source.json", {"input": cache_key})
     keep_flow = (not is_video) if keep_flow is None else bool(keep_flow)
     if keep_flow:
         write_json(out / "flow_cache" / "source.json", {"input": cache_key})

@@ -113,6 +113,22 @@ class VideoReader:
                 self._container.close()
             self._container, self._frames = None, None
 
+    def __getstate__(self) -> dict:
+        """Pickled without the open file, its decoder and the kept frames (another process,
+        e.g. the person detector's, opens the file again on its first :meth:`frame`)."""
+        with self._lock:
+            state = dict(self.__dict__)
+        for k in ("_lock", "_container", "_frames"):
+            state.pop(k, None)
+        state.update(_kept=OrderedDict(), _next=0)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
+        self._container = None
+        self._frames = None
+
     def _scan(self) -> tuple[dict, list | None]:
         import av
 

@@ -55,6 +55,19 @@ __all__ = ["PersonTrack", "detect_sequence", "detect_joints3d", "detect_for_give
 
 #: Frames between two hand-backs of freed C-heap pages in a detection pass (:mod:`flowmocap.memory`).
 TRIM_EVERY = 50
+#: Run the default (MediaPipe) detectors of :func:`detect_sequence` in processes of their
+#: own (:mod:`flowmocap.vision.detect_worker`): the tracking process never loads MediaPipe,
+#: whose graphs hold ~0.5 GB and grow while they run, and a killed pass keeps the stretches
+#: it finished. False: in this process (stand-in detectors in tests).
+DETECT_IN_CHILD = True
+#: Frames one detector process looks at before a fresh one takes over: the augmented
+#: detector grows by ~30-50 kB a frame while it runs (MediaPipe's, not given back until
+#: its process ends), so a 10-minute video in one process would end ~0.7 GB larger.
+DETECT_CHUNK = 1000
+#: Frames before its stretch a detector process looks at first, results not kept: MediaPipe
+#: follows the person and smooths their landmarks over time, so a detector started cold
+#: at a stretch's first frame would differ there from one that ran through.
+DETECT_WARM_UP = 30
 #: Confident SMPL keypoints a frame needs to initialise the body on it.
 MIN_INIT_JOINTS = 8
 #: Keypoint confidence that counts as confident.
@@ -174,7 +187,10 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         seq: anything with ``len(seq)``, ``seq.frame(i) -> (H, W, 3) uint8 RGB`` and
             ``seq.size = (W, H)`` (a :class:`~flowmocap.io.sequence.Sequence`).
         out_dir: the result folder (detections go to ``out_dir/detections``).
-        detector: default :class:`~flowmocap.vision.detect.MediaPipePoseDetector`.
+        detector: None: :class:`~flowmocap.vision.detect.MediaPipePoseDetector` (with its
+            mask augmentation); ``"plain"``: MediaPipe without it and no searcher; either
+            runs in processes of its own (:data:`DETECT_IN_CHILD`, :class:`_InChildren`)
+            when ``seq`` can be pickled. A detector object runs in this process.
         progress: show a progress bar.
         reuse: return stored detections made by the same detectors for the same frames
             and person.
@@ -187,26 +203,40 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
 
     Raises:
         NoPersonError: no frame shows a person.
-        InputError: a bad ``person``, or a rank beyond the people found.
+        InputError: a bad ``person``, or a rank beyond the people found; MediaPipe not installed.
+        DetectorError: the detector's process died (the stretches it finished are kept
+            and a rerun goes on from there).
     """
     choice = parse_person(person)
     if choice == ("index", 0):
         choice = ("largest", None)
-    own = detector is None  # made here: closed here once the pass is over
-    if detector is None:
-        from flowmocap.vision.detect import MediaPipePoseDetector
+    out_dir = Path(out_dir)
+    from flowmocap.vision.detect import MediaPipePoseDetector
 
-        detector = MediaPipePoseDetector()
-        if searcher == "default":
+    plain = detector == "plain"
+    if (detector is None or plain) and searcher in ("default", None) and DETECT_IN_CHILD and _picklable(seq):
+        spec = {"augment": not plain, "search": searcher == "default" and not plain}
+        name = MediaPipePoseDetector.describe(augment=spec["augment"])
+        if spec["search"]:
+            name += f"+search:{MediaPipePoseDetector.describe(augment=False)}"
+        if choice[0] != "largest":
+            name += f"+person:{describe_person(choice)}"
+        passes = _InChildren(seq, out_dir, spec, name, progress)
+        track = _detect_sequence(seq, out_dir, passes, name, choice, reuse)
+        passes.clear()  # the stretches are in keypoints.npz and the masks now
+        return track
+    own = detector is None or plain  # made here: closed here once the pass is over
+    if own:
+        detector = MediaPipePoseDetector(augment=not plain)
+        if searcher == "default" and not plain:
             searcher = MediaPipePoseDetector(augment=False)
     if searcher == "default":
         searcher = None
     name = detector.name + (f"+search:{searcher.name}" if searcher is not None else "")
     if choice[0] != "largest":
         name += f"+person:{describe_person(choice)}"
-    out_dir = Path(out_dir)
     try:
-        return _detect_sequence(seq, out_dir, detector, searcher, name, choice, reuse, progress)
+        return _detect_sequence(seq, out_dir, _InProcess(seq, detector, searcher, progress), name, choice, reuse)
     finally:
         if own:  # MediaPipe's graphs hold ~0.5 GB (the augmented detector's four): not kept while tracking
             for d in (detector, searcher):
@@ -214,16 +244,234 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         release_free_memory()
 
 
-def _detect_sequence(seq, out_dir: Path, detector: PersonDetector, searcher, name: str, choice: tuple, reuse: bool,
-                     progress: bool) -> PersonTrack:
-    """:func:`detect_sequence` once its detectors are made."""
+def _picklable(seq) -> bool:
+    """Whether ``seq`` can be sent to a detector process (a
+    :class:`~flowmocap.io.sequence.Sequence` or a video's can)."""
+    import pickle
+
+    try:
+        pickle.dumps(seq)
+    except Exception:  # noqa: BLE001 -- any object that cannot travel stays in this process
+        return False
+    return True
+
+
+class _InProcess:
+    """The detection passes of :func:`detect_sequence` with detectors of this process."""
+
+    def __init__(self, seq, detector: PersonDetector, searcher, progress: bool):
+        self.seq, self.detector, self.searcher, self.progress = seq, detector, searcher, progress
+
+    def find(self) -> list[list[Candidate]]:
+        return find_people(self.seq, self.detector, self.searcher, progress=self.progress)
+
+    def follow(self, cands, tracks, chosen: int) -> list[Candidate | None]:
+        return follow_person(self.seq, self.detector, cands, tracks, chosen, progress=self.progress)
+
+
+class _InChildren:
+    """The detection passes of :func:`detect_sequence` with MediaPipe in processes of its
+    own, :data:`DETECT_CHUNK` frames each (:mod:`flowmocap.vision.detect_worker`).
+
+    Each stretch's candidates are stored in ``OUT/detections/chunks/`` as it finishes, so
+    a pass that is stopped (Ctrl-C, ``kill``, the detector's process killed for memory)
+    goes on from the first stretch not stored; :meth:`clear` removes them once the
+    detections are written. ``spec``: ``{"augment": bool, "search": bool}``.
+    """
+
+    def __init__(self, seq, out_dir: Path, spec: dict, name: str, progress: bool):
+        self.seq, self.spec, self.name, self.progress = seq, spec, name, progress
+        self.folder = _chunk_dir(out_dir)
+
+    def find(self) -> list[list[Candidate]]:
+        if not any(self.folder.glob("find-*.npz")):  # a new pass: no person followed in an older one
+            for old in self.folder.glob("follow-*.npz"):
+                old.unlink()
+        return self._chunks("find", self.name, lambda a, b, got: {})
+
+    def follow(self, cands, tracks, chosen: int) -> list[Candidate | None]:
+        own, others = _chosen_and_others(cands, tracks, chosen)
+        reach = 15 + 3  # follow_person's max_gap, and the others' nearest frame within 3
+
+        def near(by_frame: dict, a: int, b: int) -> dict:
+            return {i: c for i, c in by_frame.items() if a - reach <= i < b + reach}
+
+        def task(a: int, b: int, got: list[list[Candidate]]) -> dict:
+            before = [i for i in range(a) if got[i]]
+            return {"own": near(own, a, b), "others": [near(o, a, b) for o in others],
+                    "last": (got[before[-1]][0], before[-1]) if before else None}
+
+        got = self._chunks("follow", f"{self.name}|chosen {len(own)} frames from {min(own, default=-1)}", task)
+        return [g[0] if g else None for g in got]
+
+    def _chunks(self, kind: str, key: str, task) -> list[list[Candidate]]:
+        """One entry per frame, from the stored stretches and, for the others, a detector
+        process per stretch in turn; ``task(a, b, got_so_far)`` adds to a stretch's task."""
+        T = len(self.seq)
+        key = f"{key}|{kind}|{T}|{self.seq.size[0]}x{self.seq.size[1]}"
+        got: list[list[Candidate]] = [[] for _ in range(T)]
+        for a in range(0, T, DETECT_CHUNK):
+            b = min(T, a + DETECT_CHUNK)
+            path = self.folder / f"{kind}-{a:06d}-{b:06d}.npz"
+            stretch = load_chunk(path, key, a, b)
+            if stretch is None:
+                _run_detector_process({**task(a, b, got), "seq": self.seq, "spec": self.spec, "kind": kind,
+                                       "frames": (a, b), "path": str(path), "key": key, "progress": self.progress,
+                                       "warm_up": DETECT_WARM_UP},
+                                      self.folder, a, b)
+                stretch = load_chunk(path, key, a, b)
+                if stretch is None:
+                    from flowmocap.errors import DetectorError
+
+                    raise DetectorError(f"the person detector's process for frames {a}-{b - 1} ended without "
+                                        f"writing {path}; run again (--resume) to go on from frame {a}.")
+            got[a:b] = stretch
+        return got
+
+    def clear(self) -> None:
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _chunk_dir(out_dir: Path) -> Path:
+    return Path(out_dir) / "detections" / "chunks"
+
+
+def run_chunk(task: dict) -> None:
+    """One stretch of a detection pass, in the detector's own process
+    (:mod:`flowmocap.vision.detect_worker`): makes the detectors of ``task["spec"]``, looks
+    at ``task["frames"]`` (``(a, b)``) of ``task["seq"]`` (``"find"``: :func:`find_people`;
+    ``"follow"``: :func:`follow_person`'s loop from ``task["last"]``) and stores the
+    candidates with :func:`save_chunk` at ``task["path"]``."""
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    seq, (a, b) = task["seq"], task["frames"]
+    detector = MediaPipePoseDetector(augment=task["spec"]["augment"])
+    searcher = MediaPipePoseDetector(augment=False) if task["spec"]["search"] and task["kind"] == "find" else None
+    try:
+        if task["kind"] == "find":
+            start = max(0, a - task.get("warm_up", DETECT_WARM_UP))
+            got = find_people(seq, detector, searcher, progress=task["progress"], frames=range(start, b))[a:b]
+        else:
+            out = _follow(seq, detector, task["own"], task["others"], range(a, b), task["last"], 15, task["progress"])
+            got = [[c] if c is not None else [] for c in out[a:b]]
+    finally:
+        for d in (detector, searcher):
+            getattr(d, "close", lambda: None)()
+    save_chunk(task["path"], task["key"], a, b, got)
+
+
+def save_chunk(path: str | Path, key: str, a: int, b: int, got: list[list[Candidate]]) -> None:
+    """Store the candidates ``got`` of frames ``a..b-1`` (one list per frame) atomically in
+    ``path`` (``.npz``, no pickled objects), tagged with ``key``."""
+    from flowmocap.atomic import atomic_write
+
+    rows = [(i, c) for i, cs in zip(range(a, b), got) for c in cs]
+    K = len(KEYPOINT_NAMES)
+    n = len(rows)
+    packed = [c.mask if isinstance(c.mask, PackedMask) else PackedMask.pack(c.mask) for _, c in rows]
+    bits = [m.bits for m in packed]
+    arrays = {
+        "meta": np.array(json.dumps({"key": key, "frames": [a, b]})),
+        "frame": np.array([i for i, _ in rows], np.int64),
+        "box": np.array([c.box for _, c in rows], np.float64).reshape(n, 4),
+        "keypoints": np.array([c.keypoints for _, c in rows], np.float64).reshape(n, K, 2),
+        "confidence": np.array([c.confidence for _, c in rows], np.float64).reshape(n, K),
+        "world": np.array([c.world if c.world is not None else np.full((K, 3), np.nan) for _, c in rows],
+                          np.float64).reshape(n, K, 3),
+        "has_world": np.array([c.world is not None for _, c in rows], bool),
+        "mask_shape": np.array([m.shape for m in packed], np.int64).reshape(n, 2),
+        "mask_box": np.array([m.box for m in packed], np.int64).reshape(n, 4),
+        "mask_end": np.cumsum([len(x) for x in bits], dtype=np.int64),
+        "mask_bits": np.concatenate(bits) if bits else np.zeros(0, np.uint8),
+    }
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to the temporary's name
+            np.savez(f, **arrays)
+
+    atomic_write(path, write)
+
+
+def load_chunk(path: str | Path, key: str, a: int, b: int) -> list[list[Candidate]] | None:
+    """The candidates :func:`save_chunk` stored for frames ``a..b-1``, or None when the file
+    is absent, unreadable or made for another ``key`` or stretch."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            z = {k: z[k] for k in z.files}
+        meta = json.loads(str(z["meta"]))
+    except (OSError, ValueError, KeyError):
+        return None
+    if meta.get("key") != key or meta.get("frames") != [a, b]:
+        return None
+    got: list[list[Candidate]] = [[] for _ in range(b - a)]
+    start = 0
+    for r, i in enumerate(z["frame"]):
+        end = int(z["mask_end"][r])
+        mask = PackedMask(tuple(int(v) for v in z["mask_shape"][r]), tuple(int(v) for v in z["mask_box"][r]),
+                          z["mask_bits"][start:end].copy())
+        start = end
+        got[int(i) - a].append(Candidate(tuple(float(v) for v in z["box"][r]), z["keypoints"][r].copy(),
+                                         z["confidence"][r].copy(), mask,
+                                         z["world"][r].copy() if z["has_world"][r] else None))
+    return got
+
+
+def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
+    """Run one stretch's ``task`` in a fresh ``python -m flowmocap.vision.detect_worker``
+    and wait for it; its error (one of the project's) is raised here.
+
+    Raises:
+        DetectorError: the process died (killed, crashed) or left no result.
+    """
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    from flowmocap import errors
+
+    folder.mkdir(parents=True, exist_ok=True)
+    job = folder / f"task-{a:06d}.pkl"
+    failed = folder / f"task-{a:06d}.error.json"
+    failed.unlink(missing_ok=True)
+    with open(job, "wb") as f:
+        pickle.dump(task, f, protocol=pickle.HIGHEST_PROTOCOL)
+    env = dict(os.environ)  # the same flowmocap as this process, wherever it was imported from
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2])]
+                                        + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    try:
+        rc = subprocess.run([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env).returncode
+    finally:
+        job.unlink(missing_ok=True)
+    if failed.exists():
+        err = json.loads(failed.read_text())
+        failed.unlink()
+        cls = getattr(errors, err.get("type", ""), None)
+        if not (isinstance(cls, type) and issubclass(cls, errors.FlowMocapError)):
+            cls = errors.DetectorError
+        raise cls(err.get("message", "the person detector failed"))
+    if rc != 0:
+        import signal
+
+        if rc in (130, -signal.SIGINT):
+            raise KeyboardInterrupt
+        how = (f"was killed by signal {-rc}{' (SIGKILL: out of memory?)' if rc == -signal.SIGKILL else ''}"
+               if rc < 0 else f"failed with exit status {rc}")
+        raise errors.DetectorError(f"the person detector's process for frames {a}-{b - 1} {how}; the frames before "
+                                   f"{a} are kept in {folder}: run again (--resume) to go on from frame {a}.")
+
+
+def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse: bool) -> PersonTrack:
+    """:func:`detect_sequence` once its detection ``passes`` (:class:`_InProcess` or
+    :class:`_InChildren`) are chosen."""
     T = len(seq)
     W, H = seq.size
     if reuse:
         stored = load_detections(out_dir, name, T, (W, H))
         if stored is not None:
             return stored
-    cands = find_people(seq, detector, searcher, progress=progress)
+    cands = passes.find()
     tracks = split_tracks(cands)
     K = len(KEYPOINT_NAMES)
     kp = np.zeros((T, K, 2))
@@ -246,7 +494,7 @@ def _detect_sequence(seq, out_dir: Path, detector: PersonDetector, searcher, nam
             chosen = [cands[i][c] for i, c in tracks[main]]
             frames = [i for i, _ in tracks[main]]
         else:
-            followed = follow_person(seq, detector, cands, tracks, main, progress=progress)
+            followed = passes.follow(cands, tracks, main)
             frames = [i for i in range(T) if followed[i] is not None]
             chosen = [followed[i] for i in frames]
         for i, cand in zip(frames, chosen):
@@ -343,7 +591,8 @@ class Candidate(NamedTuple):
     world: np.ndarray | None
 
 
-def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = True) -> list[list[Candidate]]:
+def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = True,
+                frames: range | None = None) -> list[list[Candidate]]:
     """Every person the detectors find in each frame of ``seq``.
 
     The (tracking) ``detector`` looks at each frame as it is; each of the ``searchers``
@@ -354,10 +603,11 @@ def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = 
 
     Args:
         searchers: None, one :class:`~flowmocap.vision.detect.PersonDetector` or a list.
+        frames: the frames to look at (a ``range`` of frame indices; default all).
 
     Returns:
-        per frame, a list of :class:`Candidate` (the detector's first, then the
-        searchers'); empty where nobody is found.
+        per frame of ``seq``, a list of :class:`Candidate` (the detector's first, then
+        the searchers'); empty where nobody is found and outside ``frames``.
     """
     from tqdm import tqdm
 
@@ -366,8 +616,10 @@ def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = 
     for s in searchers:
         s.reset()
     T = len(seq)
+    frames = range(T) if frames is None else frames
     cands: list[list[Candidate]] = [[] for _ in range(T)]
-    for i in tqdm(range(T), disable=not progress, unit="frame", desc="finding the person"):
+    for i in tqdm(frames, disable=not progress, unit="frame", desc="finding the person", total=T,
+                  initial=frames.start):
         if i % TRIM_EVERY == 0:
             release_free_memory()
         img = seq.frame(i)
@@ -413,12 +665,28 @@ def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], t
     Returns:
         per frame, the chosen person's :class:`Candidate` or None.
     """
-    from tqdm import tqdm
+    own, others = _chosen_and_others(cands, tracks, chosen)
+    return _follow(seq, detector, own, others, range(len(seq)), None, max_gap, progress)
 
-    T = len(seq)
+
+def _chosen_and_others(cands, tracks, chosen: int) -> tuple[dict, list[dict]]:
+    """:func:`follow_person`'s chosen person ``{frame: Candidate}`` and the other people
+    that share frames with them (one such dict each)."""
     own = {i: cands[i][c] for i, c in tracks[chosen]}
     others = [{i: cands[i][c] for i, c in t} for k, t in enumerate(tracks)
               if k != chosen and any(i in own for i, _ in t)]
+    return own, others
+
+
+def _follow(seq, detector: PersonDetector, own: dict, others: list[dict], frames: range, last, max_gap: int,
+            progress: bool) -> list[Candidate | None]:
+    """:func:`follow_person` over ``frames`` (a range), given the chosen person's ``own``
+    candidates, the ``others`` and ``last`` ``(Candidate, frame)``, the chosen person's
+    latest frame before ``frames`` (or None); returns one entry per frame of ``seq``
+    (None outside ``frames``)."""
+    from tqdm import tqdm
+
+    T = len(seq)
 
     def nearest(by_frame: dict, i: int, within: int):
         for d in range(within + 1):
@@ -429,8 +697,8 @@ def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], t
 
     detector.reset()
     out: list[Candidate | None] = [None] * T
-    last = None
-    for i in tqdm(range(T), disable=not progress, unit="frame", desc="following the chosen person"):
+    for i in tqdm(frames, disable=not progress, unit="frame", desc="following the chosen person", total=T,
+                  initial=frames.start):
         if i % TRIM_EVERY == 0:
             release_free_memory()
         ref, gap = nearest(own, i, max_gap)
@@ -472,16 +740,11 @@ def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> t
         no person; and a sentence for ``input.json``.
     """
     from flowmocap.errors import InputError
-    from flowmocap.vision.detect import MediaPipePoseDetector
 
-    detector = MediaPipePoseDetector(augment=False)
     try:
-        track = detect_sequence(seq, out_dir, detector=detector, progress=progress)
+        track = detect_sequence(seq, out_dir, detector="plain", progress=progress)
     except (InputError, NoPersonError) as e:
         return None, f"no detector joints: {e}"
-    finally:
-        getattr(detector, "close", lambda: None)()
-        release_free_memory()
     return track, f"detector joints: {track.info['detector']}, {track.info['frames_with_person']} frames"
 
 

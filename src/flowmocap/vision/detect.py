@@ -133,24 +133,43 @@ class MediaPipePoseDetector:
         threshold: the soft mask's person probability above which a pixel is the person.
     """
 
+    #: What to do when MediaPipe is not installed.
+    NOT_INSTALLED = ("automatic masks and joints need mediapipe 0.10.21 (pip install mediapipe==0.10.21, "
+                     "which ships its models); or give --init init.json and --masks FOLDER.")
+
     def __init__(self, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5):
         try:
             import mediapipe as mp
         except ImportError as e:  # pragma: no cover - depends on the environment
-            raise InputError(
-                "automatic masks and joints need mediapipe 0.10.21 (pip install mediapipe==0.10.21, "
-                "which ships its models); or give --init init.json and --masks FOLDER."
-            ) from e
+            raise InputError(self.NOT_INSTALLED) from e
         if not 0.0 < threshold < 1.0:
             raise InputError(f"threshold must be in (0, 1); got {threshold}.")
         self._mp = mp
         self.augment = bool(augment)
         self.min_confidence = float(min_confidence)
         self.threshold = float(threshold)
-        self.name = (f"mediapipe-pose-{mp.__version__}-full-3d"
-                     f"{'-tta4' if self.augment else ''}-c{self.min_confidence:g}-t{self.threshold:g}")
+        self.name = self.describe(self.augment, self.min_confidence, self.threshold, mp.__version__)
         self._runs: dict = {}
         self.reset()
+
+    @classmethod
+    def describe(cls, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5,
+                 version: str | None = None) -> str:
+        """The :attr:`name` a detector of these settings has, without loading MediaPipe
+        (its installed version read from the package metadata unless given).
+
+        Raises:
+            InputError: MediaPipe is not installed.
+        """
+        if version is None:
+            from importlib.metadata import PackageNotFoundError
+            from importlib.metadata import version as installed
+
+            try:
+                version = installed("mediapipe")
+            except PackageNotFoundError as e:  # pragma: no cover - depends on the environment
+                raise InputError(cls.NOT_INSTALLED) from e
+        return f"mediapipe-pose-{version}-full-3d{'-tta4' if augment else ''}-c{min_confidence:g}-t{threshold:g}"
 
     def _pose(self, static: bool):
         return self._mp.solutions.pose.Pose(

@@ -1,0 +1,60 @@
+"""The person detector in a process of its own: ``python -m flowmocap.vision.detect_worker TASK``.
+
+:func:`~flowmocap.vision.auto.detect_sequence` runs MediaPipe here, one stretch of
+:data:`~flowmocap.vision.auto.DETECT_CHUNK` frames per process, so the tracking process
+never loads it and the memory MediaPipe gathers while it runs is given back when each
+stretch ends. ``TASK`` is a pickle the parent wrote (the sequence, the detectors' settings,
+the stretch, where to store its candidates: :func:`~flowmocap.vision.auto.run_chunk`).
+Imports no torch (``import flowmocap`` loads the tracker lazily).
+
+Exit status 0 with the stretch stored; 3 with ``TASK``'s ``.error.json`` beside it
+(``{"type", "message"}`` of one of the project's errors, raised again by the parent);
+130 when interrupted; anything else is a crash the parent reports as a
+:class:`~flowmocap.errors.DetectorError`.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str]) -> int:
+    from flowmocap.errors import FlowMocapError
+    from flowmocap.vision.auto import run_chunk
+
+    job = Path(argv[0])
+    _native_logs_to_devnull()
+    try:
+        with open(job, "rb") as f:
+            task = pickle.load(f)
+        run_chunk(task)
+    except FlowMocapError as e:
+        job.with_name(job.name[: -len(".pkl")] + ".error.json").write_text(
+            json.dumps({"type": type(e).__name__, "message": str(e)}))
+        return 3
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+def _native_logs_to_devnull() -> None:
+    """Send what native code writes to the standard error (MediaPipe's and TensorFlow
+    Lite's log lines, from threads of their own) to /dev/null, and keep Python's own
+    standard error (the progress bar, a traceback) on the parent's."""
+    import os
+
+    try:
+        keep = os.dup(2)
+        sys.stderr = os.fdopen(keep, "w", buffering=1, encoding=sys.stderr.encoding, errors="backslashreplace")
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+    except OSError:  # no standard error to begin with: nothing to quiet
+        pass
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
