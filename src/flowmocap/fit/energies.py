@@ -44,6 +44,7 @@ from flowmocap.body.files import load_body_model
 from flowmocap.body.skeleton import NUM_JOINTS, PARENTS
 from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import rotation_terms as rt
+from flowmocap.fit.aligned_joints import aligned_joints_energy
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.procrustes import similarity_procrustes
@@ -1044,8 +1045,27 @@ def detector_joints_residuals(joints_cam: torch.Tensor, joints3d_obs: Any, confi
 def detector_joints_energy(joints_cam: torch.Tensor, joints3d_obs: Any, confidence: Any,
                            scale: float = 0.1) -> torch.Tensor:
     """Sum of squared :func:`detector_joints_residuals`, ``(B,)`` in m^2:
-    ``sum_j c_j rho(|d_j|)``."""
-    return _sum_sq(detector_joints_residuals(joints_cam, joints3d_obs, confidence, scale))
+    ``sum_j c_j rho(|d_j|)``, in one compiled pass with its gradient
+    (:func:`flowmocap.fit.aligned_joints.aligned_joints_energy`; the residuals are its
+    torch definition and the reference its tests compare with)."""
+    obs, c = _aligned_inputs(joints_cam, joints3d_obs, confidence, scale)
+    return aligned_joints_energy(joints_cam, obs, c, scale)
+
+
+def _aligned_inputs(joints_cam, joints3d_obs, confidence, scale) -> tuple[np.ndarray, np.ndarray]:
+    """``E_3d``'s checked detections as float64 arrays: ``obs (24, 3)`` (0 where missing)
+    and ``c (24,)`` (clipped to ``[0, 1]``, 0 where the joint is missing or not finite)."""
+    if not isinstance(joints_cam, torch.Tensor) or joints_cam.dim() != 3 or joints_cam.shape[1:] != (NUM_JOINTS, 3):
+        raise InputError(f"joints_cam must be a (B, 24, 3) tensor, got {getattr(joints_cam, 'shape', None)}")
+    obs, conf = _float64(joints3d_obs), _float64(confidence)
+    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
+        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {obs.shape}, {conf.shape}")
+    if not np.isfinite(conf).all() or (conf < 0).any():
+        raise InputError("confidence must be finite and non-negative (0: joint not detected)")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise InputError(f"scale must be a positive number of metres; got {scale!r}")
+    ok = np.isfinite(obs).all(-1)
+    return np.where(ok[:, None], obs, 0.0), np.where(ok, np.clip(conf, 0.0, 1.0), 0.0)
 
 
 def world_detector_joints_energy(joints_world: torch.Tensor, camera: PinholeCamera, joints3d: tuple,
@@ -1054,11 +1074,15 @@ def world_detector_joints_energy(joints_world: torch.Tensor, camera: PinholeCame
     3)`` turned into the camera's axes (its rotation; the alignment absorbs any
     translation) against ``joints3d = (j3d (24, 3), conf (24,))`` in the camera's axes,
     divided by the number of joints with ``conf > 0`` (m^2 per detected joint); ``(B,)``."""
-    rot = torch.tensor(np.asarray(camera.R), dtype=joints_world.dtype, device=joints_world.device)
     j3d, conf = joints3d
-    n = max(int((torch.as_tensor(np.asarray(conf, np.float64) if not isinstance(conf, torch.Tensor) else conf)
-                 > 0).sum()), 1)
-    return detector_joints_energy(joints_world @ rot.T, j3d, conf, scale) / n
+    obs, c = _aligned_inputs(joints_world, j3d, conf, scale)
+    n = max(int((_float64(conf) > 0).sum()), 1)
+    return aligned_joints_energy(joints_world, obs, c, scale, rotation=np.asarray(camera.R, np.float64), factor=1.0 / n)
+
+
+def _float64(v) -> np.ndarray:
+    """A tensor or anything array-like as a float64 array."""
+    return v.detach().to(torch.float64).numpy() if isinstance(v, torch.Tensor) else np.asarray(v, np.float64)
 
 
 # ---------------------------------------------------------------------------- priors
