@@ -45,6 +45,7 @@ from flowmocap.body.skeleton import NUM_JOINTS, PARENTS
 from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import rotation_terms as rt
 from flowmocap.fit.aligned_joints import aligned_joints_energy
+from flowmocap.fit.joint_terms import limb_depth_energy_world
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.procrustes import similarity_procrustes
@@ -895,6 +896,7 @@ def keypoint_energy(
 #: ``(parent, child)`` SMPL joint indices of the limbs whose direction in depth a
 #: detector's 3D joints inform: upper arms, forearms, thighs, shins (left, right).
 DEPTH_LIMBS: tuple[tuple[int, int], ...] = ((16, 18), (17, 19), (18, 20), (19, 21), (1, 4), (2, 5), (4, 7), (5, 8))
+_DEPTH_LIMBS = np.array(DEPTH_LIMBS, np.int64)
 
 
 def _detected_joints(joints_cam: Any, joints3d_obs: Any, confidence: Any,
@@ -965,8 +967,24 @@ def world_limb_depth_energy(joints_world: torch.Tensor, camera: PinholeCamera, j
     """:func:`limb_depth_energy` of world joints ``(B, 24, 3)`` turned into the camera's
     axes (its rotation; directions need no translation), against ``joints3d = (j3d (24,
     3), conf (24,))`` in the camera's axes; ``(B,)``."""
-    rot = torch.tensor(np.asarray(camera.R), dtype=joints_world.dtype, device=joints_world.device)
-    return limb_depth_energy(joints_world @ rot.T, *joints3d, sigma=sigma)
+    if not isinstance(joints_world, torch.Tensor) or joints_world.dim() != 3 or \
+            joints_world.shape[1:] != (NUM_JOINTS, 3):
+        raise InputError(f"joints_world must be a (B, 24, 3) tensor, got {getattr(joints_world, 'shape', None)}")
+    obs, conf = _float64(joints3d[0]), _float64(joints3d[1])
+    if obs.shape != (NUM_JOINTS, 3) or conf.shape != (NUM_JOINTS,):
+        raise InputError(f"joints3d_obs must be (24, 3) and confidence (24,); got {obs.shape}, {conf.shape}")
+    if not sigma > 0:
+        raise InputError(f"sigma must be > 0; got {sigma!r}")
+    pa, ch = _DEPTH_LIMBS[:, 0], _DEPTH_LIMBS[:, 1]
+    o = obs[ch] - obs[pa]
+    with np.errstate(invalid="ignore"):
+        on = np.linalg.norm(o, axis=-1)
+        ok = (on > 1e-6) & np.isfinite(on)
+    c = np.where(ok, np.clip(np.minimum(conf[ch], conf[pa]), 0.0, 1.0), 0.0)
+    oz = np.where(ok, o[:, 2] / np.maximum(np.where(ok, on, 1.0), 1e-6), 0.0)
+    # the torch definition (limb_depth_residuals of the joints turned into the camera's axes)
+    # in one compiled pass with its gradient (flowmocap.fit.joint_terms)
+    return limb_depth_energy_world(joints_world, camera.R, _DEPTH_LIMBS, oz, c, sigma)
 
 
 # ------------------------------------------------------- 3D joints of a detector

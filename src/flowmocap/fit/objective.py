@@ -36,6 +36,7 @@ from flowmocap.body.fused import make_rig, posed_body
 from flowmocap.errors import InputError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.joint_terms import keypoint_energy_world
 from flowmocap.fit.pose_prior import PosePrior
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.render import flow_loss_async, flow_target, prepare_faces
@@ -237,5 +238,10 @@ def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: Tracke
     The model's joints are moved to where the detector puts them
     (:func:`~flowmocap.vision.keypoint_map.detector_points`) when ``cfg.keypoint_offsets``."""
     j2d, conf = keypoints
-    pj = scene.camera.project(detector_points(out, cfg)[0])
-    return en.keypoint_energy(pj[None], j2d, conf, sigma=sigma)[0] / float((conf > 0).sum())
+    c = conf.detach().to(torch.float64).numpy() if isinstance(conf, torch.Tensor) else np.asarray(conf, np.float64)
+    obs = j2d.detach().to(torch.float64).numpy() if isinstance(j2d, torch.Tensor) else np.asarray(j2d, np.float64)
+    n = float((c > 0).sum())
+    missing = ~np.isfinite(obs).all(-1)  # counts as not detected, as in keypoint_residuals
+    c, obs = np.where(missing, 0.0, c), np.where(missing[:, None], 0.0, obs)
+    # keypoint_energy of the projected points, in one compiled pass with its gradient
+    return keypoint_energy_world(detector_points(out, cfg), scene.camera, obs, c, sigma, factor=1.0 / n)[0]
