@@ -604,3 +604,32 @@ def test_detector_joints_input_errors():
                      ((x, obs, -conf), {}), ((x, obs, conf), {"scale": 0.0}), ((x, obs, conf), {"scale": float("nan")})):
         with pytest.raises(InputError):
             detector_joints_residuals(*args, **kw)
+
+
+def test_silhouette_energy_in_one_node_equals_its_torch_composition(body, scene):
+    """silhouette_energy runs the projection, window, exact samples and coverage as one
+    autograd node (float64 numpy and compiled passes): equal to the composition of the
+    torch pieces with the compiled coverage pass, value and gradient, for a batch of two
+    bodies (one partly off the image) and in float32; a capsule behind the camera is refused."""
+    from flowmocap.body.capsules import Capsules
+    from flowmocap.fit.energies import _as_target, _silhouette_energy_composed
+
+    trans = torch.tensor([[0.03, -0.02, 0.05], [0.9, 0.1, 0.0]], dtype=torch.float64)
+    caps = body_capsules(body, body(pose=scene["pose"].expand(2, -1), trans=trans))
+    for dtype in (torch.float64, torch.float32):
+        leaves = [x.detach().to(dtype).requires_grad_(True) for x in (caps.start, caps.end, caps.radius)]
+        c = Capsules(*leaves)
+        for a, step in ((0.6, 8), (0.3, 3)):
+            e = silhouette_energy(c, scene["cam"], scene["target"], a=a, grid_step=step)
+            ref = _silhouette_energy_composed(c, scene["cam"], _as_target(scene["target"], None, dtype), a, step, 1.0)
+            g = torch.autograd.grad(e.sum(), leaves)
+            g_ref = torch.autograd.grad(ref.sum(), leaves)
+            assert e.dtype == dtype and all(x.dtype == dtype for x in g)
+            tol = 1e-12 if dtype == torch.float64 else 1e-4
+            torch.testing.assert_close(e, ref, rtol=tol, atol=0)
+            for x, y in zip(g, g_ref):
+                torch.testing.assert_close(x, y, rtol=tol * 100, atol=tol * float(y.abs().max()))
+    at_the_eye = torch.tensor([0.3, 0.2, 3.0], dtype=torch.float64).expand_as(caps.start)  # the camera's centre
+    behind = Capsules(at_the_eye, caps.end, caps.radius)
+    with pytest.raises(InputError, match="in front of the camera"):
+        silhouette_energy(behind, scene["cam"], scene["target"])

@@ -50,7 +50,8 @@ from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from flowmocap.render.capsules import capsule_distance_grid, capsule_signed_distance, project_capsules
+from flowmocap.render.capsules import (capsule_distance_grid, capsule_signed_distance, grid_signed_distance_grad_kernel,
+                                       grid_signed_distance_kernel, project_capsules)
 from flowmocap.vision.masks import chamfer_map
 
 __all__ = [
@@ -533,10 +534,8 @@ def silhouette_residuals(
     return full.reshape(B, H * W)
 
 
-def _silhouette_setup(capsules, camera, target, a, grid_step, softness):
-    """Checks, the projected capsules ``(s, e, r)`` and the window of E_c (the mask's box
-    and the capsules' box, plus the soft edge and a grid cell): ``(s, e, r), (y0, x0, y1, x1)``
-    with ``y0, x0`` on the grid."""
+def _silhouette_checks(camera, target, a, grid_step, softness) -> None:
+    """E_c's checks of its settings and of the mask against the camera (InputError)."""
     if (target.height, target.width) != (camera.height, camera.width):
         raise InputError(
             f"the mask is {target.width}x{target.height} but the camera is "
@@ -548,6 +547,13 @@ def _silhouette_setup(capsules, camera, target, a, grid_step, softness):
         raise InputError(f"softness must be positive (pixels), got {softness}")
     if int(grid_step) != grid_step or grid_step < 1:
         raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
+
+
+def _silhouette_setup(capsules, camera, target, a, grid_step, softness):
+    """Checks, the projected capsules ``(s, e, r)`` and the window of E_c (the mask's box
+    and the capsules' box, plus the soft edge and a grid cell): ``(s, e, r), (y0, x0, y1, x1)``
+    with ``y0, x0`` on the grid."""
+    _silhouette_checks(camera, target, a, grid_step, softness)
     step, H, W = int(grid_step), target.height, target.width
     s, e, r = _project(capsules, camera)
     with torch.no_grad():
@@ -676,12 +682,101 @@ def silhouette_energy(
     making the interpolated map or the residuals as tensors: what the tracker evaluates.
     """
     target = _as_target(target, chamfer, capsules.start.dtype)
+    _silhouette_checks(camera, target, a, grid_step, softness)
+    if capsules.start.device.type != "cpu":  # the torch composition (the reference the tests compare with)
+        return _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness)
+    return _CapsuleSilhouette.apply(capsules.start, capsules.end, capsules.radius, camera, target, int(grid_step),
+                                    float(a), float(softness))
+
+
+def _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness) -> torch.Tensor:
+    """:func:`silhouette_energy` from its torch pieces (projection, window, exact samples)
+    and the compiled coverage pass: the definition :class:`_CapsuleSilhouette` follows."""
     (s, e, r), (y0, x0, y1, x1) = _silhouette_setup(capsules, camera, target, a, grid_step, softness)
     grid = capsule_distance_grid(s, e, r, y1 - y0, x1 - x0, int(grid_step), origin=(y0, x0))
     mask = target.mask[y0:y1, x0:x1].detach().cpu().numpy()
     cham = target.chamfer[y0:y1, x0:x1].detach().cpu().numpy()
     return _CoverageEnergy.apply(grid, mask, cham, int(grid_step), float(a), float(softness),
                                  1.0 / math.sqrt(target.count))
+
+
+class _CapsuleSilhouette(torch.autograd.Function):
+    """E_c ``(B,)`` from world capsules ``start, end (B, K, 3)`` and ``radius (B, K)``, the
+    steps of :func:`_silhouette_energy_composed` (to the camera, projection, window, exact
+    distance samples, coverage) in float64 numpy and compiled passes, and the gradient by
+    the chain rule back through each: one autograd node instead of some forty."""
+
+    @staticmethod
+    def forward(ctx, start, end, radius, camera, target, step, a, softness):  # noqa: D102
+        R = np.asarray(camera.R, np.float64)
+        t = np.asarray(camera.t, np.float64)
+        ps = start.detach().to(torch.float64).numpy() @ R.T + t  # (B, K, 3) camera axes
+        pe = end.detach().to(torch.float64).numpy() @ R.T + t
+        r3 = radius.detach().to(torch.float64).numpy()
+        if not (np.isfinite(ps).all() and np.isfinite(pe).all() and np.isfinite(r3).all()):
+            raise InputError("the capsules hold NaN or infinite values")
+        if (np.minimum(ps[..., 2], pe[..., 2]) <= r3).any():
+            raise InputError("a capsule is not in front of the camera (end point depth <= radius)")
+        f = np.array([camera.fx, camera.fy])
+        c = np.array([camera.cx, camera.cy])
+        sq = math.sqrt(camera.fx * camera.fy)
+        a_px = f * ps[..., :2] / ps[..., 2:3] + c
+        b_px = f * pe[..., :2] / pe[..., 2:3] + c
+        zmid = 0.5 * (ps[..., 2] + pe[..., 2])
+        r_px = r3 * sq / zmid
+        # the window of _silhouette_setup: the mask's box and the capsules', plus the soft edge and a cell
+        H, W = target.height, target.width
+        lo = np.minimum(a_px, b_px) - r_px[..., None]
+        hi = np.maximum(a_px, b_px) + r_px[..., None]
+        margin = _SOFT_REACH * softness + 2 * step
+        x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
+        y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
+        x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
+        y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
+        x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
+        y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
+        x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
+        y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
+        h, w = y1 - y0, x1 - x0
+        gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
+        gy = np.arange(gh) * step + (y0 + 0.5)
+        gx = np.arange(gw) * step + (x0 + 0.5)
+        pts = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
+        d = b_px - a_px
+        inv = 1.0 / np.maximum((d * d).sum(-1), 1e-12)
+        B = ps.shape[0]
+        best = np.empty((B, pts.shape[0]))
+        arg = np.empty((B, pts.shape[0]), dtype=np.int64)
+        grid_signed_distance_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(d), inv,
+                                    np.ascontiguousarray(r_px), best, arg)
+        grid = best.reshape(B, gh, gw)
+        mask = target.mask[y0:y1, x0:x1].detach().cpu().numpy()
+        cham = target.chamfer[y0:y1, x0:x1].detach().cpu().numpy()
+        energy = np.zeros(B)
+        g_grid = np.zeros_like(grid)
+        _coverage_energy_kernel(grid, step, mask, cham, a, softness, 1.0 / math.sqrt(target.count), energy, g_grid)
+        # back through the exact samples, the projection and the camera
+        ga, gb, gr = np.zeros(a_px.shape), np.zeros(b_px.shape), np.zeros(r_px.shape)
+        grid_signed_distance_grad_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(b_px), arg,
+                                         g_grid.reshape(B, -1), ga, gb, gr)
+        dz = -gr * r_px / zmid * 0.5  # r_px = r sq / zmid: d/dz of either end
+        grads = []
+        for g2, pc in ((ga, ps), (gb, pe)):  # p_px = f p_xy / p_z + c
+            g3 = np.empty_like(pc)
+            g3[..., :2] = g2 * f / pc[..., 2:3]
+            g3[..., 2] = -(g2 * f * pc[..., :2]).sum(-1) / pc[..., 2] ** 2 + dz
+            grads.append(g3 @ R)  # p = R x + t
+        grads.append(gr * sq / zmid)
+        ctx.save_for_backward(*(torch.from_numpy(g) for g in grads))
+        ctx.dtypes = (start.dtype, end.dtype, radius.dtype)
+        return torch.from_numpy(energy).to(start.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: D102
+        go = grad_out.to(torch.float64)
+        gs, ge, gr = ctx.saved_tensors
+        return ((go[:, None, None] * gs).to(ctx.dtypes[0]), (go[:, None, None] * ge).to(ctx.dtypes[1]),
+                (go[:, None] * gr).to(ctx.dtypes[2]), None, None, None, None, None)
 
 
 def _bilinear(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,8 @@ from numba import njit
 from flowmocap.errors import InputError
 from flowmocap.render._checks import check_size
 
-__all__ = ["capsule_distance_grid", "capsule_signed_distance", "project_capsules"]
+__all__ = ["capsule_distance_grid", "capsule_signed_distance", "project_capsules", "grid_signed_distance_kernel",
+           "grid_signed_distance_grad_kernel"]
 
 
 def _as_tensor(x: Any, name: str, shape_tail: tuple[int, ...], ref: torch.Tensor | None) -> torch.Tensor:
@@ -284,3 +285,12 @@ def project_capsules(
 
     z_mid = 0.5 * (a[:, 2] + b[:, 2])
     return proj(a), proj(b), r * float(np.sqrt(fx * fy)) / z_mid
+
+
+#: The compiled passes behind :func:`capsule_distance_grid`, for callers that chain them
+#: with their own in one autograd node (``flowmocap.fit.energies.silhouette_energy``):
+#: ``(pts (N, 2), a (B, K, 2), d = b - a, inv = 1 / |d|^2 (B, K), r (B, K), best (B, N),
+#: arg (B, N) int64)`` and ``(pts, a, b, arg, grad (B, N), ga, gb (B, K, 2), gr (B, K))``,
+#: float64, outputs filled (the gradients accumulate into zeroed arrays).
+grid_signed_distance_kernel = _grid_signed_distance_kernel
+grid_signed_distance_grad_kernel = _grid_signed_distance_grad_kernel
