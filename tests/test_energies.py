@@ -31,7 +31,7 @@ from flowmocap.fit import (
     temporal_energy,
     temporal_residuals,
 )
-from flowmocap.fit.energies import _project
+from flowmocap.fit.energies import DEFAULT_TOLERANCE, _project
 from flowmocap.render import capsule_signed_distance
 from flowmocap.fit.joint_limits import LIMITS_DEG
 from flowmocap.geometry import PinholeCamera, look_at
@@ -633,3 +633,32 @@ def test_silhouette_energy_in_one_node_equals_its_torch_composition(body, scene)
     behind = Capsules(at_the_eye, caps.end, caps.radius)
     with pytest.raises(InputError, match="in front of the camera"):
         silhouette_energy(behind, scene["cam"], scene["target"])
+
+
+def test_interpenetration_energy_compiled_equals_its_residuals(body):
+    """interpenetration_energy's compiled pass against the torch residuals' sum of squares,
+    value and gradient (closest points held fixed in both), on bodies with limbs crossed,
+    parallel and zero-length segments among the capsules, float64 and float32."""
+    poses = torch.stack([_pose(("left_hip", 2, -40), ("right_shoulder", 0, 80), ("right_elbow", 1, 120))[0],
+                         _pose(("left_shoulder", 2, 60), ("left_elbow", 1, -140))[0]])
+    caps = body_capsules(body, body(pose=poses))
+    K = caps.start.shape[1]
+    pairs = [(a, b) for a in range(K) for b in range(a + 1, K)]
+    for dtype in (torch.float64, torch.float32):
+        leaves = [x.detach().to(dtype).requires_grad_(True) for x in (caps.start, caps.end, caps.radius)]
+        # a zero-length segment and a parallel copy, the closest-point special cases
+        with torch.no_grad():
+            leaves[1][0, 3] = leaves[0][0, 3]
+            leaves[0][1, 5] = leaves[0][1, 4] + 0.01
+            leaves[1][1, 5] = leaves[1][1, 4] + 0.01
+        c = Capsules(*leaves)
+        for pr, tol in ((None, DEFAULT_TOLERANCE), (pairs, 0.0)):
+            e = interpenetration_energy(c, pr, tol)
+            ref = (interpenetration_residuals(c, pr, tol) ** 2).sum(1)
+            assert float(ref.detach()[0]) > 0  # the crossed legs and the arm through the trunk
+            g = torch.autograd.grad(e.sum(), leaves)
+            g_ref = torch.autograd.grad(ref.sum(), leaves)
+            tol_ = 1e-12 if dtype == torch.float64 else 2e-4
+            torch.testing.assert_close(e, ref, rtol=tol_, atol=1e-12)
+            for x, y in zip(g, g_ref):
+                torch.testing.assert_close(x, y, rtol=tol_ * 10, atol=tol_ * float(y.abs().max()))

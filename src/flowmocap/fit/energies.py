@@ -367,8 +367,93 @@ def interpenetration_residuals(
 def interpenetration_energy(
     capsules: Capsules, pairs: Sequence[tuple[int, int]] | None = None, tolerance: float = DEFAULT_TOLERANCE
 ) -> torch.Tensor:
-    """E_sp: sum of squared :func:`interpenetration_residuals`, ``(B,)`` in m^2."""
-    return _sum_sq(interpenetration_residuals(capsules, pairs, tolerance))
+    """E_sp: sum of squared :func:`interpenetration_residuals`, ``(B,)`` in m^2, with its
+    gradient in one compiled float64 pass (:func:`_penetration_kernel`: the same closest
+    points, held fixed in the gradient as there) on the CPU."""
+    K = capsules.start.shape[1]
+    if capsules.start.device.type != "cpu":
+        return _sum_sq(interpenetration_residuals(capsules, pairs, tolerance))
+    i, j = _pair_index(pairs, K, capsules.start.device)
+    return _Penetration.apply(capsules.start, capsules.end, capsules.radius,
+                              np.stack([i.numpy(), j.numpy()], axis=1), float(tolerance))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _penetration_kernel(P, Q, rad, pairs, tol, energy, gp, gq, gr):  # pragma: no cover - compiled
+    """E_sp ``energy (B,)`` and its gradient (``gp, gq (B, K, 3)``, ``gr (B, K)``, zeroed by
+    the caller) for capsules ``P, Q (B, K, 3)`` (segment ends), ``rad (B, K)`` and
+    ``pairs (P, 2)``: :func:`segment_segment_distance`'s closest points, then ``r =
+    max(r_a + r_b - d - tol, 0)`` and the sum of ``r^2``. float64."""
+    eps = 1e-12
+    for b in range(P.shape[0]):
+        e_total = 0.0
+        for n in range(pairs.shape[0]):
+            i, j = pairs[n, 0], pairs[n, 1]
+            d1 = Q[b, i] - P[b, i]
+            d2 = Q[b, j] - P[b, j]
+            r = P[b, i] - P[b, j]
+            a = d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]
+            e = d2[0] * d2[0] + d2[1] * d2[1] + d2[2] * d2[2]
+            bb = d1[0] * d2[0] + d1[1] * d2[1] + d1[2] * d2[2]
+            c = d1[0] * r[0] + d1[1] * r[1] + d1[2] * r[2]
+            f = d2[0] * r[0] + d2[1] * r[1] + d2[2] * r[2]
+            a_s = max(a, eps)
+            e_s = max(e, eps)
+            denom = a * e - bb * bb
+            if denom > eps * max(a * e, eps):
+                s = min(max((bb * f - c * e) / max(denom, eps), 0.0), 1.0)
+            else:
+                s = 0.0
+            t = (bb * s + f) / e_s
+            if t < 0.0:
+                s = min(max(-c / a_s, 0.0), 1.0)
+            elif t > 1.0:
+                s = min(max((bb - c) / a_s, 0.0), 1.0)
+            t = min(max(t, 0.0), 1.0)
+            point2 = e <= eps
+            if point2:
+                s = min(max(-c / a_s, 0.0), 1.0)
+                t = 0.0
+            if a <= eps:
+                s = 0.0
+                if not point2:
+                    t = min(max(f / e_s, 0.0), 1.0)
+            diff = r + s * d1 - t * d2
+            dist = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2] + 1e-12)
+            res = rad[b, i] + rad[b, j] - dist - tol
+            if res <= 0.0:
+                continue
+            e_total += res * res
+            g = 2.0 * res  # dE/dres; dres/ddist = -1, ddist/ddiff = diff / dist
+            gr[b, i] += g
+            gr[b, j] += g
+            for k in range(3):
+                gd = -g * diff[k] / dist
+                gp[b, i, k] += gd * (1.0 - s)
+                gq[b, i, k] += gd * s
+                gp[b, j, k] -= gd * (1.0 - t)
+                gq[b, j, k] -= gd * t
+        energy[b] = e_total
+
+
+class _Penetration(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, start, end, radius, pairs, tol):  # noqa: D102
+        f64 = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())  # noqa: E731
+        P, Q, rad = f64(start), f64(end), f64(radius)
+        energy = np.zeros(P.shape[0])
+        gp, gq, gr = np.zeros_like(P), np.zeros_like(Q), np.zeros_like(rad)
+        _penetration_kernel(P, Q, rad, np.ascontiguousarray(pairs, np.int64), tol, energy, gp, gq, gr)
+        ctx.save_for_backward(*(torch.from_numpy(g) for g in (gp, gq, gr)))
+        ctx.dtypes = (start.dtype, end.dtype, radius.dtype)
+        return torch.from_numpy(energy).to(start.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: D102
+        go = grad_out.to(torch.float64)
+        gp, gq, gr = ctx.saved_tensors
+        return ((go[:, None, None] * gp).to(ctx.dtypes[0]), (go[:, None, None] * gq).to(ctx.dtypes[1]),
+                (go[:, None] * gr).to(ctx.dtypes[2]), None, None)
 
 
 # ------------------------------------------------------------------------------- E_c
