@@ -207,13 +207,16 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if ref_pose is not None and cfg.temporal_weight > 0:
         terms["temporal"] = cfg.temporal_weight * en.temporal_energy(state.pose.reshape(1, 72),
                                                                      ref_pose.reshape(1, 72))[0]
+    points = None  # where the detector would put the model's joints (E_j, E_d, E_3d), made once
     if data.keypoints is not None and cfg.keypoint_weight > 0:
-        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma, cfg)
+        points = detector_points(out, cfg)
+        terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma, cfg,
+                                                                 points=points)
     if data.anchor is not None and cfg.anchor_weight > 0:
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
     if data.joints3d is not None and (cfg.limb_depth_weight > 0 or cfg.detector3d_weight > 0):
-        points = detector_points(out, cfg)  # where the detector would put the model's joints
+        points = detector_points(out, cfg) if points is None else points
         if cfg.limb_depth_weight > 0:
             terms["limb_depth"] = cfg.limb_depth_weight * en.world_limb_depth_energy(
                 points, scene.camera, data.joints3d, cfg.limb_depth_sigma)[0]
@@ -231,12 +234,14 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
 
-def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: TrackerConfig | None = None) -> torch.Tensor:
+def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: TrackerConfig | None = None,
+                  points: torch.Tensor | None = None) -> torch.Tensor:
     """``E_j``: robust squared pixel distance (Geman-McClure, scale ``sigma`` px) between the
     model's projected joints and detected ones, confidence-weighted, per confident joint
     (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel).
     The model's joints are moved to where the detector puts them
-    (:func:`~flowmocap.vision.keypoint_map.detector_points`) when ``cfg.keypoint_offsets``."""
+    (:func:`~flowmocap.vision.keypoint_map.detector_points`) when ``cfg.keypoint_offsets``;
+    ``points`` ``(1, 24, 3)`` gives those points when they are already made."""
     j2d, conf = keypoints
     c = conf.detach().to(torch.float64).numpy() if isinstance(conf, torch.Tensor) else np.asarray(conf, np.float64)
     obs = j2d.detach().to(torch.float64).numpy() if isinstance(j2d, torch.Tensor) else np.asarray(j2d, np.float64)
@@ -244,4 +249,5 @@ def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: Tracke
     missing = ~np.isfinite(obs).all(-1)  # counts as not detected, as in keypoint_residuals
     c, obs = np.where(missing, 0.0, c), np.where(missing[:, None], 0.0, obs)
     # keypoint_energy of the projected points, in one compiled pass with its gradient
-    return keypoint_energy_world(detector_points(out, cfg), scene.camera, obs, c, sigma, factor=1.0 / n)[0]
+    points = detector_points(out, cfg) if points is None else points
+    return keypoint_energy_world(points, scene.camera, obs, c, sigma, factor=1.0 / n)[0]
