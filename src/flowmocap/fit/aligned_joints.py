@@ -30,6 +30,8 @@ import numpy as np
 import torch
 from numba import njit
 
+from flowmocap.fit.with_gradient import energy_with_gradient
+
 __all__ = ["aligned_joints_energy", "MIN_ALIGNED_JOINTS"]
 
 #: Fewest joints with ``c > 0`` the alignment needs (fewer: energy and gradient 0), as
@@ -160,26 +162,6 @@ def _aligned_kernel(x, obs, c, k, energy, grad):  # pragma: no cover - compiled
                 grad[b, j, a] = g[j, a] - w * G[a] + w * go
 
 
-class _AlignedJoints(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, obs, conf, scale, rotation, factor):  # noqa: D102
-        xn = x.detach().to(torch.float64).numpy()
-        if rotation is not None:
-            xn = xn @ rotation.T
-        energy = np.empty(xn.shape[0])
-        grad = np.empty_like(xn)
-        _aligned_kernel(np.ascontiguousarray(xn), obs, conf, float(scale), energy, grad)
-        if rotation is not None:
-            grad = grad @ rotation
-        ctx.save_for_backward(torch.from_numpy(grad * factor))
-        return torch.from_numpy(energy * factor).to(x.dtype)
-
-    @staticmethod
-    def backward(ctx, grad_out):  # noqa: D102
-        (grad,) = ctx.saved_tensors
-        return (grad_out.to(torch.float64)[:, None, None] * grad).to(grad_out.dtype), None, None, None, None, None
-
-
 def aligned_joints_energy(joints: torch.Tensor, obs: np.ndarray, conf: np.ndarray, scale: float,
                           rotation: np.ndarray | None = None, factor: float = 1.0) -> torch.Tensor:
     """``factor * sum_j c_j rho(|d_j|^2)`` per batch, ``(B,)`` m^2 in ``joints``' dtype, with
@@ -202,5 +184,17 @@ def aligned_joints_energy(joints: torch.Tensor, obs: np.ndarray, conf: np.ndarra
     does).
     """
     rot = None if rotation is None else np.ascontiguousarray(rotation, np.float64)
-    return _AlignedJoints.apply(joints, np.ascontiguousarray(obs, np.float64), np.ascontiguousarray(conf, np.float64),
-                                float(scale), rot, float(factor))
+    obs = np.ascontiguousarray(obs, np.float64)
+    conf = np.ascontiguousarray(conf, np.float64)
+
+    def compute(x):
+        if rot is not None:
+            x = np.ascontiguousarray(x @ rot.T)
+        energy = np.empty(x.shape[0])
+        grad = np.empty_like(x)
+        _aligned_kernel(x, obs, conf, float(scale), energy, grad)
+        if rot is not None:
+            grad = grad @ rot
+        return energy * factor, [grad * factor]
+
+    return energy_with_gradient(compute, joints)

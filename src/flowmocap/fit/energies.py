@@ -46,6 +46,7 @@ from flowmocap.errors import InputError, NoPersonError
 from flowmocap.fit import rotation_terms as rt
 from flowmocap.fit.aligned_joints import aligned_joints_energy
 from flowmocap.fit.joint_terms import limb_depth_energy_world
+from flowmocap.fit.with_gradient import energy_with_gradient
 from flowmocap.fit.joint_limits import JointLimits, default_joint_limits, joint_angles
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.geometry.procrustes import similarity_procrustes
@@ -374,8 +375,15 @@ def interpenetration_energy(
     if capsules.start.device.type != "cpu":
         return _sum_sq(interpenetration_residuals(capsules, pairs, tolerance))
     i, j = _pair_index(pairs, K, capsules.start.device)
-    return _Penetration.apply(capsules.start, capsules.end, capsules.radius,
-                              np.stack([i.numpy(), j.numpy()], axis=1), float(tolerance))
+    index = np.ascontiguousarray(np.stack([i.numpy(), j.numpy()], axis=1), np.int64)
+
+    def compute(P, Q, rad):
+        energy = np.zeros(P.shape[0])
+        gp, gq, gr = np.zeros_like(P), np.zeros_like(Q), np.zeros_like(rad)
+        _penetration_kernel(P, Q, rad, index, float(tolerance), energy, gp, gq, gr)
+        return energy, [gp, gq, gr]
+
+    return energy_with_gradient(compute, capsules.start, capsules.end, capsules.radius)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -434,26 +442,6 @@ def _penetration_kernel(P, Q, rad, pairs, tol, energy, gp, gq, gr):  # pragma: n
                 gp[b, j, k] -= gd * (1.0 - t)
                 gq[b, j, k] -= gd * t
         energy[b] = e_total
-
-
-class _Penetration(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, start, end, radius, pairs, tol):  # noqa: D102
-        f64 = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())  # noqa: E731
-        P, Q, rad = f64(start), f64(end), f64(radius)
-        energy = np.zeros(P.shape[0])
-        gp, gq, gr = np.zeros_like(P), np.zeros_like(Q), np.zeros_like(rad)
-        _penetration_kernel(P, Q, rad, np.ascontiguousarray(pairs, np.int64), tol, energy, gp, gq, gr)
-        ctx.save_for_backward(*(torch.from_numpy(g) for g in (gp, gq, gr)))
-        ctx.dtypes = (start.dtype, end.dtype, radius.dtype)
-        return torch.from_numpy(energy).to(start.dtype)
-
-    @staticmethod
-    def backward(ctx, grad_out):  # noqa: D102
-        go = grad_out.to(torch.float64)
-        gp, gq, gr = ctx.saved_tensors
-        return ((go[:, None, None] * gp).to(ctx.dtypes[0]), (go[:, None, None] * gq).to(ctx.dtypes[1]),
-                (go[:, None] * gr).to(ctx.dtypes[2]), None, None)
 
 
 # ------------------------------------------------------------------------------- E_c
@@ -770,8 +758,9 @@ def silhouette_energy(
     _silhouette_checks(camera, target, a, grid_step, softness)
     if capsules.start.device.type != "cpu":  # the torch composition (the reference the tests compare with)
         return _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness)
-    return _CapsuleSilhouette.apply(capsules.start, capsules.end, capsules.radius, camera, target, int(grid_step),
-                                    float(a), float(softness))
+    return energy_with_gradient(lambda s, e, r: _capsule_silhouette(s, e, r, camera, target, int(grid_step), float(a),
+                                                                    float(softness)),
+                                capsules.start, capsules.end, capsules.radius)
 
 
 def _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness) -> torch.Tensor:
@@ -785,83 +774,71 @@ def _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness
                                  1.0 / math.sqrt(target.count))
 
 
-class _CapsuleSilhouette(torch.autograd.Function):
-    """E_c ``(B,)`` from world capsules ``start, end (B, K, 3)`` and ``radius (B, K)``, the
-    steps of :func:`_silhouette_energy_composed` (to the camera, projection, window, exact
-    distance samples, coverage) in float64 numpy and compiled passes, and the gradient by
-    the chain rule back through each: one autograd node instead of some forty."""
-
-    @staticmethod
-    def forward(ctx, start, end, radius, camera, target, step, a, softness):  # noqa: D102
-        R = np.asarray(camera.R, np.float64)
-        t = np.asarray(camera.t, np.float64)
-        ps = start.detach().to(torch.float64).numpy() @ R.T + t  # (B, K, 3) camera axes
-        pe = end.detach().to(torch.float64).numpy() @ R.T + t
-        r3 = radius.detach().to(torch.float64).numpy()
-        if not (np.isfinite(ps).all() and np.isfinite(pe).all() and np.isfinite(r3).all()):
-            raise InputError("the capsules hold NaN or infinite values")
-        if (np.minimum(ps[..., 2], pe[..., 2]) <= r3).any():
-            raise InputError("a capsule is not in front of the camera (end point depth <= radius)")
-        f = np.array([camera.fx, camera.fy])
-        c = np.array([camera.cx, camera.cy])
-        sq = math.sqrt(camera.fx * camera.fy)
-        a_px = f * ps[..., :2] / ps[..., 2:3] + c
-        b_px = f * pe[..., :2] / pe[..., 2:3] + c
-        zmid = 0.5 * (ps[..., 2] + pe[..., 2])
-        r_px = r3 * sq / zmid
-        # the window of _silhouette_setup: the mask's box and the capsules', plus the soft edge and a cell
-        H, W = target.height, target.width
-        lo = np.minimum(a_px, b_px) - r_px[..., None]
-        hi = np.maximum(a_px, b_px) + r_px[..., None]
-        margin = _SOFT_REACH * softness + 2 * step
-        x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
-        y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
-        x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
-        y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
-        x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
-        y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
-        x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
-        y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
-        h, w = y1 - y0, x1 - x0
-        gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
-        gy = np.arange(gh) * step + (y0 + 0.5)
-        gx = np.arange(gw) * step + (x0 + 0.5)
-        pts = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
-        d = b_px - a_px
-        inv = 1.0 / np.maximum((d * d).sum(-1), 1e-12)
-        B = ps.shape[0]
-        best = np.empty((B, pts.shape[0]))
-        arg = np.empty((B, pts.shape[0]), dtype=np.int64)
-        grid_signed_distance_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(d), inv,
-                                    np.ascontiguousarray(r_px), best, arg)
-        grid = best.reshape(B, gh, gw)
-        mask = target.mask[y0:y1, x0:x1].detach().cpu().numpy()
-        cham = target.chamfer[y0:y1, x0:x1].detach().cpu().numpy()
-        energy = np.zeros(B)
-        g_grid = np.zeros_like(grid)
-        _coverage_energy_kernel(grid, step, mask, cham, a, softness, 1.0 / math.sqrt(target.count), energy, g_grid)
-        # back through the exact samples, the projection and the camera
-        ga, gb, gr = np.zeros(a_px.shape), np.zeros(b_px.shape), np.zeros(r_px.shape)
-        grid_signed_distance_grad_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(b_px), arg,
-                                         g_grid.reshape(B, -1), ga, gb, gr)
-        dz = -gr * r_px / zmid * 0.5  # r_px = r sq / zmid: d/dz of either end
-        grads = []
-        for g2, pc in ((ga, ps), (gb, pe)):  # p_px = f p_xy / p_z + c
-            g3 = np.empty_like(pc)
-            g3[..., :2] = g2 * f / pc[..., 2:3]
-            g3[..., 2] = -(g2 * f * pc[..., :2]).sum(-1) / pc[..., 2] ** 2 + dz
-            grads.append(g3 @ R)  # p = R x + t
-        grads.append(gr * sq / zmid)
-        ctx.save_for_backward(*(torch.from_numpy(g) for g in grads))
-        ctx.dtypes = (start.dtype, end.dtype, radius.dtype)
-        return torch.from_numpy(energy).to(start.dtype)
-
-    @staticmethod
-    def backward(ctx, grad_out):  # noqa: D102
-        go = grad_out.to(torch.float64)
-        gs, ge, gr = ctx.saved_tensors
-        return ((go[:, None, None] * gs).to(ctx.dtypes[0]), (go[:, None, None] * ge).to(ctx.dtypes[1]),
-                (go[:, None] * gr).to(ctx.dtypes[2]), None, None, None, None, None)
+def _capsule_silhouette(start, end, r3, camera, target, step, a, softness):
+    """E_c ``(B,)`` and its gradients from world capsules ``start, end (B, K, 3)`` and
+    ``r3 (B, K)`` (float64 arrays): the steps of :func:`_silhouette_energy_composed` (to the
+    camera, projection, window, exact distance samples, coverage) in NumPy and the compiled
+    passes, and the gradient by the chain rule back through each, so that
+    :func:`silhouette_energy` is one autograd node instead of some forty."""
+    R = np.asarray(camera.R, np.float64)
+    t = np.asarray(camera.t, np.float64)
+    ps = start @ R.T + t  # (B, K, 3) camera axes
+    pe = end @ R.T + t
+    if not (np.isfinite(ps).all() and np.isfinite(pe).all() and np.isfinite(r3).all()):
+        raise InputError("the capsules hold NaN or infinite values")
+    if (np.minimum(ps[..., 2], pe[..., 2]) <= r3).any():
+        raise InputError("a capsule is not in front of the camera (end point depth <= radius)")
+    f = np.array([camera.fx, camera.fy])
+    c = np.array([camera.cx, camera.cy])
+    sq = math.sqrt(camera.fx * camera.fy)
+    a_px = f * ps[..., :2] / ps[..., 2:3] + c
+    b_px = f * pe[..., :2] / pe[..., 2:3] + c
+    zmid = 0.5 * (ps[..., 2] + pe[..., 2])
+    r_px = r3 * sq / zmid
+    # the window of _silhouette_setup: the mask's box and the capsules', plus the soft edge and a cell
+    H, W = target.height, target.width
+    lo = np.minimum(a_px, b_px) - r_px[..., None]
+    hi = np.maximum(a_px, b_px) + r_px[..., None]
+    margin = _SOFT_REACH * softness + 2 * step
+    x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
+    y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
+    x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
+    y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
+    x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
+    y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
+    x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
+    y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
+    h, w = y1 - y0, x1 - x0
+    gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
+    gy = np.arange(gh) * step + (y0 + 0.5)
+    gx = np.arange(gw) * step + (x0 + 0.5)
+    pts = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
+    d = b_px - a_px
+    inv = 1.0 / np.maximum((d * d).sum(-1), 1e-12)
+    B = ps.shape[0]
+    best = np.empty((B, pts.shape[0]))
+    arg = np.empty((B, pts.shape[0]), dtype=np.int64)
+    grid_signed_distance_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(d), inv,
+                                np.ascontiguousarray(r_px), best, arg)
+    grid = best.reshape(B, gh, gw)
+    mask = target.mask[y0:y1, x0:x1].detach().cpu().numpy()
+    cham = target.chamfer[y0:y1, x0:x1].detach().cpu().numpy()
+    energy = np.zeros(B)
+    g_grid = np.zeros_like(grid)
+    _coverage_energy_kernel(grid, step, mask, cham, a, softness, 1.0 / math.sqrt(target.count), energy, g_grid)
+    # back through the exact samples, the projection and the camera
+    ga, gb, gr = np.zeros(a_px.shape), np.zeros(b_px.shape), np.zeros(r_px.shape)
+    grid_signed_distance_grad_kernel(pts, np.ascontiguousarray(a_px), np.ascontiguousarray(b_px), arg,
+                                     g_grid.reshape(B, -1), ga, gb, gr)
+    dz = -gr * r_px / zmid * 0.5  # r_px = r sq / zmid: d/dz of either end
+    grads = []
+    for g2, pc in ((ga, ps), (gb, pe)):  # p_px = f p_xy / p_z + c
+        g3 = np.empty_like(pc)
+        g3[..., :2] = g2 * f / pc[..., 2:3]
+        g3[..., 2] = -(g2 * f * pc[..., :2]).sum(-1) / pc[..., 2] ** 2 + dz
+        grads.append(g3 @ R)  # p = R x + t
+    grads.append(gr * sq / zmid)
+    return energy, grads
 
 
 def _bilinear(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from numba import njit
 
+from flowmocap.fit.with_gradient import energy_with_gradient
+
 __all__ = ["keypoint_energy_world", "limb_depth_energy_world"]
 
 
@@ -87,22 +89,15 @@ def _limb_depth_kernel(P, R, limbs, oz, conf, sigma, energy, grad):  # pragma: n
         energy[b] = e
 
 
-class _Compiled(torch.autograd.Function):
-    """A ``(B,)`` energy of ``P (B, N, 3)`` whose gradient ``kernel`` computes with it."""
+def _compiled(P: torch.Tensor, kernel, args: tuple, factor: float) -> torch.Tensor:
+    """``factor`` times the ``(B,)`` energy ``kernel(P, *args, energy, grad)`` fills, with its gradient."""
+    def compute(p):
+        energy = np.empty(p.shape[0])
+        grad = np.empty_like(p)
+        kernel(p, *args, energy, grad)
+        return energy * factor, [grad * factor]
 
-    @staticmethod
-    def forward(ctx, P, kernel, args, factor):  # noqa: D102
-        pn = np.ascontiguousarray(P.detach().to(torch.float64).numpy())
-        energy = np.empty(pn.shape[0])
-        grad = np.empty_like(pn)
-        kernel(pn, *args, energy, grad)
-        ctx.save_for_backward(torch.from_numpy(grad * factor))
-        return torch.from_numpy(energy * factor).to(P.dtype)
-
-    @staticmethod
-    def backward(ctx, grad_out):  # noqa: D102
-        (grad,) = ctx.saved_tensors
-        return (grad_out.to(torch.float64)[:, None, None] * grad).to(grad_out.dtype), None, None, None
+    return energy_with_gradient(compute, P)
 
 
 def _camera_arrays(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -124,7 +119,7 @@ def keypoint_energy_world(points: torch.Tensor, camera, obs: np.ndarray, conf: n
         factor: multiplies the energy.
     """
     R, t, f, c = _camera_arrays(camera)
-    return _Compiled.apply(points, _keypoint_kernel,
+    return _compiled(points, _keypoint_kernel,
                            (R, t, f, c, np.ascontiguousarray(obs, np.float64), np.ascontiguousarray(conf, np.float64),
                             float(sigma)), float(factor))
 
@@ -141,7 +136,7 @@ def limb_depth_energy_world(points: torch.Tensor, rotation: np.ndarray, limbs: n
         conf: ``(L,)`` non-negative weights (0: no detection of the limb).
         sigma: Geman-McClure scale (> 0).
     """
-    return _Compiled.apply(points, _limb_depth_kernel,
+    return _compiled(points, _limb_depth_kernel,
                            (np.asarray(rotation, np.float64), np.ascontiguousarray(limbs, np.int64),
                             np.ascontiguousarray(oz, np.float64), np.ascontiguousarray(conf, np.float64),
                             float(sigma)), 1.0)
