@@ -220,3 +220,66 @@ def test_a_video_sequence_travels_to_another_process(tmp_path):
     assert len(copy) == 5 and copy.size == seq.size and copy.meta == seq.meta
     np.testing.assert_array_equal(copy.frame(3), before)
     np.testing.assert_array_equal(copy.frame(0), seq.frame(0))
+
+
+def test_stretches_read_without_their_masks_give_them_back_in_frame_order(tmp_path):
+    """A long video's candidates are held without their masks (StoredMask) until the chosen
+    person's are written: each is read back from its stretch file, as stored."""
+    from flowmocap.vision.auto import StoredMask, _mask_array
+
+    rng = np.random.default_rng(5)
+    got = [[_candidate(rng)], [_candidate(rng), _candidate(rng, world=False)], []]
+    path = tmp_path / "find-000000-000003.npz"
+    save_chunk(path, "key", 0, 3, got)
+    light = load_chunk(path, "key", 0, 3, masks=False)
+    assert all(isinstance(c.mask, StoredMask) for g in light for c in g)
+    for g, h in zip(got, light):
+        for c, d in zip(g, h):
+            np.testing.assert_array_equal(_mask_array(d.mask), c.mask.unpack())
+            np.testing.assert_array_equal(d.keypoints, c.keypoints)
+    again = tmp_path / "copy.npz"  # stored again (a follow stretch keeps a chosen candidate as it came)
+    save_chunk(again, "key", 0, 3, light)
+    for g, h in zip(got, load_chunk(again, "key", 0, 3)):
+        for c, d in zip(g, h):
+            np.testing.assert_array_equal(d.mask.unpack(), c.mask.unpack())
+
+
+_POSE2SIM = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "pose2sim-multi" / "videos" / "cam04.mp4"
+
+
+@needs_mediapipe
+@pytest.mark.skipif(not _POSE2SIM.exists(), reason="the Pose2Sim recording (../shared/data/video/pose2sim-multi) "
+                    "is not next to the repository")
+def test_choosing_another_person_in_detector_processes(tmp_path, monkeypatch):
+    """person=1 on two people (the Pose2Sim recording's cam04, 12 frames at 640 px): the
+    person is followed in detector processes as in this process (one stretch), and in
+    stretches of 5 frames the same person is kept."""
+    import av
+    import cv2
+
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.vision.person import box_iou
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    with av.open(str(_POSE2SIM)) as container:
+        for i, f in enumerate(container.decode(video=0)):
+            if i == 12:
+                break
+            img = f.to_ndarray(format="bgr24")
+            s = 640 / max(img.shape[:2])
+            cv2.imwrite(str(frames / f"{i:04d}.png"), cv2.resize(img, (round(img.shape[1] * s), round(img.shape[0] * s)),
+                                                                   interpolation=cv2.INTER_AREA))
+    seq = load_sequence(frames)
+    apart = detect_sequence(seq, tmp_path / "apart", progress=False, person=1)
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)
+    here = detect_sequence(seq, tmp_path / "here", progress=False, person=1)
+    _same(apart, here)
+    assert apart.found.sum() >= 10 and apart.info["person"]["rank"] == 1
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", True)
+    monkeypatch.setattr(auto, "DETECT_CHUNK", 5)
+    cut = detect_sequence(seq, tmp_path / "cut", progress=False, person=1)
+    both = cut.found & apart.found
+    boxes = lambda t, i: tuple(np.concatenate([t.keypoints[i][t.confidence[i] > 0.5].min(0),  # noqa: E731
+                                               t.keypoints[i][t.confidence[i] > 0.5].max(0)]))
+    assert both.sum() >= 9 and all(box_iou(boxes(cut, i), boxes(apart, i)) > 0.5 for i in np.nonzero(both)[0])

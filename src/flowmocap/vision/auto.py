@@ -293,8 +293,8 @@ class _InChildren:
         own, others = _chosen_and_others(cands, tracks, chosen)
         reach = 15 + 3  # follow_person's max_gap, and the others' nearest frame within 3
 
-        def near(by_frame: dict, a: int, b: int) -> dict:
-            return {i: c for i, c in by_frame.items() if a - reach <= i < b + reach}
+        def near(by_frame: dict, a: int, b: int) -> dict:  # with their masks: the others' are blanked
+            return {i: _in_memory(c) for i, c in by_frame.items() if a - reach <= i < b + reach}
 
         def task(a: int, b: int, got: list[list[Candidate]]) -> dict:
             before = [i for i in range(a) if got[i]]
@@ -313,13 +313,13 @@ class _InChildren:
         for a in range(0, T, DETECT_CHUNK):
             b = min(T, a + DETECT_CHUNK)
             path = self.folder / f"{kind}-{a:06d}-{b:06d}.npz"
-            stretch = load_chunk(path, key, a, b)
+            stretch = load_chunk(path, key, a, b, masks=False)
             if stretch is None:
                 _run_detector_process({**task(a, b, got), "seq": self.seq, "spec": self.spec, "kind": kind,
                                        "frames": (a, b), "path": str(path), "key": key, "progress": self.progress,
                                        "warm_up": DETECT_WARM_UP},
                                       self.folder, a, b)
-                stretch = load_chunk(path, key, a, b)
+                stretch = load_chunk(path, key, a, b, masks=False)
                 if stretch is None:
                     from flowmocap.errors import DetectorError
 
@@ -331,6 +331,7 @@ class _InChildren:
     def clear(self) -> None:
         import shutil
 
+        _BITS.clear()
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
@@ -370,7 +371,8 @@ def save_chunk(path: str | Path, key: str, a: int, b: int, got: list[list[Candid
     rows = [(i, c) for i, cs in zip(range(a, b), got) for c in cs]
     K = len(KEYPOINT_NAMES)
     n = len(rows)
-    packed = [c.mask if isinstance(c.mask, PackedMask) else PackedMask.pack(c.mask) for _, c in rows]
+    packed = [c.mask.load() if isinstance(c.mask, StoredMask) else c.mask if isinstance(c.mask, PackedMask)
+              else PackedMask.pack(c.mask) for _, c in rows]
     bits = [m.bits for m in packed]
     arrays = {
         "meta": np.array(json.dumps({"key": key, "frames": [a, b]})),
@@ -393,12 +395,42 @@ def save_chunk(path: str | Path, key: str, a: int, b: int, got: list[list[Candid
     atomic_write(path, write)
 
 
-def load_chunk(path: str | Path, key: str, a: int, b: int) -> list[list[Candidate]] | None:
+class StoredMask(NamedTuple):
+    """A candidate's mask left in its stretch file (:func:`load_chunk` with ``masks=False``):
+    the file, its bits' range ``[start, end)`` in the file's ``mask_bits``, and the
+    :class:`PackedMask`'s ``shape`` and ``box``. A long video's candidates are held for
+    choosing the person (boxes, keypoints) without their masks, which are read back in
+    frame order when the chosen person's are written (:meth:`load`)."""
+
+    path: str
+    start: int
+    end: int
+    shape: tuple
+    box: tuple
+
+    def load(self) -> PackedMask:
+        return PackedMask(self.shape, self.box, _stored_bits(self.path)[self.start:self.end].copy())
+
+
+#: The mask bits of the stretch file read last (masks are read in frame order: each file once).
+_BITS: dict = {}
+
+
+def _stored_bits(path: str) -> np.ndarray:
+    if _BITS.get("path") != path:
+        with np.load(path, allow_pickle=False) as z:
+            _BITS.clear()
+            _BITS.update(path=path, bits=z["mask_bits"])
+    return _BITS["bits"]
+
+
+def load_chunk(path: str | Path, key: str, a: int, b: int, masks: bool = True) -> list[list[Candidate]] | None:
     """The candidates :func:`save_chunk` stored for frames ``a..b-1``, or None when the file
-    is absent, unreadable or made for another ``key`` or stretch."""
+    is absent, unreadable or made for another ``key`` or stretch. ``masks=False`` leaves
+    each mask in the file (a :class:`StoredMask`; the file must stay until it is read)."""
     try:
         with np.load(path, allow_pickle=False) as z:
-            z = {k: z[k] for k in z.files}
+            z = {k: z[k] for k in z.files if masks or k != "mask_bits"}
         meta = json.loads(str(z["meta"]))
     except (OSError, ValueError, KeyError):
         return None
@@ -408,8 +440,9 @@ def load_chunk(path: str | Path, key: str, a: int, b: int) -> list[list[Candidat
     start = 0
     for r, i in enumerate(z["frame"]):
         end = int(z["mask_end"][r])
-        mask = PackedMask(tuple(int(v) for v in z["mask_shape"][r]), tuple(int(v) for v in z["mask_box"][r]),
-                          z["mask_bits"][start:end].copy())
+        shape, box = tuple(int(v) for v in z["mask_shape"][r]), tuple(int(v) for v in z["mask_box"][r])
+        mask = (PackedMask(shape, box, z["mask_bits"][start:end].copy()) if masks
+                else StoredMask(str(path), start, end, shape, box))
         start = end
         got[int(i) - a].append(Candidate(tuple(float(v) for v in z["box"][r]), z["keypoints"][r].copy(),
                                          z["confidence"][r].copy(), mask,
@@ -570,10 +603,17 @@ class PackedMask(NamedTuple):
 
 
 def _mask_array(mask) -> np.ndarray | None:
-    """A candidate's mask as ``(H, W)`` bool (packed or not), or None."""
+    """A candidate's mask as ``(H, W)`` bool (packed, stored or not), or None."""
     if mask is None:
         return None
+    if isinstance(mask, StoredMask):
+        mask = mask.load()
     return mask.unpack() if isinstance(mask, PackedMask) else np.asarray(mask, bool)
+
+
+def _in_memory(c: Candidate) -> Candidate:
+    """``c`` with its mask read back if it was left in its stretch file."""
+    return c._replace(mask=c.mask.load()) if isinstance(c.mask, StoredMask) else c
 
 
 class Candidate(NamedTuple):
