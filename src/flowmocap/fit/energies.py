@@ -627,21 +627,30 @@ def _silhouette_setup(capsules, camera, target, a, grid_step, softness):
     and the capsules' box, plus the soft edge and a grid cell): ``(s, e, r), (y0, x0, y1, x1)``
     with ``y0, x0`` on the grid."""
     _silhouette_checks(camera, target, a, grid_step, softness)
-    step, H, W = int(grid_step), target.height, target.width
+    step = int(grid_step)
     s, e, r = _project(capsules, camera)
     with torch.no_grad():
         lo = torch.minimum(s, e) - r[..., None]
         hi = torch.maximum(s, e) + r[..., None]
-        margin = _SOFT_REACH * softness + 2 * step
-        x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
-        y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
-        x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
-        y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
+        box = (float(lo[..., 0].min()), float(lo[..., 1].min()), float(hi[..., 0].max()), float(hi[..., 1].max()))
+    return (s, e, r), _window(box, target, step, softness)
+
+
+def _window(box: tuple, target, step: int, softness: float) -> tuple[int, int, int, int]:
+    """E_c's window ``(y0, x0, y1, x1)`` (``y0, x0`` on the grid): the capsules' pixel box
+    ``box = (x_lo, y_lo, x_hi, y_hi)`` and the mask's, plus the soft edge and two cells,
+    inside the image."""
+    H, W = target.height, target.width
+    margin = _SOFT_REACH * softness + 2 * step
+    x_lo = min(box[0] - margin, target.box[1])
+    y_lo = min(box[1] - margin, target.box[0])
+    x_hi = max(box[2] + margin, target.box[3])
+    y_hi = max(box[3] + margin, target.box[2])
     x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
     y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
     x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
     y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
-    return (s, e, r), (y0, x0, y1, x1)
+    return y0, x0, y1, x1
 
 
 def _silhouette_window(capsules, camera, target, a, grid_step, softness):
@@ -795,19 +804,10 @@ def _capsule_silhouette(start, end, r3, camera, target, step, a, softness):
     b_px = f * pe[..., :2] / pe[..., 2:3] + c
     zmid = 0.5 * (ps[..., 2] + pe[..., 2])
     r_px = r3 * sq / zmid
-    # the window of _silhouette_setup: the mask's box and the capsules', plus the soft edge and a cell
-    H, W = target.height, target.width
     lo = np.minimum(a_px, b_px) - r_px[..., None]
     hi = np.maximum(a_px, b_px) + r_px[..., None]
-    margin = _SOFT_REACH * softness + 2 * step
-    x_lo = min(float(lo[..., 0].min()) - margin, target.box[1])
-    y_lo = min(float(lo[..., 1].min()) - margin, target.box[0])
-    x_hi = max(float(hi[..., 0].max()) + margin, target.box[3])
-    y_hi = max(float(hi[..., 1].max()) + margin, target.box[2])
-    x0 = max(0, int(math.floor(max(x_lo, 0.0) / step)) * step)
-    y0 = max(0, int(math.floor(max(y_lo, 0.0) / step)) * step)
-    x1 = min(W, max(x0 + 1, int(math.ceil(min(x_hi, W)))))
-    y1 = min(H, max(y0 + 1, int(math.ceil(min(y_hi, H)))))
+    y0, x0, y1, x1 = _window((float(lo[..., 0].min()), float(lo[..., 1].min()), float(hi[..., 0].max()),
+                              float(hi[..., 1].max())), target, step, softness)
     h, w = y1 - y0, x1 - x0
     gh, gw = (h - 1) // step + 2, (w - 1) // step + 2
     gy = np.arange(gh) * step + (y0 + 0.5)
