@@ -14,7 +14,12 @@ re-initialisations; then the medians over the CMU seeds and the new/old ratios. 
 table and writes JSON.
 
 Usage: python benchmarks/speed_compare.py --old CHECKOUT [--new CHECKOUT] [--seeds 0,1,2]
-       [--real davis,walk] [--work DIR] [--out benchmarks/results/speed_compare.json]
+       [--real davis,walk] [--old-config JSON] [--new-config JSON] [--work DIR]
+       [--out benchmarks/results/speed_compare.json]
+
+``--old-config`` / ``--new-config``: tracker settings (a JSON file, as ``flowmocap track
+--config``) for that side's runs, e.g. the same checkout twice with and without the
+``--fast`` settings.
 
 ``CHECKOUT`` is a folder holding ``src/flowmocap`` and ``benchmarks/``, e.g. a git
 worktree of an older commit (``git worktree add /tmp/old COMMIT``). Needs the shared data
@@ -46,7 +51,11 @@ def _commit(checkout: Path) -> str:
                           cwd=checkout).stdout.strip()
 
 
-def cmu(checkout: Path, name: str, seed: int, work: Path) -> dict:
+def _config(config: str | None) -> list[str]:
+    return ["--config", str(Path(config).resolve())] if config else []
+
+
+def cmu(checkout: Path, name: str, seed: int, work: Path, config: str | None = None) -> dict:
     folder = work / name / f"seq_s{seed}"
     folder.mkdir(parents=True, exist_ok=True)
     shared = work / "sequences" / f"seq_s{seed}"
@@ -54,7 +63,8 @@ def cmu(checkout: Path, name: str, seed: int, work: Path) -> dict:
     if (shared / "gt.npz").exists() and not link.exists():
         link.symlink_to(shared.resolve())
     out = work / name / f"cmu_s{seed}.json"
-    _run(checkout, ["benchmarks/track.py", "--seed", str(seed), "--work", str(folder), "--out", str(out)],
+    _run(checkout, ["benchmarks/track.py", "--seed", str(seed), "--work", str(folder), "--out", str(out),
+                    *_config(config)],
          work / name / f"cmu_s{seed}.log")
     r = json.loads(out.read_text())
     if not (shared / "gt.npz").exists():  # the first run made it: share it with the other checkout
@@ -64,9 +74,10 @@ def cmu(checkout: Path, name: str, seed: int, work: Path) -> dict:
     return {"s_per_frame_median": r["s_per_frame_median"], "local_cm": r["local_cm"], "global_cm": r["global_cm"]}
 
 
-def real(checkout: Path, name: str, clip: str, work: Path) -> dict:
+def real(checkout: Path, name: str, clip: str, work: Path, config: str | None = None) -> dict:
     out = work / name / f"real_{clip}.json"
-    _run(checkout, ["benchmarks/real_video.py", "--only", clip, "--work", str(work / name / "real"), "--out", str(out)],
+    _run(checkout, ["benchmarks/real_video.py", "--only", clip, "--work", str(work / name / "real"), "--out", str(out),
+                    *_config(config)],
          work / name / f"real_{clip}.log")
     r = json.loads(out.read_text())["results"][0]
     return {"clip": r["clip"], "tracked_frames": r["tracked_frames"], "seconds": r["seconds"],
@@ -81,10 +92,13 @@ def main() -> int:
     ap.add_argument("--new", default=str(ROOT))
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--real", default="davis,walk", help="real clips (real_video.py --only); '' for none")
+    ap.add_argument("--old-config", help="tracker settings JSON for the old side's runs")
+    ap.add_argument("--new-config", help="tracker settings JSON for the new side's runs")
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "speed_compare"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "speed_compare.json"))
     args = ap.parse_args()
     trees = {"old": Path(args.old).resolve(), "new": Path(args.new).resolve()}
+    configs = {"old": args.old_config, "new": args.new_config}
     for name, tree in trees.items():
         if not (tree / "src" / "flowmocap").is_dir() or not (tree / "benchmarks" / "track.py").exists():
             print(f"{name} checkout {tree} holds no src/flowmocap or benchmarks/track.py", file=sys.stderr)
@@ -96,16 +110,17 @@ def main() -> int:
     t0 = time.perf_counter()
     for k, seed in enumerate(seeds):
         order = ("old", "new") if k % 2 == 0 else ("new", "old")
-        rows["cmu"][seed] = {name: cmu(trees[name], name, seed, work) for name in order}
+        rows["cmu"][seed] = {name: cmu(trees[name], name, seed, work, configs[name]) for name in order}
         print(f"CMU seed {seed}: " + ", ".join(f"{n} {r['s_per_frame_median']:.3f} s/frame" for n, r in
                                                 rows["cmu"][seed].items()), flush=True)
     for k, clip in enumerate(clips):
         order = ("old", "new") if k % 2 == 0 else ("new", "old")
-        rows["real"][clip] = {name: real(trees[name], name, clip, work) for name in order}
+        rows["real"][clip] = {name: real(trees[name], name, clip, work, configs[name]) for name in order}
         print(f"{clip}: " + ", ".join(f"{n} {r['s_per_frame_mean']:.3f} s/frame" for n, r in
                                       rows["real"][clip].items()), flush=True)
 
-    print(f"\nold {trees['old']} ({_commit(trees['old'])}), new {trees['new']} ({_commit(trees['new'])})\n")
+    print(f"\nold {trees['old']} ({_commit(trees['old'])}{', ' + configs['old'] if configs['old'] else ''}), "
+          f"new {trees['new']} ({_commit(trees['new'])}{', ' + configs['new'] if configs['new'] else ''})\n")
     print(f"{'clip':<22}{'old s/fr':>10}{'new s/fr':>10}{'ratio':>8}{'old loc/glob cm':>17}{'new loc/glob cm':>17}")
     summary: dict = {}
     for seed, r in rows["cmu"].items():
@@ -133,8 +148,10 @@ def main() -> int:
         summary["real_mean"] = mean
         summary["real_ratio"] = mean["new"] / mean["old"]
         print(f"{'mean over the clips':<26}{mean['old']:>10.3f}{mean['new']:>10.3f}{summary['real_ratio']:>8.2f}")
-    out = {"benchmark": "speed_compare", "old": {"path": str(trees["old"]), "commit": _commit(trees["old"])},
-           "new": {"path": str(trees["new"]), "commit": _commit(trees["new"])}, "seeds": seeds, "clips": clips,
+    out = {"benchmark": "speed_compare",
+           "old": {"path": str(trees["old"]), "commit": _commit(trees["old"]), "config": configs["old"]},
+           "new": {"path": str(trees["new"]), "commit": _commit(trees["new"]), "config": configs["new"]},
+           "seeds": seeds, "clips": clips,
            "rows": {"cmu": {str(k): v for k, v in rows["cmu"].items()}, "real": rows["real"]}, "summary": summary,
            "wall_s": time.perf_counter() - t0, "load_average_end": os.getloadavg()}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
