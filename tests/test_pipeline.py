@@ -86,16 +86,18 @@ def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):
 
 
 def test_fast_layers_its_settings_under_the_config_and_is_part_of_the_fingerprint(seq_dir, tmp_path, capsys):
-    from flowmocap.fit.config import FAST_SETTINGS
+    from flowmocap.fit.config import FAST_SETTINGS, TrackerConfig
 
     init = seq_dir.parent / "init.json"
     kw = dict(init=init, frames="0:3", progress=False, joints3d="off")
     res = flowmocap.track(seq_dir, tmp_path / "fast", config=QUICK, fast=True, **kw)
     assert "fast" in capsys.readouterr().out
     assert FAST_SETTINGS and all(res.run["config"][k] == v for k, v in FAST_SETTINGS.items())
+    defaults = TrackerConfig()
+    assert all(getattr(defaults, k) != v for k, v in FAST_SETTINGS.items())  # --fast changes something
     assert res.run["config"]["iterations"] == 4  # the config still applies
-    mine = flowmocap.track(seq_dir, tmp_path / "mine", config={**QUICK, "rel_tolerance": 1e-3}, fast=True, **kw)
-    assert mine.run["config"]["rel_tolerance"] == 1e-3  # and overrides fast's
+    mine = flowmocap.track(seq_dir, tmp_path / "mine", config={**QUICK, "rel_tolerance": 5e-4}, fast=True, **kw)
+    assert mine.run["config"]["rel_tolerance"] == 5e-4  # and overrides fast's
     with pytest.raises(InputError, match="set-up"):  # a resume must use the same settings
         flowmocap.track(seq_dir, tmp_path / "fast", config=QUICK, resume=True, **kw)
     assert main(["track", str(seq_dir), "--out", str(tmp_path / "cli"), "--init", str(init), "--config",

@@ -43,9 +43,11 @@ PROFILES: dict[str, dict[str, Any]] = {
 }
 
 #: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's that trade
-#: a little accuracy for speed (docs/settings.md has the measurements): every L-BFGS run
-#: stops once it stalls, and a refit's steps get half the iterations.
-FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-4, "reinit_iterations": 30}
+#: a little accuracy for speed (docs/settings.md, "Speed and --fast", has the measurements):
+#: every L-BFGS run stops at a stall ten times larger than the default's, and a refit's steps
+#: get two thirds of the default's iterations. (Until 2026-11-26 these were 1e-4 and 30, now
+#: the defaults.)
+FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
@@ -123,8 +125,9 @@ class TrackerConfig:
     levels: int = 3                    # Gaussian pyramid levels of E_f, for motions beyond a few px
     stages: tuple[tuple[int, ...], ...] = ((2,), (0, 1, 2))  # coarse to fine: levels used per stage
     iterations: int = 20               # L-BFGS iterations per stage
-    rel_tolerance: float = 0.0         # an L-BFGS run (frame stage, init or refit step) stops once 5
+    rel_tolerance: float = 1e-4        # an L-BFGS run (frame stage, init or refit step) stops once 5
     #                                    evaluations improve its energy by less than this fraction; 0: never
+    #                                    (1e-4, once --fast, on all three suites: docs/settings.md "Speed")
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
     detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
@@ -150,7 +153,7 @@ class TrackerConfig:
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
     reinit_patience: int = 3           # bad frames in a row before a refit, so noise triggers none
-    reinit_iterations: int = 60        # L-BFGS iterations per step of that refit
+    reinit_iterations: int = 30        # L-BFGS iterations per step of that refit (60 before 2026-11-26)
     reinit_depth_weight: float = 0.0   # px^2 per (relative change)^2: a refit's root stays near the tracked
     #                                    frame's distance from the camera (1e5: a 10 % jump costs 1e3); 0: off
     #                                    (1e5 made real3d worse on all 6 person-views with refits: experiments.md)
