@@ -42,11 +42,11 @@ PROFILES: dict[str, dict[str, Any]] = {
               "reinit_max_joint3d_error": 0.08},
 }
 
-#: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's that trade
-#: a little accuracy for speed (docs/settings.md, "Speed and --fast", has the measurements):
-#: every L-BFGS run stops at a stall ten times larger than the default's, and a refit's steps
-#: get two thirds of the default's iterations. (Until 2026-11-26 these were 1e-4 and 30, now
-#: the defaults.)
+#: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's, slightly
+#: faster (about 5 % on the synthetic protocol, none on real clips; docs/settings.md, "Speed
+#: and --fast", has the measurements): every L-BFGS run stops at a stall ten times larger
+#: than the default's, and a refit's steps get two thirds of the default's iterations.
+#: (Until 2026-11-26 these were 1e-4 and 30, now the defaults.)
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
