@@ -76,6 +76,33 @@ def test_clean_mask_keeps_the_person():
     assert not clean_mask(np.zeros((H, W), bool), kp, np.ones(len(kp))).any()
 
 
+def test_clean_mask_fills_the_holes_binary_fill_holes_would():
+    """The hole filling (one labelling of the background) against its definition with
+    scipy's binary_fill_holes: the small enclosed background pieces are filled, the
+    large ones and any touching the border are not, on blobby random masks."""
+    from scipy import ndimage as ndi
+
+    def reference(out, max_hole_fraction=0.01):
+        holes = ndi.binary_fill_holes(out) & ~out
+        hl, hn = ndi.label(holes)
+        hs = ndi.sum(holes, hl, np.arange(1, hn + 1))
+        return out | np.isin(hl, np.nonzero(hs <= max_hole_fraction * out.sum())[0] + 1)
+
+    rng = np.random.default_rng(3)
+    H, W = 90, 110
+    kp = stick_keypoints(0, 0, W, H)
+    filled = 0
+    for _ in range(40):
+        m = ndi.gaussian_filter(rng.random((H, W)), 2.5) > 0.5  # blobs with holes, some at the border
+        m[30:60, 40:70] = True
+        m[40:42, 50:52] = False  # a hole of 4 px for sure
+        m = ndi.label(m)[0] == ndi.label(m)[0][45, 45]  # one component: clean_mask keeps it whole
+        out = clean_mask(m, kp, np.full(len(kp), 0.9))
+        np.testing.assert_array_equal(out, reference(m))
+        filled += int((out & ~m).sum())
+    assert filled > 0
+
+
 def test_box_continuity():
     a = (10, 10, 30, 70)
     assert box_iou(a, a) == pytest.approx(1.0)

