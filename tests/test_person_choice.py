@@ -159,3 +159,41 @@ def test_track_and_cli_take_the_person(tmp_path):
     args = build_parser().parse_args(["track", "v.mp4", "--out", "o", "--person", "540,900"])
     assert args.person == "540,900"
     assert build_parser().parse_args(["track", "v.mp4", "--out", "o"]).person == "largest"
+
+
+def test_find_people_searches_beside_the_detector_as_one_after_the_other():
+    """find_people runs the searchers of frame i on a thread while the detector looks at
+    frame i + 1: each searcher must still see its images in frame order with the people
+    found before it blanked, so the candidates equal a plain loop's (three people, two
+    searchers, frames the detector misses)."""
+    from flowmocap.vision.auto import _blank, _usable, find_people
+
+    third = {i: (60, 70, 80, 120) for i in range(12) if i % 4 != 1}
+    scene = People(two_people().boxes + [third])
+
+    def serial():
+        det, s1, s2 = ColourDetector(scene, miss=(5, 6)), ColourDetector(scene), ColourDetector(scene)
+        out = []
+        for i in range(len(scene)):
+            img, got = scene.frame(i), []
+            c = _usable(det.detect(img))
+            if c is not None:
+                got.append(c)
+                for s in (s1, s2):
+                    img = _blank(img, got[-1].box)
+                    c = _usable(s.detect(img))
+                    if c is None:
+                        break
+                    got.append(c)
+            out.append(got)
+        return out
+
+    want = serial()
+    got = find_people(scene, ColourDetector(scene, miss=(5, 6)), [ColourDetector(scene), ColourDetector(scene)],
+                      progress=False)
+    assert [len(g) for g in got] == [len(w) for w in want] and max(len(w) for w in want) == 3
+    assert not got[5] and not got[6] and any(len(w) == 2 for w in want)
+    for g, w in zip(got, want):
+        for a, b in zip(g, w):
+            assert a.box == b.box
+            np.testing.assert_array_equal(a.keypoints, b.keypoints)

@@ -658,22 +658,41 @@ def find_people(seq, detector: PersonDetector, searchers=None, progress: bool = 
     T = len(seq)
     frames = range(T) if frames is None else frames
     cands: list[list[Candidate]] = [[] for _ in range(T)]
-    for i in tqdm(frames, disable=not progress, unit="frame", desc="finding the person", total=T,
-                  initial=frames.start):
-        if i % TRIM_EVERY == 0:
-            release_free_memory()
-        img = seq.frame(i)
-        det = _usable(detector.detect(img))
-        if det is None:
-            continue
-        cands[i].append(det)
+
+    def search(img: np.ndarray, box) -> list[Candidate]:
+        found: list[Candidate] = []
         blanked = img
         for s in searchers:
-            blanked = _blank(blanked, cands[i][-1].box)
+            blanked = _blank(blanked, box)
             other = _usable(s.detect(blanked))
             if other is None:
                 break
-            cands[i].append(other)
+            found.append(other)
+            box = other.box
+        return found
+
+    # the searchers look at frame i on a thread of their own while the detector looks at
+    # frame i + 1 (each detector still sees its frames in order: the same detections)
+    from concurrent.futures import ThreadPoolExecutor
+
+    pending = None  # (frame, future) of the search of the last frame with a person
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="flowmocap-search") as pool:
+        for i in tqdm(frames, disable=not progress, unit="frame", desc="finding the person", total=T,
+                      initial=frames.start):
+            if i % TRIM_EVERY == 0:
+                release_free_memory()
+            img = seq.frame(i)
+            det = _usable(detector.detect(img))
+            if pending is not None:
+                cands[pending[0]].extend(pending[1].result())
+                pending = None
+            if det is None:
+                continue
+            cands[i].append(det)
+            if searchers:
+                pending = (i, pool.submit(search, img, det.box))
+        if pending is not None:
+            cands[pending[0]].extend(pending[1].result())
     return cands
 
 
