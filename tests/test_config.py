@@ -27,8 +27,7 @@ def test_profiles():
     assert {k: v for k, v in video.to_dict().items() if v != TrackerConfig().to_dict()[k]} == PROFILES["video"]
     # the documented differences, no more
     assert set(PROFILES["video"]) == {"silhouette_model", "silhouette_weight", "silhouette_a", "reinit_min_iou",
-                                      "reinit_patience", "init_keypoint_weight", "reinit_max_joint3d_error",
-                                      "reinit_max_wait"}
+                                      "reinit_patience", "init_keypoint_weight", "reinit_max_joint3d_error"}
     with pytest.raises(InputError, match=r"unknown settings profile 'real'.*synthetic, video"):
         TrackerConfig.load(profile="real")
 
