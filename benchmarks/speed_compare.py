@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _run(checkout: Path, args: list[str], log: Path) -> None:
     env = dict(os.environ, PYTHONPATH=str(checkout / "src"))
+    log.parent.mkdir(parents=True, exist_ok=True)  # --seeds '' (real clips only) makes no CMU folder first
     with open(log, "w") as f:
         subprocess.run([sys.executable, *args], cwd=checkout, env=env, check=True, stdout=f, stderr=subprocess.STDOUT)
 
