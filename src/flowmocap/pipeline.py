@@ -243,7 +243,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             for frame folders, not for videos, whose flows would fill the disk (a resume and
             ``render`` compute them again, giving the same values).
         fast: the :data:`~flowmocap.fit.config.FAST_SETTINGS` over the profile's (``config``
-            still overrides them): slightly faster (``docs/settings.md``, "Speed and --fast").
+            still overrides them): faster at some cost in the 2D fit on real video
+            (``docs/settings.md``, "Speed and --fast").
 
     Returns:
         the :class:`Result`.
