@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -89,8 +90,26 @@ def test_detector_processes_give_the_same_detections_as_this_process(clip, tmp_p
     assert "tta4" not in plain.info["detector"] and "search" not in plain.info["detector"]
 
 
-def test_the_detector_process_loads_no_torch():
-    code = ("import sys, flowmocap.vision.detect_worker, flowmocap.vision.auto; "
+def test_the_detector_process_loads_no_torch(tmp_path):
+    """Nor do the sequences it is sent (a video's and a frame folder's, unpickled and read
+    as its task's are): torch would add ~190 MB to its resident memory."""
+    import pickle
+
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.io.video import load_video
+
+    from test_video import write_video
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 255, (48, 64, 3), np.uint8) for _ in range(3)]
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), f)
+    for k, seq in enumerate((load_video(write_video(tmp_path / "v.mp4", frames)), load_sequence(folder))):
+        (tmp_path / f"seq{k}.pkl").write_bytes(pickle.dumps(seq))
+    code = ("import sys, pickle, flowmocap.vision.detect_worker, flowmocap.vision.auto\n"
+            f"for k in range(2): pickle.loads(open(r'{tmp_path}/seq%d.pkl' % k, 'rb').read()).frame(1)\n"
             "print('torch' in sys.modules, 'flowmocap.pipeline' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "False"]

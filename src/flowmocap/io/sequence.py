@@ -12,11 +12,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flowmocap.errors import DataError, InputError
-from flowmocap.geometry.camera import PinholeCamera
+
+if TYPE_CHECKING:  # torch (via the camera) only where a camera is made
+    from flowmocap.geometry.camera import PinholeCamera
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -117,6 +120,7 @@ def load_sequence(path: str | Path, masks: str | Path | None = None) -> Sequence
     camera = None
     if (root / "camera.json").exists():
         try:
+            from flowmocap.geometry.camera import PinholeCamera  # here: it imports torch
             camera = PinholeCamera.from_dict(json.loads((root / "camera.json").read_text()))
         except (json.JSONDecodeError, InputError) as e:
             raise DataError(f"{root / 'camera.json'} is not a valid camera file: {e}") from e

@@ -21,12 +21,15 @@ import re
 import threading
 from collections import OrderedDict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flowmocap.errors import DataError
-from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.sequence import Sequence, list_images, read_image
+
+if TYPE_CHECKING:  # torch (via the camera) only where a camera is made
+    from flowmocap.geometry.camera import PinholeCamera
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 
@@ -300,6 +303,7 @@ def default_camera(width: int, height: int, focal_35mm: float | None = None) -> 
         how = (f"default focal length {f:.1f} px = {DEFAULT_FOCAL_FACTOR} x the long side ({side} px), "
                f"a {fov:.0f} degree field of view across it; no --focal or --camera was given and the "
                "input states no focal length -- give --focal if you know it")
+    from flowmocap.geometry.camera import PinholeCamera  # here: it imports torch
     return PinholeCamera.from_focal(width, height, f), how
 
 
