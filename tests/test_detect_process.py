@@ -115,6 +115,17 @@ def test_the_detector_process_loads_no_torch(tmp_path):
     assert out == ["False", "False"]
 
 
+def test_flowmocap_io_names_stay_the_functions_when_their_modules_load():
+    """flowmocap.io imports its names lazily; ``retarget`` and ``builtin_walk`` are also its
+    modules' names, and stay the functions even after another module has loaded those."""
+    code = ("import types, flowmocap.io.motion_source, flowmocap.io as io\n"
+            "from flowmocap.io import retarget, builtin_walk, SmplMotion\n"
+            "print(callable(retarget), isinstance(io.builtin_walk, types.ModuleType), "
+            "builtin_walk is io.builtin_walk, SmplMotion.__name__, 'read_bvh' in dir(io))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["True", "False", "True", "SmplMotion", "True"]
+
+
 @needs_mediapipe
 def test_a_killed_detector_process_keeps_the_finished_stretches_and_a_rerun_goes_on(clip, tmp_path, monkeypatch):
     from flowmocap.io.sequence import load_sequence
