@@ -126,7 +126,8 @@ class MediaPipePoseDetector:
     0.843 (one run) to 0.855, for about 4x the detector time (~0.1 s per 854x480 frame
     on one core). The three extra runs go to threads of their own while the main one
     runs (MediaPipe's graphs let go of Python's lock while they work): ~0.07 s a frame
-    on two cores, the same masks. The soft mask is then smoothed with a guided filter
+    on two cores; every run sees every frame, also one where the main run finds nobody
+    (before the threads, such a frame was not shown to the others). The soft mask is then smoothed with a guided filter
     on the image (radius 4 px), which follows the image edges.
 
     Args:
