@@ -61,26 +61,4 @@ class _Package(types.ModuleType):
 sys.modules[__name__].__class__ = _Package
 
 
-__all__ = [
-    "MocapClip",
-    "find_asf",
-    "forward_kinematics",
-    "read_asf_amc",
-    "read_bvh",
-    "read_mocap",
-    "resample",
-    "write_bvh",
-    "SmplMotion",
-    "RIGS",
-    "REST_RELATIVE",
-    "body_yaw",
-    "resolve_joint_map",
-    "retarget",
-    "builtin_walk",
-    "walk_poses",
-    "load_motion",
-    "read_amass_npz",
-    "write_amass_npz",
-    "Y_UP_TO_Z_UP",
-    "rotate_motion",
-]
+__all__ = list(_WHERE)  # the public names, one place
