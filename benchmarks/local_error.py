@@ -1,0 +1,181 @@
+"""Where the local error of a synthetic bench run comes from (issue 18).
+
+For every finished sequence of a ``flowmocap bench`` folder (``NAME/sequence/gt.npz``,
+``NAME/flowmocap/`` with its ``detections``), the 13 evaluation joints, each frame's fit
+aligned onto the truth by its similarity (the local error's alignment), in the camera's
+axes:
+
+- ``local_cm``: the bench's local error; ``in_image_cm`` / ``depth_cm``: the mean over
+  joints and frames of the aligned error's part across the camera's axis (x, y) and
+  along it (|z|);
+- per limb segment (upper arms, forearms, thighs, shins): where the true segment reaches
+  more than ``--min-depth`` (default 0.08 m) towards or away from the camera (child
+  minus parent along z), the share of those frames in which the fit has the sign wrong
+  (``ours_sign_wrong``), the detector's own 3D joints have it wrong
+  (``detector_sign_wrong``; MediaPipe's world landmarks, hip-centred, in the camera's
+  axes), and the fit has it wrong where the detector has it right
+  (``ours_wrong_detector_right``): what a cue from the detector's depth could fix at most;
+- ``sign_oracle_cm``: the local error once every such wrong segment is mirrored in depth
+  about the camera ray through its child joint (:func:`flowmocap.fit.flip.mirror_child`:
+  the same image, the same length; the joints below it move with it), i.e. what a
+  perfect per-frame flip test would give;
+- ``ours_px`` / ``detector_px``: median 2D error (px) of the fit's and the detector's 12
+  limb joints where the detector's confidence is at least 0.3;
+- ``per_joint_cm``: each evaluation joint's mean aligned error.
+
+Usage: python benchmarks/local_error.py BENCH_DIR [--min-depth 0.08] [--out PREFIX]
+(writes PREFIX.json and PREFIX.md; default: print only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX, JOINT_NAMES
+from flowmocap.eval import metrics as M
+from flowmocap.eval.scoring import detector_joints3d
+from flowmocap.fit.flip import mirror_child
+from flowmocap.geometry.procrustes import similarity_procrustes
+from flowmocap.io.results import read_result
+from flowmocap.vision.auto import load_detections
+from flowmocap.vision.detect import SMPL_KEYPOINTS
+
+E = list(EVAL_JOINTS)
+#: (parent, child, joints that move with the child when the segment is mirrored)
+SEGMENTS = [("left_shoulder", "left_elbow", ["left_wrist"]), ("left_elbow", "left_wrist", []),
+            ("right_shoulder", "right_elbow", ["right_wrist"]), ("right_elbow", "right_wrist", []),
+            ("left_hip", "left_knee", ["left_ankle"]), ("left_knee", "left_ankle", []),
+            ("right_hip", "right_knee", ["right_ankle"]), ("right_knee", "right_ankle", [])]
+SEG_NAMES = [f"{c}" for _, c, _ in SEGMENTS]
+
+
+def mirror_wrong_segments(pred: np.ndarray, wrong: np.ndarray) -> np.ndarray:
+    """``pred (T, 24, 3)`` camera axes with each segment ``k`` mirrored in the frames where
+    ``wrong[:, k]``: its child and the joints below it moved by the child's displacement."""
+    x = pred.copy()
+    for k, (p, c, below) in enumerate(SEGMENTS):
+        for t in np.flatnonzero(wrong[:, k]):
+            m = mirror_child(x[t, JOINT_INDEX[p]], x[t, JOINT_INDEX[c]])
+            if m is None:
+                continue
+            d = m - x[t, JOINT_INDEX[c]]
+            for j in [c] + below:
+                x[t, JOINT_INDEX[j]] += d
+    return x
+
+
+def decompose(seq_dir: Path, res_dir: Path, min_depth: float) -> dict:
+    """The quantities of the module docstring for one sequence and result."""
+    gtz = np.load(seq_dir / "gt.npz")
+    cam = json.loads((seq_dir / "camera.json").read_text())
+    R, t = np.asarray(cam["R"], np.float64), np.asarray(cam["t"], np.float64)
+    motion, _ = read_result(res_dir)
+    idx = np.asarray(motion["frame_index"], int)
+    gt = np.asarray(gtz["joints3d"], np.float64)[idx] @ R.T + t
+    pr = np.asarray(motion["joints3d"], np.float64) @ R.T + t
+    aligned = similarity_procrustes(pr[:, E], gt[:, E])[0]
+    err = aligned - gt[:, E]
+    track = load_detections(res_dir)
+    det = detector_joints3d(track)[idx] if track is not None else np.full_like(pr, np.nan)
+
+    def dz(x, k):
+        p, c, _ = SEGMENTS[k]
+        return x[:, JOINT_INDEX[c], 2] - x[:, JOINT_INDEX[p], 2]
+
+    wrong = np.zeros((idx.size, len(SEGMENTS)), bool)
+    seg = {}
+    for k, name in enumerate(SEG_NAMES):
+        g, o, d = dz(gt, k), dz(pr, k), dz(det, k)
+        deep = np.abs(g) > min_depth
+        wrong[:, k] = deep & (np.sign(o) != np.sign(g))
+        has = deep & np.isfinite(d)
+        det_wrong = has & (np.sign(d) != np.sign(g))
+        seg[name] = {"frames": int(deep.sum()), "ours_wrong": int(wrong[:, k].sum()),
+                     "detector_frames": int(has.sum()), "detector_wrong": int(det_wrong.sum()),
+                     "ours_wrong_detector_right": int((wrong[:, k] & has & ~det_wrong).sum())}
+    fixed = mirror_wrong_segments(pr, wrong)
+    out = {
+        "frames": int(idx.size),
+        "local_cm": 100 * float(M.local_procrustes_error(pr, gt).mean()),
+        "in_image_cm": 100 * float(np.linalg.norm(err[..., :2], axis=-1).mean()),
+        "depth_cm": 100 * float(np.abs(err[..., 2]).mean()),
+        "sign_oracle_cm": 100 * float(M.local_procrustes_error(fixed, gt).mean()),
+        "segments": seg,
+        "per_joint_cm": {JOINT_NAMES[j]: 100 * float(v) for j, v in zip(E, np.linalg.norm(err, axis=-1).mean(0))},
+    }
+    if track is not None and "joints2d" in gtz:
+        js = [JOINT_INDEX[n] for n in SMPL_KEYPOINTS]
+        k = len(SMPL_KEYPOINTS)
+        ok = np.asarray(track.confidence)[idx][:, :k] >= 0.3
+        g2 = np.asarray(gtz["joints2d"], np.float64)[idx][:, js]
+        out["detector_px"] = float(np.median(np.linalg.norm(np.asarray(track.keypoints)[idx][:, :k] - g2, axis=-1)[ok]))
+        out["ours_px"] = float(np.median(np.linalg.norm(np.asarray(motion["joints2d"])[:, js] - g2, axis=-1)[ok]))
+    return out
+
+
+def run(bench_dir: Path, min_depth: float) -> dict:
+    rows = {}
+    for d in sorted(q for q in bench_dir.iterdir() if (q / "sequence" / "gt.npz").exists()):
+        try:
+            rows[d.name] = decompose(d / "sequence", d / "flowmocap", min_depth)
+        except Exception as e:  # an unfinished or missing result: say so, go on
+            rows[d.name] = {"error": str(e)}
+    ok = [r for r in rows.values() if "error" not in r]
+    med = {k: float(np.median([r[k] for r in ok if k in r])) for k in
+           ("local_cm", "in_image_cm", "depth_cm", "sign_oracle_cm", "ours_px", "detector_px")} if ok else {}
+    rates = {}
+    for name in SEG_NAMES:
+        s = [r["segments"][name] for r in ok]
+        n, nd = sum(x["frames"] for x in s), sum(x["detector_frames"] for x in s)
+        rates[name] = {"ours_sign_wrong": sum(x["ours_wrong"] for x in s) / max(n, 1),
+                       "detector_sign_wrong": sum(x["detector_wrong"] for x in s) / max(nd, 1),
+                       "ours_wrong_detector_right": sum(x["ours_wrong_detector_right"] for x in s) / max(nd, 1)}
+    joints = {JOINT_NAMES[j]: float(np.mean([r["per_joint_cm"][JOINT_NAMES[j]] for r in ok])) for j in E} if ok else {}
+    return {"bench": str(bench_dir), "min_depth_m": min_depth, "sequences": rows, "median": med,
+            "sign_rates": rates, "per_joint_mean_cm": joints}
+
+
+def table(res: dict) -> str:
+    cols = ("local_cm", "in_image_cm", "depth_cm", "sign_oracle_cm", "ours_px", "detector_px")
+    lines = ["| sequence | local | in image | depth | limb signs right | ours 2D px | detector 2D px |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for seq, r in list(res["sequences"].items()) + [("**median**", res["median"])]:
+        if "error" in r or not r:
+            lines.append(f"| {seq} | " + " | ".join("--" for _ in cols) + " |")
+            continue
+        lines.append(f"| {seq} | " + " | ".join(f"{r[k]:.1f}" if k in r else "--" for k in cols) + " |")
+    lines += ["", f"Limb segments reaching more than {100 * res['min_depth_m']:.0f} cm in depth: share of their frames "
+              "with the depth sign wrong", "", "| segment (child joint) | ours | detector | ours wrong, detector right |",
+              "|---|---:|---:|---:|"]
+    for name, r in res["sign_rates"].items():
+        lines.append(f"| {name} | {r['ours_sign_wrong']:.2f} | {r['detector_sign_wrong']:.2f} | "
+                     f"{r['ours_wrong_detector_right']:.2f} |")
+    lines += ["", "Mean aligned error per joint over the sequences (cm): " +
+              ", ".join(f"{k} {v:.1f}" for k, v in res["per_joint_mean_cm"].items()), ""]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("bench")
+    ap.add_argument("--min-depth", type=float, default=0.08, help="metres (default 0.08)")
+    ap.add_argument("--out", default=None, help="PREFIX: write PREFIX.json and PREFIX.md")
+    args = ap.parse_args()
+    res = run(Path(args.bench), args.min_depth)
+    md = table(res)
+    print(md)
+    if args.out:
+        Path(args.out + ".json").write_text(json.dumps(res, indent=1))
+        Path(args.out + ".md").write_text(
+            "# Where the diverse suite's local error comes from\n\n"
+            f"`python benchmarks/local_error.py {args.bench}`; cm unless said; "
+            "see the script's docstring for each column.\n\n" + md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
