@@ -56,8 +56,10 @@ def _glob(pred, gt) -> float:
     return 100 * float(M.global_procrustes_error(pred, gt).mean())
 
 
-def decompose(seq_dir: Path, res_dir: Path) -> dict:
-    """The quantities of the module docstring for one sequence and result."""
+def camera_joints(seq_dir: Path, res_dir: Path) -> tuple:
+    """``(gt, pred, gtz, motion, idx)``: the true and fitted joints ``(T, 24, 3)`` of the
+    result's frames ``idx`` in the sequence camera's axes (metres), with the sequence's
+    ``gt.npz`` and the result's motion arrays."""
     gtz = np.load(seq_dir / "gt.npz")
     cam = json.loads((seq_dir / "camera.json").read_text())
     R, t = np.asarray(cam["R"], np.float64), np.asarray(cam["t"], np.float64)
@@ -65,6 +67,12 @@ def decompose(seq_dir: Path, res_dir: Path) -> dict:
     idx = np.asarray(motion["frame_index"], int)
     gt = np.asarray(gtz["joints3d"], np.float64)[idx] @ R.T + t
     pr = np.asarray(motion["joints3d"], np.float64) @ R.T + t
+    return gt, pr, gtz, motion, idx
+
+
+def decompose(seq_dir: Path, res_dir: Path) -> dict:
+    """The quantities of the module docstring for one sequence and result."""
+    gt, pr, _, _, idx = camera_joints(seq_dir, res_dir)
     p = JOINT_INDEX["pelvis"]
     pr_root, gt_root = pr[:, p], gt[:, p]
     ray = gt_root / np.linalg.norm(gt_root, axis=1, keepdims=True)

@@ -46,9 +46,9 @@ from flowmocap.eval import metrics as M
 from flowmocap.eval.scoring import detector_joints3d
 from flowmocap.fit.flip import mirror_child
 from flowmocap.geometry.procrustes import similarity_procrustes
-from flowmocap.io.results import read_result
 from flowmocap.vision.auto import load_detections
 from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS
+from global_error import camera_joints  # benchmarks/, the script's own folder
 
 E = list(EVAL_JOINTS)
 #: (parent, child, joints that move with the child when the segment is mirrored)
@@ -77,13 +77,7 @@ def mirror_wrong_segments(pred: np.ndarray, wrong: np.ndarray, index: dict = JOI
 
 def decompose(seq_dir: Path, res_dir: Path, min_depth: float) -> dict:
     """The quantities of the module docstring for one sequence and result."""
-    gtz = np.load(seq_dir / "gt.npz")
-    cam = json.loads((seq_dir / "camera.json").read_text())
-    R, t = np.asarray(cam["R"], np.float64), np.asarray(cam["t"], np.float64)
-    motion, _ = read_result(res_dir)
-    idx = np.asarray(motion["frame_index"], int)
-    gt = np.asarray(gtz["joints3d"], np.float64)[idx] @ R.T + t
-    pr = np.asarray(motion["joints3d"], np.float64) @ R.T + t
+    gt, pr, gtz, motion, idx = camera_joints(seq_dir, res_dir)
     aligned = similarity_procrustes(pr[:, E], gt[:, E])[0]
     err = aligned - gt[:, E]
     track = load_detections(res_dir)
