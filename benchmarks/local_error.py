@@ -56,7 +56,7 @@ SEGMENTS = [("left_shoulder", "left_elbow", ["left_wrist"]), ("left_elbow", "lef
             ("right_shoulder", "right_elbow", ["right_wrist"]), ("right_elbow", "right_wrist", []),
             ("left_hip", "left_knee", ["left_ankle"]), ("left_knee", "left_ankle", []),
             ("right_hip", "right_knee", ["right_ankle"]), ("right_knee", "right_ankle", [])]
-SEG_NAMES = [f"{c}" for _, c, _ in SEGMENTS]
+SEG_NAMES = [c for _, c, _ in SEGMENTS]
 
 
 def mirror_wrong_segments(pred: np.ndarray, wrong: np.ndarray, index: dict = JOINT_INDEX) -> np.ndarray:
@@ -75,6 +75,31 @@ def mirror_wrong_segments(pred: np.ndarray, wrong: np.ndarray, index: dict = JOI
     return x
 
 
+def segment_signs(truth: np.ndarray, ours: np.ndarray, det: np.ndarray, index: dict, min_depth: float,
+                  usable: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Per segment, the frames where the truth reaches more than ``min_depth`` metres in
+    depth (child minus parent along the camera's z) and whose sign the fit / the detector
+    has wrong. ``truth``, ``ours``, ``det``: ``(T, J, 3)`` camera axes (the detector's
+    hip-centred, NaN where missing); ``usable``: ``(T, J)`` bool, the truth's joints to use.
+
+    Returns ``(wrong (T, 8) bool, the fit's; counts per segment name)``."""
+    wrong = np.zeros((len(truth), len(SEGMENTS)), bool)
+    seg = {}
+    for k, (p, c, _) in enumerate(SEGMENTS):
+        dz = lambda x: x[:, index[c], 2] - x[:, index[p], 2]  # noqa: E731
+        g, d = dz(truth), dz(det)
+        deep = np.abs(g) > min_depth
+        if usable is not None:
+            deep &= usable[:, index[p]] & usable[:, index[c]]
+        wrong[:, k] = deep & (np.sign(dz(ours)) != np.sign(g))
+        has = deep & np.isfinite(d)
+        det_wrong = has & (np.sign(d) != np.sign(g))
+        seg[c] = {"frames": int(deep.sum()), "ours_wrong": int(wrong[:, k].sum()),
+                  "detector_frames": int(has.sum()), "detector_wrong": int(det_wrong.sum()),
+                  "ours_wrong_detector_right": int((wrong[:, k] & has & ~det_wrong).sum())}
+    return wrong, seg
+
+
 def decompose(seq_dir: Path, res_dir: Path, min_depth: float) -> dict:
     """The quantities of the module docstring for one sequence and result."""
     gt, pr, gtz, motion, idx = camera_joints(seq_dir, res_dir)
@@ -82,22 +107,7 @@ def decompose(seq_dir: Path, res_dir: Path, min_depth: float) -> dict:
     err = aligned - gt[:, E]
     track = load_detections(res_dir)
     det = detector_joints3d(track)[idx] if track is not None else np.full_like(pr, np.nan)
-
-    def dz(x, k):
-        p, c, _ = SEGMENTS[k]
-        return x[:, JOINT_INDEX[c], 2] - x[:, JOINT_INDEX[p], 2]
-
-    wrong = np.zeros((idx.size, len(SEGMENTS)), bool)
-    seg = {}
-    for k, name in enumerate(SEG_NAMES):
-        g, o, d = dz(gt, k), dz(pr, k), dz(det, k)
-        deep = np.abs(g) > min_depth
-        wrong[:, k] = deep & (np.sign(o) != np.sign(g))
-        has = deep & np.isfinite(d)
-        det_wrong = has & (np.sign(d) != np.sign(g))
-        seg[name] = {"frames": int(deep.sum()), "ours_wrong": int(wrong[:, k].sum()),
-                     "detector_frames": int(has.sum()), "detector_wrong": int(det_wrong.sum()),
-                     "ours_wrong_detector_right": int((wrong[:, k] & has & ~det_wrong).sum())}
+    wrong, seg = segment_signs(gt, pr, det, JOINT_INDEX, min_depth)
     fixed = mirror_wrong_segments(pr, wrong)
     out = {
         "frames": int(idx.size),
@@ -173,18 +183,7 @@ def real3d_run(res_dir: Path, reference: dict, person: str, view: str, min_depth
     if not len(ours):
         return {"frames": 0}
     index = {n: k for k, n in enumerate(names)}
-    wrong = np.zeros((len(ours), len(SEGMENTS)), bool)
-    seg = {}
-    for k, (p, c, _) in enumerate(SEGMENTS):
-        both = ok[:, index[p]] & ok[:, index[c]]
-        dz = lambda x: x[:, index[c], 2] - x[:, index[p], 2]  # noqa: E731
-        g = dz(ref)
-        deep = both & (np.abs(g) > min_depth)
-        wrong[:, k] = deep & (np.sign(dz(ours)) != np.sign(g))
-        det_wrong = deep & (np.sign(dz(mp)) != np.sign(g))
-        seg[c] = {"frames": int(deep.sum()), "ours_wrong": int(wrong[:, k].sum()), "detector_frames": int(deep.sum()),
-                  "detector_wrong": int(det_wrong.sum()),
-                  "ours_wrong_detector_right": int((wrong[:, k] & ~det_wrong).sum())}
+    wrong, seg = segment_signs(ref, ours, mp, index, min_depth, usable=ok)
     fixed = mirror_wrong_segments(ours, wrong, index)
     return {"frames": int(len(ours)), "segments": seg,
             "ours_mm": R3.pa_mpjpe(ours, ref, ok)[0], "sign_oracle_mm": R3.pa_mpjpe(fixed, ref, ok)[0],
