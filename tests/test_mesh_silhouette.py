@@ -123,3 +123,43 @@ def test_nearest_vertex_by_scan_or_tree_gives_the_same_residuals(setup, monkeypa
         monkeypatch.undo()
         assert scanned.shape[0] > px.shape[0]
         assert torch.equal(scanned, other)
+
+
+def _residual_form(px, d, faces, target, **kw):
+    x = px.detach().clone().requires_grad_()
+    e = (mesh_silhouette_residuals(x, d, faces, target, **kw) ** 2).sum()
+    e.backward()
+    return float(e.detach()), x.grad.numpy()
+
+
+def test_compiled_energy_equals_the_residual_form_with_its_gradient(setup):
+    """mesh_silhouette_energy (one compiled pass) against the sum of squares of the torch
+    residuals and autograd's gradient of it, float64: vertices inside and outside the mask,
+    some outside the image (the chamfer map's border value plus the distance to it)."""
+    rng = np.random.default_rng(3)
+    for shift, a, step in (([0.03, 0.02, 0.0], 0.6, 4), ([0.05, -0.03, 0.1], 0.4, 8), ([0.02, 0.0, 0.0], 1.0, 4)):
+        px, d = setup["project"](shift)
+        px = px.detach().clone()
+        if shift[2] > 0:  # a few vertices pushed outside the 320 x 240 image
+            far = rng.choice(px.shape[0], 30, replace=False)
+            px[far] += torch.as_tensor(rng.uniform(-400, 400, (30, 2)))
+        want, want_grad = _residual_form(px, d, setup["faces"], setup["target"], a=a, grid_step=step)
+        x = px.clone().requires_grad_()
+        got = mesh_silhouette_energy(x, d, setup["faces"], setup["target"], a=a, grid_step=step)
+        got.backward()
+        assert want > 0.01
+        assert got.dtype == torch.float64 and got.dim() == 0
+        np.testing.assert_allclose(float(got.detach()), want, rtol=1e-10)
+        np.testing.assert_allclose(x.grad.numpy(), want_grad, rtol=1e-8, atol=1e-12)
+
+
+def test_compiled_energy_in_float32_follows_the_float64_one(setup):
+    px, d = setup["project"]([0.03, 0.02, 0.0])
+    x = px.detach().to(torch.float32).requires_grad_()
+    target32 = silhouette_target(setup["mask"], dtype=torch.float32)
+    e = mesh_silhouette_energy(x, d.to(torch.float32), setup["faces"], target32)
+    e.backward()
+    want, want_grad = _residual_form(px, d, setup["faces"], setup["target"])
+    assert e.dtype == torch.float32 and x.grad.dtype == torch.float32
+    np.testing.assert_allclose(float(e.detach()), want, rtol=1e-4)
+    np.testing.assert_allclose(x.grad.numpy(), want_grad, rtol=1e-3, atol=1e-6)

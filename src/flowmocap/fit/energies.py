@@ -914,9 +914,25 @@ def mesh_silhouette_residuals(
     Raises:
         InputError: wrong shapes, bad ``a`` or ``grid_step``.
     """
+    target, V, uncovered, nn, n = _mesh_silhouette_setup(verts_px, depth, faces, target, a, grid_step,
+                                                         cull_backfaces, raster)
+    inside = torch.relu(_bilinear(target.chamfer, verts_px) - margin) * math.sqrt(a / V)
+    if len(uncovered) == 0 or a == 1.0:
+        return inside
+    p = torch.as_tensor(uncovered + 0.5, dtype=verts_px.dtype)
+    d = torch.sqrt(((p - verts_px[torch.as_tensor(nn)]) ** 2).sum(-1) + 1e-12)
+    return torch.cat([inside, d * math.sqrt((1.0 - a) / n)])
+
+
+def _mesh_silhouette_setup(verts_px, depth, faces, target, a, grid_step, cull_backfaces, raster):
+    """What both forms of the mesh E_c need: the checked target, ``V``, the uncovered mask
+    samples ``(m, 2)`` int (x, y), the index of each one's nearest vertex ``(m,)`` and ``n``
+    (mask samples on the grid). Without ``raster`` the mesh is rasterised into this
+    thread's scratch buffers (only its coverage is read, at once)."""
     from scipy.spatial import cKDTree
 
-    from flowmocap.render.raster import rasterize
+    from flowmocap.render._checks import check_faces, check_points, check_vector
+    from flowmocap.render.raster import rasterize_scratch
 
     target = _as_target(target, None, verts_px.dtype)
     if verts_px.ndim != 2 or verts_px.shape[1] != 2:
@@ -927,28 +943,81 @@ def mesh_silhouette_residuals(
         raise InputError(f"grid_step must be a positive integer (pixels), got {grid_step}")
     V = verts_px.shape[0]
     H, W = target.height, target.width
-    inside = torch.relu(_bilinear(target.chamfer, verts_px) - margin) * math.sqrt(a / V)
     step = int(grid_step)
     grid = _mask_grid(target, step)
     n = max(len(grid), 1)
     with torch.no_grad():
-        xy = verts_px.detach().cpu().numpy().astype(np.float64)
-        z = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+        xy = check_points(verts_px.detach().cpu().numpy().astype(np.float64), "verts_px", 2)
         if raster is None:
-            raster = rasterize(xy, z, faces, H, W, cull_backfaces=cull_backfaces)
+            z = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+            raster = rasterize_scratch(xy, check_vector(z, "depth", V), check_faces(faces, V), H, W,
+                                       bool(cull_backfaces), 1e-3)
         face_id = raster.face_id
         uncovered = grid[face_id[grid[:, 1], grid[:, 0]] < 0]
-    if len(uncovered) == 0 or a == 1.0:
-        return inside
-    queries = uncovered + 0.5
-    if len(queries) <= _BRUTE_FORCE_QUERIES:  # a k-d tree of the body costs more than a few scans
-        nn = np.empty(len(queries), dtype=np.int64)
-        _nearest_points(queries, xy, nn)
-    else:
-        _, nn = cKDTree(xy).query(queries)
-    p = torch.as_tensor(uncovered + 0.5, dtype=verts_px.dtype)
-    d = torch.sqrt(((p - verts_px[torch.as_tensor(nn)]) ** 2).sum(-1) + 1e-12)
-    return torch.cat([inside, d * math.sqrt((1.0 - a) / n)])
+    nn = np.empty(len(uncovered), dtype=np.int64)
+    if len(uncovered) and a < 1.0:
+        queries = uncovered + 0.5
+        if len(queries) <= _BRUTE_FORCE_QUERIES:  # a k-d tree of the body costs more than a few scans
+            _nearest_points(queries, xy, nn)
+        else:
+            nn = cKDTree(xy).query(queries)[1].astype(np.int64)
+    return target, V, uncovered, nn, n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _mesh_silhouette_kernel(chamfer, xy, margin, wa, queries, nn, wb, grad):
+    """The mesh E_c and its gradient w.r.t. ``xy`` (added to ``grad (V, 2)``): ``wa`` times
+    the sum over vertices of ``max(C(x_v) - margin, 0)^2`` (``C``: :func:`_bilinear` of the
+    chamfer map, its clamping and its growth outside the image included) plus ``wb`` times
+    the sum over the uncovered samples ``queries (m, 2)`` (pixel centres) of the squared
+    distance to their nearest vertex ``nn`` (plus 1e-12, as the residual form's)."""
+    H, W = chamfer.shape
+    energy = 0.0
+    for v in range(xy.shape[0]):
+        x = xy[v, 0] - 0.5
+        y = xy[v, 1] - 0.5
+        xc = min(max(x, 0.0), W - 1.0)
+        yc = min(max(y, 0.0), H - 1.0)
+        ox = x - xc
+        oy = y - yc
+        root = math.sqrt(ox * ox + oy * oy + 1e-12)
+        out = root - 1e-6
+        x0 = min(int(math.floor(xc)), W - 2) if W > 1 else 0
+        y0 = min(int(math.floor(yc)), H - 2) if H > 1 else 0
+        x1 = min(x0 + 1, W - 1)
+        y1 = min(y0 + 1, H - 1)
+        fx = xc - x0
+        fy = yc - y0
+        c00 = chamfer[y0, x0]
+        c01 = chamfer[y0, x1]
+        c10 = chamfer[y1, x0]
+        c11 = chamfer[y1, x1]
+        top = c00 * (1.0 - fx) + c01 * fx
+        bottom = c10 * (1.0 - fx) + c11 * fx
+        r = top * (1.0 - fy) + bottom * fy + max(out, 0.0) - margin
+        if r <= 0.0:
+            continue
+        energy += wa * r * r
+        g = 2.0 * wa * r
+        gx = 0.0
+        gy = 0.0
+        if 0.0 <= x <= W - 1.0:  # torch's clamp passes the gradient at its bounds too
+            gx += (c01 - c00) * (1.0 - fy) + (c11 - c10) * fy
+        if 0.0 <= y <= H - 1.0:
+            gy += bottom - top
+        if out >= 0.0:
+            gx += ox / root
+            gy += oy / root
+        grad[v, 0] += g * gx
+        grad[v, 1] += g * gy
+    for q in range(queries.shape[0]):
+        k = nn[q]
+        dx = xy[k, 0] - queries[q, 0]
+        dy = xy[k, 1] - queries[q, 1]
+        energy += wb * (dx * dx + dy * dy + 1e-12)
+        grad[k, 0] += 2.0 * wb * dx
+        grad[k, 1] += 2.0 * wb * dy
+    return energy
 
 
 #: Up to this many uncovered mask samples, :func:`mesh_silhouette_residuals` finds their
@@ -986,11 +1055,27 @@ def _mask_grid(target: SilhouetteTarget, step: int) -> np.ndarray:
     return grid
 
 
-def mesh_silhouette_energy(verts_px: torch.Tensor, depth: Any, faces: Any, target: SilhouetteTarget | Any,
-                           **kwargs) -> torch.Tensor:
-    """E_c from the mesh: sum of squared :func:`mesh_silhouette_residuals`, a 0-d tensor in px^2."""
-    r = mesh_silhouette_residuals(verts_px, depth, faces, target, **kwargs)
-    return (r * r).sum()
+def mesh_silhouette_energy(verts_px: torch.Tensor, depth: Any, faces: Any, target: SilhouetteTarget | Any, *,
+                           a: float = 0.6, grid_step: int = 4, margin: float = 0.5, cull_backfaces: bool = True,
+                           raster: Any = None) -> torch.Tensor:
+    """E_c from the mesh: the sum of squared :func:`mesh_silhouette_residuals` (same
+    arguments), a 0-d tensor in px^2 of ``verts_px``'s dtype, computed with its gradient
+    w.r.t. ``verts_px`` in one compiled float64 pass (one autograd node)."""
+    target, V, uncovered, nn, n = _mesh_silhouette_setup(verts_px, depth, faces, target, a, grid_step,
+                                                         cull_backfaces, raster)
+    chamfer = getattr(target, "_chamfer64", None)
+    if chamfer is None:
+        chamfer = np.ascontiguousarray(target.chamfer.detach().cpu().numpy(), dtype=np.float64)
+        object.__setattr__(target, "_chamfer64", chamfer)
+    queries = (uncovered + 0.5).astype(np.float64) if a < 1.0 else np.zeros((0, 2))
+    wb = (1.0 - a) / n
+
+    def compute(xy):
+        grad = np.zeros_like(xy)
+        e = _mesh_silhouette_kernel(chamfer, xy[0], float(margin), a / V, queries, nn, wb, grad[0])
+        return np.array([e]), [grad]
+
+    return energy_with_gradient(compute, verts_px.unsqueeze(0))[0]
 
 
 # ---------------------------------------------------------------------- 2D keypoints

@@ -189,16 +189,15 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
                                cull_backfaces=True)
         terms["flow"] = None  # keeps E_f first in the sum, as it always was
     caps = None
-    if data.mask is not None and cfg.silhouette_weight > 0:
-        if cfg.silhouette_model == "mesh":  # the coverage of the flow term's rasterisation, when it has one
-            ec = en.mesh_silhouette_energy(px, depth, scene.faces, data.silhouette, a=cfg.silhouette_a,
-                                           grid_step=cfg.capsule_grid_step,
-                                           raster=flow.raster() if flow is not None else None)
-        else:
-            caps = scene.capsules(out)
-            ec = en.silhouette_energy(caps, scene.camera, data.silhouette, a=cfg.silhouette_a,
-                                      grid_step=cfg.capsule_grid_step)[0]
-        terms["silhouette"] = cfg.silhouette_weight * ec
+    mesh_silhouette = data.mask is not None and cfg.silhouette_weight > 0 and cfg.silhouette_model == "mesh"
+    if mesh_silhouette:
+        # made after the other terms, so that the flow thread's rasterisation (whose coverage
+        # it reads) is ready by then; its place here keeps the order of the sum
+        terms["silhouette"] = None
+    elif data.mask is not None and cfg.silhouette_weight > 0:
+        caps = scene.capsules(out)
+        terms["silhouette"] = cfg.silhouette_weight * en.silhouette_energy(
+            caps, scene.camera, data.silhouette, a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step)[0]
     if cfg.limit_weight > 0:
         terms["limits"] = cfg.limit_weight * en.joint_limit_energy(state.pose.reshape(1, 72))[0]
     if cfg.penetration_weight > 0:
@@ -228,6 +227,10 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.depth_ref is not None and cfg.depth_temporal_weight > 0:
         terms["depth_temporal"] = cfg.depth_temporal_weight * en.depth_temporal_energy(
             state.trans.reshape(1, 3), *data.depth_ref)[0]
+    if mesh_silhouette:
+        terms["silhouette"] = cfg.silhouette_weight * en.mesh_silhouette_energy(
+            px, depth, scene.faces, data.silhouette, a=cfg.silhouette_a, grid_step=cfg.capsule_grid_step,
+            raster=flow.raster() if flow is not None else None)
     if flow is not None:
         terms["flow"] = cfg.flow_weight * flow() / data.person_pixels
     total = sum(terms.values(), (state.pose * 0.0).sum())
