@@ -215,3 +215,27 @@ def test_flip_with_a_few_iterations_polishes_the_mirrored_pose(scene32, pose):
     assert limb_name(SHIN) in [e["limb"] for e in ev]
     assert float(shin(state) @ want) > 0.98
     assert terms["limb_depth"] < 1e-3 and terms["total"] < 0.5 * float(e_start)
+
+
+def test_a_flip_judged_without_the_temporal_term(scene32, pose):
+    """The Kalman prediction (E_theta's reference) carries the flipped shin on, strongly
+    enough that the total energy keeps the flip; judged without E_theta
+    (``flip_without_temporal``) the detector's 3D joints win and the shin is flipped back,
+    while the returned energies are still the full ones (E_theta included)."""
+    pose = pose.float()
+    trans = torch.tensor([0.0, 0.0, 0.2])
+    flipped = flipped_pose(scene32, pose, trans, SHIN)
+    data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans))
+    base = dict(penetration_weight=0.0, temporal_weight=50.0, **{**DEPTH_CUES_OFF, "limb_depth_weight": 2.0})
+    prev = FrameState(pose, trans)
+    kept, _, none = flip_limbs(scene32, FrameState(flipped, trans), data, TrackerConfig(**base), prev, flipped)
+    assert none == [] and torch.equal(kept.pose, flipped)
+    cfg = TrackerConfig(**base, flip_without_temporal=True)
+    state, terms, events = flip_limbs(scene32, FrameState(flipped, trans), data, cfg, prev, flipped)
+    assert [e["limb"] for e in events] == [limb_name(SHIN)]
+    with torch.no_grad():
+        got = scene32.forward(state.pose, state.trans)[0].joints[0]
+        want = scene32.forward(pose, trans)[0].joints[0]
+    assert float((got[SHIN[1]] - want[SHIN[1]]).norm()) < 1e-3
+    assert terms["temporal"] > 0
+    assert terms["total"] == pytest.approx(sum(v for k, v in terms.items() if k != "total"), rel=1e-5)

@@ -144,6 +144,8 @@ class TrackerConfig:
     detector3d_scale: float = 0.1      # its pseudo-Huber scale, m: quadratic below, linear above
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
+    flip_without_temporal: bool = False  # judge a flip by the energy without E_theta (whose Kalman
+                                       # prediction carries a flipped limb on to the next frames)
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
     depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
     #                                    reference (m^2); 0: off (measured, not better: docs/experiments.md)

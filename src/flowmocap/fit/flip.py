@@ -168,11 +168,15 @@ def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerCon
     with torch.no_grad():
         _, prev_px, _ = scene.forward(prev.pose, prev.trans)
 
+    def judged(terms: dict) -> float:
+        """What a flip is judged by: the total, less E_theta with ``cfg.flip_without_temporal``."""
+        return terms["total"] - (terms.get("temporal", 0.0) if cfg.flip_without_temporal else 0.0)
+
     def evaluate(s: FrameState) -> tuple[float, dict]:
         with torch.no_grad():
             total, terms = frame_energy(scene, s, data, cfg, stage, prev_px, ref_pose)
         terms["total"] = float(total)
-        return float(total), terms
+        return judged(terms), terms
 
     def polish(pose: torch.Tensor, trans: torch.Tensor) -> FrameState:
         s = FrameState(pose.detach().clone().requires_grad_(), trans.detach().clone().requires_grad_())
@@ -181,7 +185,7 @@ def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerCon
         return s.clone()
 
     if terms is not None and math.isfinite(terms.get("total", math.nan)):
-        best_e, best_terms = float(terms["total"]), dict(terms)
+        best_e, best_terms = judged(terms), dict(terms)
     else:
         try:
             best_e, best_terms = evaluate(state)
