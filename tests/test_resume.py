@@ -20,6 +20,7 @@ import pytest
 import flowmocap
 from flowmocap.cli import main
 from flowmocap.errors import DataError, FolderBusyError, InputError, OutputError
+from flowmocap.fit.config import TrackerConfig
 from flowmocap.eval.protocol import noisy_init
 from flowmocap.io.lock import FolderLock, is_locked
 from flowmocap.io.results import FrameLog, has_result, read_result
@@ -470,6 +471,34 @@ def test_a_video_is_tracked_from_a_stream_and_its_flows_are_not_kept(clip, tmp_p
     np.testing.assert_allclose(kept.poses, res.poses, atol=SAME["rad"])  # the same flows, kept or not
     folder = flowmocap.track(clip, tmp_path / "f", frames="0:4", **_kw(clip))
     assert len(list((tmp_path / "f" / "flow_cache").glob("flow_*.npz"))) == 3 and len(folder) == 4
+
+
+def test_the_observed_flow_is_computed_around_the_person_only(clip, tmp_path):
+    """With ``flow_region`` (and E_f on mask pixels, ``flow_in_mask``) the tracker computes
+    each frame's flow in the box of its and the previous frame's masks, 0 outside; by
+    default (off), over the whole frame."""
+    from flowmocap.vision import FlowCache, flow_region, observed_flow
+
+    seq = load_sequence(clip)
+    flowmocap.track(clip, tmp_path / "r", frames="0:4", **{**_kw(clip), "config": {**QUICK, "flow_region": True}})
+    cache = FlowCache(tmp_path / "r" / "flow_cache", method=TrackerConfig().flow_method)
+    for i in (1, 2, 3):
+        region = flow_region([seq.mask(i), seq.mask(i - 1)])
+        r0, r1, c0, c1 = region
+        assert (r1 - r0) * (c1 - c0) < 0.9 * 120 * 90  # a part of the frame
+        f = cache.get(i, region=region)
+        assert f is not None and cache.get(i) is None  # stored for that region
+        np.testing.assert_array_equal(f[r0:r1, c0:c1], observed_flow(
+            np.ascontiguousarray(seq.frame(i)[r0:r1, c0:c1]), np.ascontiguousarray(seq.frame(i - 1)[r0:r1, c0:c1]),
+            TrackerConfig().flow_method))
+        outside = np.ones(f.shape[:2], bool)
+        outside[r0:r1, c0:c1] = False
+        assert not f[outside].any()
+    flowmocap.track(clip, tmp_path / "w", frames="0:4", **_kw(clip))
+    whole = FlowCache(tmp_path / "w" / "flow_cache", method=TrackerConfig().flow_method)
+    for i in (1, 2, 3):
+        np.testing.assert_array_equal(whole.get(i, region=None), observed_flow(seq.frame(i), seq.frame(i - 1),
+                                                                               TrackerConfig().flow_method))
 
 
 def test_a_run_that_fails_before_its_first_frame_is_marked_failed(clip, tmp_path, monkeypatch):

@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from flowmocap.errors import DataError, InputError, NoPersonError
-from flowmocap.vision import FLOW_METHODS, FlowCache, chamfer_map, load_mask, observed_flow
+from flowmocap.vision import FLOW_METHODS, FlowCache, chamfer_map, flow_region, load_mask, observed_flow
+from flowmocap.vision.flow import MIN_REGION
 
 DAVIS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video" / "davis-dance-twirl"
 
@@ -103,6 +104,57 @@ def test_flow_cache_stores_returns_and_survives_bad_files(tmp_path, monkeypatch)
         cache.put(8, np.zeros((4, 4, 3)))
     with pytest.raises(InputError):
         FlowCache(tmp_path / "x", "mdp")
+
+
+def test_flow_region_is_the_masks_box_with_a_margin_clipped_to_the_image():
+    H, W = 200, 300
+    a, b = np.zeros((H, W), bool), np.zeros((H, W), bool)
+    a[50:90, 100:120] = True  # 40 x 20
+    b[60:100, 110:130] = True  # the next frame's person, moved
+    grow = int(16 + 0.15 * 50)  # the union is 50 rows x 30 columns
+    assert flow_region([a, b]) == (50 - grow, 100 + grow, 100 - grow, 130 + grow)
+    r0, r1, c0, c1 = flow_region([a, None], margin_px=0, margin_frac=0.0)  # grown to MIN_REGION about its middle
+    assert (r1 - r0, c1 - c0) == (MIN_REGION, MIN_REGION) and (r0 + r1) // 2 == 70 and (c0 + c1) // 2 == 110
+    corner = np.zeros((H, W), bool)
+    corner[0:3, W - 3:] = True  # against two edges: clipped, still MIN_REGION on a side
+    assert flow_region([corner], margin_px=0, margin_frac=0.0) == (0, MIN_REGION, W - MIN_REGION, W)
+    big = np.ones((H, W), bool)
+    assert flow_region([big]) == (0, H, 0, W)
+    tiny = np.zeros((40, 50), bool)
+    tiny[5, 5] = True  # an image smaller than MIN_REGION: the whole image
+    assert flow_region([tiny]) == (0, 40, 0, 50)
+    assert flow_region([np.zeros((H, W), bool), None]) is None and flow_region([]) is None
+    with pytest.raises(InputError, match="different sizes"):
+        flow_region([a, np.ones((10, 10), bool)])
+
+
+def test_flow_cache_computes_a_region_only_and_keeps_regions_apart(tmp_path, monkeypatch):
+    cur, prev = _shifted_pair(96, 128, 1.5, -0.5, seed=3)
+    region = (10, 80, 20, 100)
+    cache = FlowCache(tmp_path / "flow")
+    calls = []
+    real = FLOW_METHODS["dis"]
+    monkeypatch.setitem(FLOW_METHODS, "dis", lambda c, p, **k: calls.append(c.shape) or real(c, p, **k))
+    f = cache.flow(3, cur, prev, region=region)
+    assert calls == [(70, 80, 3)]  # only the region's pixels went to the flow method
+    inside = observed_flow(np.ascontiguousarray(cur[10:80, 20:100]), np.ascontiguousarray(prev[10:80, 20:100]))
+    np.testing.assert_array_equal(f[10:80, 20:100], inside)
+    outside = np.ones((96, 128), bool)
+    outside[10:80, 20:100] = False
+    assert f.shape == (96, 128, 2) and not f[outside].any()
+    np.testing.assert_array_equal(cache.flow(3, cur, prev, region=region), f)  # from the cache
+    assert len(calls) == 2  # (the check above called the method once itself)
+    assert cache.get(3, region=region) is not None
+    assert cache.get(3) is None and cache.get(3, region=(0, 96, 0, 128)) is None  # another region: absent
+    whole = cache.flow(3, cur, prev)  # recomputed for the whole frame, and it serves any region after
+    assert len(calls) == 3 and cache.get(3, region=region) is not None
+    np.testing.assert_array_equal(cache.flow(3, cur, prev, region=region), whole)
+    assert len(calls) == 3
+    for bad in [(0, 0, 0, 10), (-1, 10, 0, 10), (0, 97, 0, 10), (5, 4, 0, 10)]:
+        with pytest.raises(InputError, match="is not a box inside the 128x96 frame"):
+            cache.flow(4, cur, prev, region=bad)
+    with pytest.raises(InputError, match="same size"):
+        cache.flow(4, cur, prev[:-2], region=region)
 
 
 def test_chamfer_map_is_the_same_every_call_on_several_threads():

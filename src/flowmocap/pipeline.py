@@ -62,7 +62,7 @@ from flowmocap.io.sequence import Sequence, load_sequence
 from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
-from flowmocap.vision import FlowCache
+from flowmocap.vision import FlowCache, flow_region
 from flowmocap.vision.auto import (
     PersonTrack,
     auto_init,
@@ -688,12 +688,20 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
     def detected3d(i: int) -> tuple | None:
         return joints3d(i) if (joints3d is not None and cfg.uses_detector3d) else None
 
+    def flow_of(i: int, mask) -> np.ndarray:
+        """The observed flow of frame i: around the person (both frames' masks) when E_f
+        uses mask pixels only (``cfg.flow_region``), else of the whole frame."""
+        region = None
+        if cfg.flow_region and cfg.flow_in_mask and mask is not None and mask.any():
+            region = flow_region([mask, seq.mask(i - 1)])
+        return cache.flow(i, seq.frame(i), seq.frame(i - 1), region=region)
+
     def observe(i: int):
         """Mask and observations of frame i (the person-size fallback for a frame without a
         mask is the tracker's)."""
         mask = seq.mask(i)
         usable = mask if (mask is not None and mask.any()) else None
-        data = frame_data(usable, cache.flow(i, seq.frame(i), seq.frame(i - 1)), cfg, float("nan"), detected(i))
+        data = frame_data(usable, flow_of(i, usable), cfg, float("nan"), detected(i))
         data.joints3d = detected3d(i)
         return mask, data
 
@@ -722,8 +730,8 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             else:
                 d0 = frame_data(mask_of(a), None, cfg, 1.0)
                 d0.joints3d = detected3d(a)
-                d1 = frame_data(mask_of(a + 1), cache.flow(a + 1, seq.frame(a + 1), seq.frame(a)), cfg,
-                                d0.person_pixels, detected(a + 1))
+                m1 = mask_of(a + 1)
+                d1 = frame_data(m1, flow_of(a + 1, m1), cfg, d0.person_pixels, detected(a + 1))
                 d1.joints3d = detected3d(a + 1)
                 start = initialise(model, camera, init, d0, d1, cfg)
                 scene, s0, s1 = start.scene, start.first, start.second

@@ -168,6 +168,8 @@ class TrackerConfig:
     # --- observed flow -----------------------------------------------------------------
     flow_method: str = "dis-fine"      # flowmocap.vision.FLOW_METHODS; DIS refined to full resolution
     flow_in_mask: bool = True          # E_f only on mask pixels: the background's flow is not the body's
+    flow_region: bool = False          # with flow_in_mask: compute the observed flow only around the person
+    #                                    (both frames' masks plus a margin, vision.flow_region), 0 elsewhere
     # --- Kalman filters ----------------------------------------------------------------
     kalman: bool = True                # predict each frame's start and E_theta's target
     kalman_rot_accel_noise: float = 0.02  # rad/frame^2: how much the joint filters' prediction smooths

@@ -48,7 +48,7 @@ import numpy as np
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError, InputError
 
-__all__ = ["FLOW_METHODS", "DIS_PRESETS", "observed_flow", "FlowCache"]
+__all__ = ["FLOW_METHODS", "DIS_PRESETS", "observed_flow", "flow_region", "FlowCache"]
 
 #: DIS presets by name (``preset=`` option of the ``"dis"`` method).
 DIS_PRESETS = {
@@ -159,6 +159,54 @@ def observed_flow(frame_cur: Any, frame_prev: Any, method: str = "dis", **option
     return np.ascontiguousarray(flow, dtype=np.float32)
 
 
+#: The smallest side of a :func:`flow_region` (pixels): DIS needs a few patches of context.
+MIN_REGION = 64
+
+
+def flow_region(masks, margin_px: int = 16, margin_frac: float = 0.15) -> tuple[int, int, int, int] | None:
+    """The image region a person's observed flow is computed in: the box around the
+    pixels of ``masks`` (those of frames ``i`` and ``i - 1``: where frame i's person is
+    and where its pixels move to), grown by ``margin_px + margin_frac`` times the box's
+    longer side on every side (context for the flow's patches and its coarse levels),
+    at least :data:`MIN_REGION` pixels on a side, clipped to the image.
+
+    Args:
+        masks: ``(H, W)`` bool arrays of equal shape (None entries are skipped).
+        margin_px: pixels; margin_frac: fraction of the box's longer side.
+
+    Returns:
+        ``(row0, row1, col0, col1)`` (rows ``[row0, row1)``, columns ``[col0, col1)``), or
+        None when no mask has a pixel (the caller computes the whole frame).
+    """
+    union = None
+    for m in masks:
+        if m is None:
+            continue
+        m = np.asarray(m, bool)
+        if union is not None and m.shape != union.shape:
+            raise InputError(f"masks of different sizes: {union.shape} and {m.shape}")
+        union = m.copy() if union is None else union | m
+    if union is None or not union.any():
+        return None
+    H, W = union.shape
+    rows = np.flatnonzero(union.any(1))
+    cols = np.flatnonzero(union.any(0))
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    grow = int(margin_px + margin_frac * max(r1 - r0, c1 - c0))
+    r0, r1, c0, c1 = r0 - grow, r1 + grow, c0 - grow, c1 + grow
+    for lo, hi, n in ((0, 1, H), (2, 3, W)):  # at least MIN_REGION (or the image) on a side
+        box = [r0, r1, c0, c1]
+        short = min(MIN_REGION, n) - (box[hi] - box[lo])
+        if short > 0:
+            box[lo] -= short // 2
+            box[hi] += short - short // 2
+        box[lo], box[hi] = max(box[lo], 0), min(box[hi], n)
+        if box[hi] - box[lo] < min(MIN_REGION, n):  # pushed against an edge: grow inwards
+            box[lo], box[hi] = (0, min(MIN_REGION, n)) if box[lo] == 0 else (n - min(MIN_REGION, n), n)
+        r0, r1, c0, c1 = box
+    return r0, r1, c0, c1
+
+
 def _npz_bytes(**arrays) -> bytes:
     """``np.savez`` into memory: a failed write to the disk then fails cleanly (numpy's
     zip writer left open on a full disk complains again when it is collected)."""
@@ -175,7 +223,9 @@ class FlowCache:
     same folder and renamed, so an interrupted run leaves either a complete file or
     none. A file that cannot be read (or has the wrong size) counts as missing.
     ``options`` other than the defaults add a short hash of them to the name, so
-    flows computed with different settings never mix.
+    flows computed with different settings never mix; a flow computed in a region of the
+    frames (:meth:`flow` with ``region``) stores its region and is used only for it (a
+    whole-frame flow serves any region).
 
     Args:
         folder: directory (created if missing); None stores nothing (:meth:`flow` then
@@ -207,13 +257,16 @@ class FlowCache:
     def __contains__(self, index: int) -> bool:
         return self.folder is not None and self.path(index).is_file()
 
-    def get(self, index: int, shape: tuple[int, int] | None = None) -> np.ndarray | None:
+    def get(self, index: int, shape: tuple[int, int] | None = None, region: tuple | None = None) -> np.ndarray | None:
         """The cached flow of frame ``index``, or None if absent or unreadable.
 
         Args:
             index: frame number i (the flow is ``F_o(i, i-1)``).
             shape: optional ``(H, W)`` the flow must have; a cached flow of another size
                 counts as absent.
+            region: the region the flow is asked for (None: the whole frame): a flow
+                computed in another region counts as absent; one of the whole frame
+                (e.g. a true flow put here) serves every region.
 
         Returns:
             ``(H, W, 2)`` float32 or None.
@@ -226,40 +279,62 @@ class FlowCache:
         try:
             with open(p, "rb") as fh, np.load(fh) as data:
                 flow = np.asarray(data["flow"], dtype=np.float32)
+                stored = tuple(int(v) for v in data["region"]) if "region" in data.files else None
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
             return None
         if flow.ndim != 3 or flow.shape[2] != 2 or (shape is not None and flow.shape[:2] != tuple(shape)):
             return None
+        if stored is not None and stored != (None if region is None else tuple(int(v) for v in region)):
+            return None
         return flow
 
-    def put(self, index: int, flow: np.ndarray) -> Path:
-        """Store the flow of frame ``index`` atomically; returns the file path."""
+    def put(self, index: int, flow: np.ndarray, region: tuple | None = None) -> Path:
+        """Store the flow of frame ``index`` atomically (with the ``region`` it was
+        computed in, None: the whole frame); returns the file path."""
         flow = np.asarray(flow, dtype=np.float32)
         if flow.ndim != 3 or flow.shape[2] != 2:
             raise InputError(f"flow must have shape (H, W, 2), got {flow.shape}")
         p = self.path(index)
+        extra = {} if region is None else {"region": np.asarray(region, np.int64)}
 
         def write(tmp):
             with open(tmp, "wb") as fh:
-                fh.write(_npz_bytes(flow=flow))
+                fh.write(_npz_bytes(flow=flow, **extra))
 
         atomic_write(p, write)
         return p
 
-    def flow(self, index: int, frame_cur: Any, frame_prev: Any) -> np.ndarray:
+    def flow(self, index: int, frame_cur: Any, frame_prev: Any, region: tuple | None = None) -> np.ndarray:
         """The flow of frame ``index`` from the cache, computing and storing it if absent.
 
         Args:
             index: frame number i.
             frame_cur, frame_prev: ``(H, W, 3)`` uint8 RGB frames i and i-1.
+            region: ``(row0, row1, col0, col1)`` (:func:`flow_region`): compute the flow
+                of that part of both frames only and give 0 elsewhere (the person's
+                flow at a fraction of the cost; cached apart from whole-frame flows).
 
         Returns:
             ``(H, W, 2)`` float32 backward flow, see :func:`observed_flow`.
         """
-        cached = self.get(index, shape=np.shape(frame_cur)[:2])
+        shape = np.shape(frame_cur)[:2]
+        if region is not None:
+            r0, r1, c0, c1 = (int(v) for v in region)
+            if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
+                raise InputError(f"region {tuple(region)} is not a box inside the {shape[1]}x{shape[0]} frame")
+            region = (r0, r1, c0, c1)
+        cached = self.get(index, shape=shape, region=region)
         if cached is not None:
             return cached
-        flow = observed_flow(frame_cur, frame_prev, self.method, **self.options)
+        if region is None:
+            flow = observed_flow(frame_cur, frame_prev, self.method, **self.options)
+        else:
+            cur, prev = np.asarray(frame_cur), np.asarray(frame_prev)
+            if cur.shape != prev.shape:  # observed_flow says why
+                observed_flow(cur, prev, self.method, **self.options)
+            flow = np.zeros(shape + (2,), np.float32)
+            flow[r0:r1, c0:c1] = observed_flow(np.ascontiguousarray(cur[r0:r1, c0:c1]),
+                                               np.ascontiguousarray(prev[r0:r1, c0:c1]), self.method, **self.options)
         if self.folder is not None:
-            self.put(index, flow)
+            self.put(index, flow, region=region)
         return flow
