@@ -52,6 +52,28 @@ def test_keypoints_equal_to_the_torch_definition(seed):
     assert torch.autograd.gradcheck(lambda p: keypoint_energy_world(p, cam, obs, conf, 20.0), (x,), eps=1e-6, atol=1e-5)
 
 
+def test_keypoints_with_a_scale_per_joint():
+    """A ``(N,)`` sigma gives each joint its own Geman-McClure scale: the sum of the
+    one-joint energies at their scales, with its gradient (finite differences)."""
+    cam = _camera(4)
+    x = _points(4)
+    rng = np.random.default_rng(14)
+    obs = cam.project(x.detach().numpy()[0]) + rng.normal(size=(24, 2)) * 40.0
+    conf = rng.uniform(0.3, 1.0, 24)
+    sigma = rng.uniform(10.0, 90.0, 24)
+    e0 = sum(en.keypoint_energy(cam.project(x)[:, j:j + 1], obs[j:j + 1], conf[j:j + 1], sigma=float(sigma[j]))
+             for j in range(24))
+    e1 = keypoint_energy_world(x, cam, obs, conf, sigma)
+    np.testing.assert_allclose(e1.detach().numpy(), e0.detach().numpy(), rtol=1e-12)
+    assert torch.autograd.gradcheck(lambda p: keypoint_energy_world(p, cam, obs, conf, sigma), (x,), eps=1e-6,
+                                    atol=1e-5)
+    same = np.full(24, 20.0)  # a scale per joint, all equal: the scalar's arithmetic
+    np.testing.assert_array_equal(keypoint_energy_world(x, cam, obs, conf, same).detach().numpy(),
+                                  keypoint_energy_world(x, cam, obs, conf, 20.0).detach().numpy())
+    with pytest.raises(ValueError, match="one per point"):
+        keypoint_energy_world(x, cam, obs, conf, np.ones(5))
+
+
 def _limb_case(seed, missing=0.25):
     rng = np.random.default_rng(seed)
     x = _points(seed)

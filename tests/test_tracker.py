@@ -59,10 +59,11 @@ def _f32(x) -> torch.Tensor:
     return torch.as_tensor(np.asarray(x), dtype=torch.float32)
 
 
-def _track_direct(seq, out, model, cfg, frames, keypoints=None, joints3d=None):
+def _track_direct(seq, out, model, cfg, frames, keypoints=None, joints3d=None, events=None):
     """:class:`SequenceTracker` + :func:`track_frames` from the known start, with per-frame
     detections :func:`track` does not take: ``keypoints(i) -> (j2d (24, 2), conf (24,))``
-    for ``E_j`` and ``joints3d(i) -> (j3d (24, 3), conf (24,))`` for ``E_d``.
+    for ``E_j`` and ``joints3d(i) -> (j3d (24, 3), conf (24,))`` for ``E_d``; ``events``: a
+    list the frames' events are added to.
 
     Returns ``(joints2d (T, 24, 2), terms)`` of the tracked frames (from the third on),
     ``terms`` one dict of energies per frame."""
@@ -92,6 +93,8 @@ def _track_direct(seq, out, model, cfg, frames, keypoints=None, joints3d=None):
     with torch.no_grad():
         j2d = np.stack([scene.camera.project(scene.forward(r.state.pose, r.state.trans)[0].joints[0]).numpy()
                         for r in results])
+    if events is not None:
+        events += [e for r in results for e in r.events]
     return j2d, [r.terms for r in results]
 
 
@@ -390,6 +393,112 @@ def test_detected_joints_pull_the_body(clip, model, tmp_path):
     assert not any("keypoints" in t for t in blind[1])
     print("median 2D joint error px with E_j", err(seen), "without", err(blind))
     assert err(seen) < 3.0 and err(seen) < 0.5 * err(blind), (err(seen), err(blind))
+
+
+def _detector_joints2d(seq, model, frame):
+    """The true body's joints of ``frame`` where the detector puts them (pixels, (24, 2))."""
+    from flowmocap.vision.keypoint_map import detector_points
+
+    scene = Scene(model, _f32(seq.gt["betas"])[None], seq.camera)
+    with torch.no_grad():
+        out, _, _ = scene.forward(_f32(seq.gt["poses"][frame]), _f32(seq.gt["trans"][frame]))
+        return scene, scene.camera.project(detector_points(out, TrackerConfig())[0]).double().numpy()
+
+
+def test_a_joint_is_lost_when_a_confident_detection_is_far_and_not_swapped(clip, model):
+    from flowmocap.body.skeleton import JOINT_NAMES
+    from flowmocap.fit.tracker import lost_joints
+
+    seq = load_sequence(clip)
+    scene, pts = _detector_joints2d(seq, model, 3)
+    state = FrameState(_f32(seq.gt["poses"][3]), _f32(seq.gt["trans"][3]))
+    cfg = TrackerConfig()  # keypoint_sigma 20 px: far is beyond 25 px
+    rw, lw = JOINT_NAMES.index("right_wrist"), JOINT_NAMES.index("left_wrist")
+    conf = np.ones(24)
+    assert not lost_joints(scene, state, (pts, conf), cfg).any()
+    moved = pts.copy()
+    moved[rw] += [30.0, -10.0]
+    assert np.flatnonzero(lost_joints(scene, state, (moved, conf), cfg)).tolist() == [rw]
+    assert not lost_joints(scene, state, (moved, np.where(np.arange(24) == rw, 0.8, 1.0)), cfg).any()  # not confident
+    near = pts.copy()
+    near[rw] += [20.0, 10.0]  # 22 px: within 1.25 sigma
+    assert not lost_joints(scene, state, (near, conf), cfg).any()
+    swapped = pts.copy()
+    swapped[[rw, lw]] = pts[[lw, rw]]  # a detector's left/right swap is not a lost joint
+    assert np.linalg.norm(pts[rw] - pts[lw]) > 30.0
+    assert not lost_joints(scene, state, (swapped, conf), cfg).any()
+    assert not lost_joints(scene, state, None, cfg).any()
+
+
+def test_a_held_joint_has_the_hold_scale_and_weight_in_e_j(clip, model):
+    from flowmocap.fit.joint_terms import keypoint_energy_world
+    from flowmocap.fit.objective import keypoint_term
+    from flowmocap.vision.keypoint_map import detector_points
+
+    seq = load_sequence(clip)
+    scene, pts = _detector_joints2d(seq, model, 3)
+    rng = np.random.default_rng(5)
+    obs = pts + rng.normal(scale=30.0, size=pts.shape)
+    conf = rng.uniform(0.5, 1.0, 24)
+    conf[[10, 11]] = 0.0
+    cfg = TrackerConfig(keypoint_hold_sigma=70.0, keypoint_hold_weight=3.0)
+    hold = np.zeros(24, bool)
+    hold[[5, 21]] = True
+    with torch.no_grad():
+        out, _, _ = scene.forward(_f32(seq.gt["poses"][3]), _f32(seq.gt["trans"][3]))
+        points = detector_points(out, cfg)
+        got = keypoint_term(scene, out, (obs, conf), 20.0, cfg, hold=hold)
+        want = keypoint_energy_world(points, scene.camera, obs, np.where(hold, 3.0 * conf, conf),
+                                     np.where(hold, 70.0, 20.0), factor=1.0 / 22)[0]
+        plain = keypoint_term(scene, out, (obs, conf), 20.0, cfg)
+    assert float(got) == float(want) and float(got) != float(plain)
+    assert float(keypoint_term(scene, out, (obs, conf), 20.0, cfg, hold=np.zeros(24, bool))) == float(plain)
+
+
+def test_a_joint_lost_for_several_frames_is_held_to_its_detection(clip, model, tmp_path):
+    """A confident detection that the fit stays far from (here a detector 40 px off on the
+    right wrist, the only cue on it besides flow and silhouette) gets a wider E_j scale
+    after ``keypoint_hold_frames`` frames, which pulls the wrist towards it; the counts
+    are part of the tracker's state (resume)."""
+    from flowmocap.body.skeleton import JOINT_NAMES
+
+    seq = load_sequence(clip)
+    rw = JOINT_NAMES.index("right_wrist")
+    det = []
+    for i in range(FRAMES):
+        pts = _detector_joints2d(seq, model, i)[1]
+        pts[rw] += [-40.0, 0.0]  # away from the left wrist (+40 would land on it here: a swap)
+        det.append(pts)
+    conf = np.ones(24)
+    conf[[10, 11, 22, 23]] = 0.0
+    runs = {}
+    for K in (0, 2):
+        cfg = TrackerConfig(keypoint_hold_frames=K)
+        events = []
+        j2d, terms = _track_direct(seq, tmp_path / f"k{K}", model, cfg, "0:8", keypoints=lambda i: (det[i], conf),
+                                   events=events)
+        runs[K] = (j2d, [e for e in events if e["event"] == "held lost joints to the detector"])
+    assert runs[0][1] == []
+    held = runs[2][1]
+    assert [e["frame"] for e in held] == [4, 5, 6, 7] and all(e["joints"] == [rw] for e in held)
+    assert held[0]["frames_lost"] == [2]
+    truth = np.stack(_true_joints2d(seq, model)[2:8])
+    gap = {K: np.linalg.norm(runs[K][0][:, rw] - truth[:, rw], axis=-1) for K in runs}  # towards -40 px in x
+    print("right wrist px from the truth, no hold / hold:", gap[0].round(1), gap[2].round(1))
+    assert gap[2][-1] > gap[0][-1] + 2.0 and gap[2][-1] > gap[2][1] + 2.0  # (flow and silhouette hold it too)
+    np.testing.assert_allclose(runs[2][0][:2], runs[0][0][:2], atol=1e-4)  # the same until the hold
+
+    scene = Scene(model, _f32(seq.gt["betas"])[None], seq.camera)
+    tracker = SequenceTracker(scene, TrackerConfig())
+    tracker.start(*(FrameState(_f32(seq.gt["poses"][k]), _f32(seq.gt["trans"][k])) for k in (0, 1)), anchored=True)
+    tracker.lost[rw] = 7
+    again = SequenceTracker(scene, TrackerConfig())
+    again.load_state_dict(json.loads(json.dumps(tracker.state_dict())))
+    assert again.lost[rw] == 7 and again.lost.sum() == 7
+    data = frame_data(seq.mask(2), None, TrackerConfig(), float("nan"), keypoint_observation(det[2], conf))
+    assert np.flatnonzero(again.keypoint_hold(data)).tolist() == [rw]
+    assert SequenceTracker(scene, TrackerConfig(keypoint_hold_frames=0)).keypoint_hold(data) is None
+    assert SequenceTracker(scene, TrackerConfig()).keypoint_hold(data) is None  # nothing lost yet
 
 
 def test_keypoint_observation_checks():

@@ -80,6 +80,8 @@ _RANGES: dict[str, str] = {
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
     "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
+    "keypoint_hold_sigma": _ABOVE_0, "keypoint_hold_weight": _AT_LEAST_0,
+    "keypoint_hold_frames": _AT_LEAST_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
@@ -132,6 +134,10 @@ class TrackerConfig:
     #                                    (1e-4, once --fast, on all three suites: docs/settings.md "Speed")
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
+    keypoint_hold_frames: int = 5      # a joint whose confident detection the fit has been far from (and
+    #                                    not swapped) for this many frames in a row gets ...; 0: off
+    keypoint_hold_sigma: float = 80.0  # ... this E_j scale, px, and ...
+    keypoint_hold_weight: float = 4.0  # ... its weight times this until it is back (fit.tracker.lost_joints)
     detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
     #                                    every frame too (E_j, and refits where tracking fails)
     keypoint_offsets: bool = True      # compare the body with the detector's joints where the detector

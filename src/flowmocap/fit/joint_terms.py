@@ -31,7 +31,6 @@ __all__ = ["keypoint_energy_world", "limb_depth_energy_world"]
 @njit(cache=True, nogil=True, error_model="numpy")
 def _keypoint_kernel(P, R, t, f, c, obs, conf, sigma, energy, grad):  # pragma: no cover - compiled
     B, N = P.shape[0], P.shape[1]
-    s2 = sigma * sigma
     for b in range(B):
         e = 0.0
         for j in range(N):
@@ -39,6 +38,7 @@ def _keypoint_kernel(P, R, t, f, c, obs, conf, sigma, energy, grad):  # pragma: 
                 grad[b, j, a] = 0.0
             if conf[j] <= 0.0:
                 continue
+            s2 = sigma[j] * sigma[j]
             pc = np.zeros(3)
             for a in range(3):
                 pc[a] = R[a, 0] * P[b, j, 0] + R[a, 1] * P[b, j, 1] + R[a, 2] * P[b, j, 2] + t[a]
@@ -105,7 +105,7 @@ def _camera_arrays(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
             np.array([camera.fx, camera.fy], np.float64), np.array([camera.cx, camera.cy], np.float64))
 
 
-def keypoint_energy_world(points: torch.Tensor, camera, obs: np.ndarray, conf: np.ndarray, sigma: float,
+def keypoint_energy_world(points: torch.Tensor, camera, obs: np.ndarray, conf: np.ndarray, sigma,
                           factor: float = 1.0) -> torch.Tensor:
     """``factor * sum_j conf_j sum_a rho(p_ja - obs_ja)``, ``(B,)`` px^2 in ``points``' dtype.
 
@@ -115,13 +115,17 @@ def keypoint_energy_world(points: torch.Tensor, camera, obs: np.ndarray, conf: n
             ``fx``, ``fy``, ``cx``, ``cy``).
         obs: ``(N, 2)`` detected pixels, finite where ``conf > 0``.
         conf: ``(N,)`` non-negative weights (0: missing).
-        sigma: Geman-McClure scale, pixels (> 0).
+        sigma: Geman-McClure scale, pixels (> 0): one for every point, or ``(N,)`` one each.
         factor: multiplies the energy.
     """
     R, t, f, c = _camera_arrays(camera)
+    n = np.shape(obs)[0]
+    s = np.full(n, float(sigma)) if np.ndim(sigma) == 0 else np.ascontiguousarray(sigma, np.float64).reshape(-1)
+    if s.shape != (n,):
+        raise ValueError(f"sigma must be a number or one per point ({n}); got shape {np.shape(sigma)}")
     return _compiled(points, _keypoint_kernel,
                            (R, t, f, c, np.ascontiguousarray(obs, np.float64), np.ascontiguousarray(conf, np.float64),
-                            float(sigma)), float(factor))
+                            s), float(factor))
 
 
 def limb_depth_energy_world(points: torch.Tensor, rotation: np.ndarray, limbs: np.ndarray, oz: np.ndarray,

@@ -111,6 +111,7 @@ class FrameData:
     anchor: torch.Tensor | None = None  # (72,) pose of the track's first frame for E_a, or None
     joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d and E_3d, or None
     depth_ref: tuple | None = None  # (ref_trans (3,) m, unit viewing ray (3,)) for E_z, or None
+    keypoint_hold: np.ndarray | None = None  # (24,) bool: joints E_j holds (SequenceTracker.keypoint_hold), or None
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
@@ -210,7 +211,7 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
     if data.keypoints is not None and cfg.keypoint_weight > 0:
         points = detector_points(out, cfg)
         terms["keypoints"] = cfg.keypoint_weight * keypoint_term(scene, out, data.keypoints, cfg.keypoint_sigma, cfg,
-                                                                 points=points)
+                                                                 points=points, hold=data.keypoint_hold)
     if data.anchor is not None and cfg.anchor_weight > 0:
         terms["anchor"] = cfg.anchor_weight * en.pose_prior_energy(state.pose.reshape(1, 72),
                                                                    data.anchor.reshape(1, 72))[0]
@@ -238,19 +239,26 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
 
 
 def keypoint_term(scene: Scene, out, keypoints: tuple, sigma: float, cfg: TrackerConfig | None = None,
-                  points: torch.Tensor | None = None) -> torch.Tensor:
+                  points: torch.Tensor | None = None, hold: np.ndarray | None = None) -> torch.Tensor:
     """``E_j``: robust squared pixel distance (Geman-McClure, scale ``sigma`` px) between the
     model's projected joints and detected ones, confidence-weighted, per confident joint
     (px^2; a whole-body shift of d px costs about d^2, like ``E_f`` per person pixel).
     The model's joints are moved to where the detector puts them
     (:func:`~flowmocap.vision.keypoint_map.detector_points`) when ``cfg.keypoint_offsets``;
-    ``points`` ``(1, 24, 3)`` gives those points when they are already made."""
+    ``points`` ``(1, 24, 3)`` gives those points when they are already made. ``hold``
+    ``(24,)`` bool: joints the tracker holds (:meth:`~flowmocap.fit.tracker.SequenceTracker.keypoint_hold`):
+    scale ``cfg.keypoint_hold_sigma`` and weight times ``cfg.keypoint_hold_weight``."""
     j2d, conf = keypoints
     c = conf.detach().to(torch.float64).numpy() if isinstance(conf, torch.Tensor) else np.asarray(conf, np.float64)
     obs = j2d.detach().to(torch.float64).numpy() if isinstance(j2d, torch.Tensor) else np.asarray(j2d, np.float64)
     n = float((c > 0).sum())
     missing = ~np.isfinite(obs).all(-1)  # counts as not detected, as in keypoint_residuals
     c, obs = np.where(missing, 0.0, c), np.where(missing[:, None], 0.0, obs)
+    if hold is not None and np.any(hold):
+        cfg = cfg if cfg is not None else TrackerConfig()
+        hold = np.asarray(hold, bool)
+        sigma = np.where(hold, cfg.keypoint_hold_sigma, sigma)
+        c = np.where(hold, c * cfg.keypoint_hold_weight, c)
     # keypoint_energy of the projected points, in one compiled pass with its gradient
     points = detector_points(out, cfg) if points is None else points
     return keypoint_energy_world(points, scene.camera, obs, c, sigma, factor=1.0 / n)[0]

@@ -7,8 +7,11 @@ pyramid (the stages of :class:`~flowmocap.fit.config.TrackerConfig`), with the s
 fixed after initialisation, ``E_theta`` towards the predicted pose and ``E_z`` (when on)
 the root's depth towards the previous (or the predicted) translation; with ``flip_test``
 each limb's mirror image in depth is then tried (:mod:`flowmocap.fit.flip`) and kept
-where the frame's energy is lower; the result updates the filters. :class:`SequenceTracker` holds the state between frames (``start``,
-``step``, ``state_dict`` for resuming); :func:`track_frames` runs the loop over a frame
+where the frame's energy is lower; the result updates the filters. A joint whose confident
+detection the fit has stayed far from for ``keypoint_hold_frames`` frames (:func:`lost_joints`)
+is held: ``E_j`` gives it a wider scale and more weight until it is back, so the robust
+term does not let go of it for good. :class:`SequenceTracker` holds the state between
+frames (``start``, ``step``, ``state_dict`` for resuming); :func:`track_frames` runs the loop over a frame
 range, preparing the next frame's observations on a second thread while the current one
 is optimised. Reading inputs and writing results is the caller's job
 (:mod:`flowmocap.pipeline`).
@@ -33,6 +36,7 @@ from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
 from flowmocap.render import body_mask
+from flowmocap.vision.keypoint_map import detector_points
 
 
 @dataclass
@@ -106,6 +110,47 @@ def _tensor(x) -> torch.Tensor:
     return torch.as_tensor(np.asarray(x, np.float32))
 
 
+#: ``E_j``'s hold on a joint the fit has lost (``cfg.keypoint_hold_frames``): a detection
+#: at least this confident, further than :data:`HOLD_FAR` times ``keypoint_sigma`` from the
+#: fit's joint and further than :data:`HOLD_SWAP` times it from the fit's other-side joint
+#: (a detector's left/right swap is not followed), counts as a frame the joint is lost.
+HOLD_CONFIDENCE = 0.9
+HOLD_FAR = 1.25
+HOLD_SWAP = 0.75
+
+
+def _mirror_joints() -> np.ndarray:
+    from flowmocap.body.skeleton import JOINT_NAMES
+
+    def other(name: str) -> str:
+        for a, b in (("left_", "right_"), ("right_", "left_")):
+            if name.startswith(a):
+                return b + name[len(a):]
+        return name
+
+    return np.array([JOINT_NAMES.index(other(n)) for n in JOINT_NAMES])
+
+
+def lost_joints(scene: Scene, state: FrameState, keypoints: tuple | None, cfg: TrackerConfig) -> np.ndarray:
+    """``(24,)`` bool: the joints whose confident detection the fitted body at ``state``
+    is far from (see :data:`HOLD_CONFIDENCE`), in the detector's convention
+    (:func:`~flowmocap.vision.keypoint_map.detector_points`); all False without detections.
+
+    Args:
+        keypoints: the frame's ``(j2d (24, 2) px, conf (24,))`` (``FrameData.keypoints``).
+    """
+    if keypoints is None:
+        return np.zeros(24, bool)
+    j2d, conf = (np.asarray(k.detach().numpy() if isinstance(k, torch.Tensor) else k, np.float64) for k in keypoints)
+    with torch.no_grad():
+        out, _, _ = scene.forward(state.pose, state.trans)
+        p = scene.camera.project(detector_points(out, cfg)[0]).double().numpy()
+    d = np.linalg.norm(p - j2d, axis=1)
+    d_other = np.linalg.norm(p[_mirror_joints()] - j2d, axis=1)
+    sigma = cfg.keypoint_sigma
+    return (conf >= HOLD_CONFIDENCE) & (d > HOLD_FAR * sigma) & (d_other > HOLD_SWAP * sigma)
+
+
 class SequenceTracker:
     """The tracker's state between frames of one sequence.
 
@@ -129,6 +174,7 @@ class SequenceTracker:
         self.prev: FrameState | None = None
         self.anchor: FrameState | None = None  # E_a's reference (the first frame), None for no E_a
         self.kf: PoseFilter | None = None
+        self.lost = np.zeros(24, np.int64)  # frames in a row each joint's detection was far from the fit
 
     def start(self, first: FrameState, second: FrameState, anchored: bool) -> None:
         """Begin after the first two frames. ``anchored``: the start is one someone vouched
@@ -147,6 +193,7 @@ class SequenceTracker:
             "anchor": None if self.anchor is None else self.anchor.pose.tolist(),
             "kalman": None if self.kf is None else self.kf.state_dict(),
             "monitor": self.monitor.state_dict() if hasattr(self.monitor, "state_dict") else None,
+            "lost_joints": self.lost.tolist(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -157,6 +204,8 @@ class SequenceTracker:
         self.kf = PoseFilter.from_state_dict(state["kalman"]) if self.cfg.kalman and state.get("kalman") else None
         if state.get("monitor") is not None and hasattr(self.monitor, "load_state_dict"):
             self.monitor.load_state_dict(state["monitor"])
+        # a state stored before the hold existed: the counts start again
+        self.lost = np.asarray(state.get("lost_joints", np.zeros(24)), np.int64)
 
     def predict(self) -> FrameState:
         """The Kalman prediction of the next frame (the previous frame without filters)."""
@@ -181,6 +230,11 @@ class SequenceTracker:
             mask = None
         if mask is None:
             data.person_pixels = max(person_pixels(self.scene, prev), 1.0)
+        data.keypoint_hold = self.keypoint_hold(data)
+        if data.keypoint_hold is not None:
+            held = np.flatnonzero(data.keypoint_hold)
+            events.append({"frame": i, "event": "held lost joints to the detector", "joints": [int(j) for j in held],
+                           "frames_lost": [int(self.lost[j]) for j in held]})
         ref = pred  # E_theta's reference: the start of the optimisation
         try:
             state, terms = track_frame(self.scene, pred, data, self.cfg, prev)
@@ -209,8 +263,21 @@ class SequenceTracker:
                 self.kf = new_filter(state.pose.numpy(), state.trans.numpy(), self.cfg)
         elif self.kf is not None:
             self.kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
+        if self.cfg.keypoint_hold_frames > 0 and self.cfg.keypoint_weight > 0:
+            self.lost = np.where(lost_joints(self.scene, state, data.keypoints, self.cfg), self.lost + 1, 0)
         self.prev = state
         return FrameResult(i, state, terms, events, time.perf_counter() - t0)
+
+    def keypoint_hold(self, data: FrameData) -> np.ndarray | None:
+        """``(24,)`` bool: the joints ``E_j`` holds in the next frame (``FrameData.keypoint_hold``:
+        scale ``keypoint_hold_sigma``, weight times ``keypoint_hold_weight``), those whose
+        confident detection the fit has been far from for ``keypoint_hold_frames`` frames
+        in a row and that are detected in this frame; None when none is (or the hold is off)."""
+        K = self.cfg.keypoint_hold_frames
+        if K <= 0 or data.keypoints is None or self.cfg.keypoint_weight <= 0:
+            return None
+        held = (self.lost >= K) & (data.keypoints[1].numpy() > 0)
+        return held if held.any() else None
 
 
 def track_frames(tracker: SequenceTracker, frames: range, observe: Callable[[int], tuple],
