@@ -36,6 +36,7 @@ def test_bench_quick_on_a_tiny_clip_writes_table_and_json(tmp_path, capsys):
     md = (out / "bench.md").read_text()
     assert "| flowmocap |" in md and "| baseline |" in md and data["commit"] in md
     assert "| flowmocap |" in capsys.readouterr().out
+    assert not list(out.rglob("flow_*.npz"))  # a suite keeps no observed flows (2.5 MB a frame)
     # re-running resumes: nothing is recomputed
     main(["bench", "--suite", "quick", "--out", str(out), "--config", str(cfg), *FAST])
     assert "not recomputed" in capsys.readouterr().out

@@ -227,7 +227,9 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
     """Run one method on one sequence into ``res_dir`` (resuming an unfinished run).
 
     With ``record_memory`` the process's peak resident memory is added to ``run.json``
-    as ``peak_rss_mb`` (meaningful when the method had the process to itself).
+    as ``peak_rss_mb`` (meaningful when the method had the process to itself). The
+    observed flows are not kept (2.5 MB a frame: a diverse suite's would take 4 GB; a
+    resumed run computes the rest again, the same).
     """
     seq = load_sequence(seq_dir)
     res = Path(res_dir)
@@ -235,7 +237,7 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
     gender = str(seq.meta.get("gender", "neutral"))
     if method == "flowmocap":
         track(seq_dir, res, init=init, config=tracker_config or None, resume=resume, progress=progress,
-              gender=gender, log=None)
+              gender=gender, log=None, keep_flow=False)
     elif method == "baseline":
         spec = parse_init(init, *seq.size)
         model = load_body_model("default", gender=gender)
