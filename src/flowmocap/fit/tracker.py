@@ -35,6 +35,7 @@ from flowmocap.fit.flip import flip_limbs
 from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
+from flowmocap.fit.pose_prior import MIRROR_JOINTS
 from flowmocap.render import body_mask
 from flowmocap.vision.keypoint_map import detector_points
 
@@ -119,18 +120,6 @@ HOLD_FAR = 1.25
 HOLD_SWAP = 0.75
 
 
-def _mirror_joints() -> np.ndarray:
-    from flowmocap.body.skeleton import JOINT_NAMES
-
-    def other(name: str) -> str:
-        for a, b in (("left_", "right_"), ("right_", "left_")):
-            if name.startswith(a):
-                return b + name[len(a):]
-        return name
-
-    return np.array([JOINT_NAMES.index(other(n)) for n in JOINT_NAMES])
-
-
 def lost_joints(scene: Scene, state: FrameState, keypoints: tuple | None, cfg: TrackerConfig) -> np.ndarray:
     """``(24,)`` bool: the joints whose confident detection the fitted body at ``state``
     is far from (see :data:`HOLD_CONFIDENCE`), in the detector's convention
@@ -146,7 +135,7 @@ def lost_joints(scene: Scene, state: FrameState, keypoints: tuple | None, cfg: T
         out, _, _ = scene.forward(state.pose, state.trans)
         p = scene.camera.project(detector_points(out, cfg)[0]).double().numpy()
     d = np.linalg.norm(p - j2d, axis=1)
-    d_other = np.linalg.norm(p[_mirror_joints()] - j2d, axis=1)
+    d_other = np.linalg.norm(p[list(MIRROR_JOINTS)] - j2d, axis=1)
     sigma = cfg.keypoint_sigma
     return (conf >= HOLD_CONFIDENCE) & (d > HOLD_FAR * sigma) & (d_other > HOLD_SWAP * sigma)
 
