@@ -27,7 +27,7 @@ def main() -> int:
     ap.add_argument("input")
     ap.add_argument("detections", help="a result folder's detections/ made at the same --max-size")
     ap.add_argument("work", help="result folder to write (replaced)")
-    ap.add_argument("--max-size", type=int, default=1280)
+    ap.add_argument("--max-size", type=int, default=640)
     ap.add_argument("--config", help="tracker settings JSON")
     ap.add_argument("--out", help="JSON to write (default WORK_attempts.json)")
     args = ap.parse_args()

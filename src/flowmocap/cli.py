@@ -164,8 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--focal", type=float, help="focal length in pixels of the video's frames (default: from the "
                    "video's metadata, else 0.9 x the long side, a 58 degree field of view)")
     t.add_argument("--camera", help="camera.json (default: INPUT/camera.json)")
-    t.add_argument("--max-size", type=int, default=1280, help="scale video frames down so that the long side is "
-                   "at most this many pixels (default 1280; 0 keeps the video's size)")
+    t.add_argument("--max-size", type=int, default=640, help="scale video frames (and a plain folder's frames) down "
+                   "so that the long side is at most this many pixels (default 640; 0 keeps their size)")
     t.add_argument("--no-reinit", action="store_true", help="do not re-initialise from the detector when "
                    "tracking fails (re-initialisation runs when the detector is used, i.e. with automatic init or masks)")
     t.add_argument("--joints3d", default="auto", choices=["auto", "off"], help="'auto' (default): the detector's "

@@ -184,7 +184,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           camera=None, config: dict | str | Path | None = None, frames: str | tuple | None = None,
           resume: bool = False, progress: bool = True, profile: str | None = None,
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
-          max_size: int | None = 1280, reinit: bool = True, joints3d: str = "auto",
+          max_size: int | None = 640, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
           force: bool = False, keep_flow: bool | None = None, fast: bool = False) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
@@ -220,8 +220,10 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         model: ``"default"`` (the bundled body), an SMPL ``.pkl``/``.npz`` or folder, or a
             loaded :class:`~flowmocap.body.BodyModel`; gender: for the model file.
         flow: the observed-flow method (default: the settings' ``flow_method``).
-        max_size: scale video frames down so the long side is at most this many pixels
-            (None or 0: keep the size).
+        max_size: scale video frames, and the frames of a folder without its own
+            ``camera.json`` or ``gt.npz``, down so the long side is at most this many pixels
+            (None or 0: keep the size). The default, 640, is the size the benchmarks track
+            real video at: the time of a frame grows with the person's pixels.
         reinit: re-initialise from the detector where tracking fails (when it runs).
         joints3d: ``"auto"``: the detector's 3D joints pull each limb's direction in depth
             (``E_d``), running the detector for them alone if nothing else needs it (and,
@@ -306,7 +308,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                          "(--force) to start it over, or choose another folder.")
     user_masks = None if masks in (None, "auto") else masks
     is_video = src.is_file() or src.suffix.lower() in VIDEO_SUFFIXES
-    seq = load_video(src, masks=user_masks, max_side=max_size or None) if is_video else load_sequence(src, masks=user_masks)
+    seq = load_video(src, masks=user_masks, max_side=max_size or None) if is_video else load_sequence(src, masks=user_masks, max_side=max_size or None)
     if len(seq) < 2:
         raise InputError(f"{src} holds only {len(seq)} frame; tracking needs at least 2 frames "
                          "(the flow is measured between neighbouring frames).")
@@ -393,6 +395,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
                                                    "scale", "focal_35mm", "timestamps") if k in seq.meta}
         notes["video"]["max_side"] = max_size or None
+    elif seq.source_size is not None:  # a folder of frames scaled like a video's
+        notes["frames_scaled"] = {"size": list(seq.size), "source_size": list(seq.source_size),
+                                  "scale": seq.meta["scale"], "max_side": max_size}
 
     keypoints = j3d = None
     watch = detections  # the detections the re-initialisation compares each frame with

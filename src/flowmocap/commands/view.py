@@ -92,7 +92,7 @@ class ViewerData:
                 continue
             try:
                 seq = (load_video(p, max_side=max(cam.width, cam.height))
-                       if p.is_file() or p.suffix.lower() in VIDEO_SUFFIXES else load_sequence(p))
+                       if p.is_file() or p.suffix.lower() in VIDEO_SUFFIXES else load_sequence(p, max_side=max(cam.width, cam.height)))
             except DataError:
                 return None
             if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.motion.frame_index.max()):

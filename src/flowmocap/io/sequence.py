@@ -34,7 +34,9 @@ class Sequence:
         camera: the camera, or ``None`` when the folder has no camera.json.
         gt: ground-truth arrays from gt.npz (empty dict when absent).
         meta: meta.json contents (empty dict when absent).
-        size: ``(width, height)`` of the frames in pixels.
+        size: ``(width, height)`` of the frames in pixels (as :meth:`frame` returns them).
+        source_size: ``(width, height)`` of the image files when :func:`load_sequence`
+            scales them down to ``size`` (``max_side``), else ``None``.
     """
 
     root: Path
@@ -44,20 +46,51 @@ class Sequence:
     gt: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     size: tuple[int, int] = (0, 0)
+    source_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def frame(self, i: int) -> np.ndarray:
-        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB."""
-        return read_image(self.frames[i], self.size)
+        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB (scaled to :attr:`size`)."""
+        if self.source_size is None:
+            return read_image(self.frames[i], self.size)
+        return _scaled(read_image(self.frames[i], self.source_size), self.size)
 
     def mask(self, i: int) -> np.ndarray | None:
-        """Mask ``i`` as ``(H, W)`` bool, or ``None`` without masks."""
+        """Mask ``i`` as ``(H, W)`` bool, or ``None`` without masks. With scaled frames a
+        mask may have the files' size (scaled too: a pixel is the person's where most of
+        the area it covers is) or the scaled size (e.g. the detector's masks)."""
         if self.masks is None:
             return None
-        m = read_image(self.masks[i], self.size, gray=True)
+        if self.source_size is None:
+            return read_image(self.masks[i], self.size, gray=True) > 0
+        m = read_image(self.masks[i], None, gray=True)
+        if (m.shape[1], m.shape[0]) == tuple(self.source_size):
+            return _scaled(((m > 0) * np.uint8(255)), self.size) >= 128
+        if (m.shape[1], m.shape[0]) != tuple(self.size):
+            raise DataError(f"{self.masks[i]} is {m.shape[1]}x{m.shape[0]} but the frames are "
+                            f"{self.source_size[0]}x{self.source_size[1]} (scaled to {self.size[0]}x{self.size[1]}); "
+                            "give masks of the frames' size.")
         return m > 0
+
+
+def _scaled(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``img`` resized to ``size = (width, height)`` by area averaging (OpenCV)."""
+    import cv2
+
+    return cv2.resize(img, tuple(int(v) for v in size), interpolation=cv2.INTER_AREA)
+
+
+def scaled_size(size: tuple[int, int], max_side: int | None) -> tuple[tuple[int, int], float]:
+    """``(width, height)`` scaled so that the long side is at most ``max_side`` pixels
+    (as videos are, :class:`flowmocap.io.video.VideoReader`), and the scale; ``size``
+    and 1.0 when it already fits or ``max_side`` is None or 0."""
+    w, h = (int(v) for v in size)
+    if not max_side or max(w, h) <= max_side:
+        return (w, h), 1.0
+    s = max_side / max(w, h)
+    return (max(1, round(w * s)), max(1, round(h * s))), s
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -86,12 +119,16 @@ def read_image(path: Path, size: tuple[int, int] | None = None, gray: bool = Fal
     return img
 
 
-def load_sequence(path: str | Path, masks: str | Path | None = None) -> Sequence:
+def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: int | None = None) -> Sequence:
     """Open a sequence folder, or a plain folder of frames.
 
     Args:
         path: a sequence folder (with ``frames/``) or a folder of images.
-        masks: a folder of masks overriding ``path/masks``.
+        masks: a folder of masks overriding ``path/masks`` (at the frames' size).
+        max_side: scale the frames (and masks) so that the long side is at most this many
+            pixels, as videos are; None or 0 keeps them. A folder with its own
+            ``camera.json`` or ``gt.npz`` (e.g. made by ``flowmocap synth``) keeps its size:
+            its camera and ground truth are in its pixels. ``meta["scale"]`` is the scale.
 
     Raises:
         DataError: no frames, unreadable files, mask count or size not matching.
@@ -131,4 +168,11 @@ def load_sequence(path: str | Path, masks: str | Path | None = None) -> Sequence
         with np.load(root / "gt.npz", allow_pickle=False) as z:
             gt = {k: z[k] for k in z.files}
     meta = json.loads((root / "meta.json").read_text()) if (root / "meta.json").exists() else {}
-    return Sequence(root=root, frames=frames, masks=mask_paths, camera=camera, gt=gt, meta=meta, size=size)
+    source_size = None
+    if camera is None and not gt:
+        scaled, scale = scaled_size(size, max_side)
+        if scale != 1.0:
+            source_size, size = size, scaled
+            meta = {**meta, "scale": scaled[0] / source_size[0], "source_size": list(source_size), "max_side": max_side}
+    return Sequence(root=root, frames=frames, masks=mask_paths, camera=camera, gt=gt, meta=meta, size=size,
+                    source_size=source_size)

@@ -37,7 +37,7 @@ def _open_input(path: Path, camera):
     if path.is_file() or path.suffix.lower() in VIDEO_SUFFIXES:
         # a video tracked at a reduced size (track --max-size) is decoded at that size again
         return load_video(path, max_side=max(camera.width, camera.height))
-    return load_sequence(path)
+    return load_sequence(path, max_side=max(camera.width, camera.height))  # a folder tracked at a reduced size
 
 
 class ResultScene:
