@@ -1,6 +1,6 @@
 """Real videos with no manual input: automatic masks, automatic initialisation, tracking.
 
-    .venv/bin/python benchmarks/real_video.py [--work DIR] [--only davis|walk] [--config JSON]
+    .venv/bin/python benchmarks/real_video.py [--work DIR] [--only davis|walk] [--config JSON] [--fast]
         [--data DIR] [--out JSON]
 
 * DAVIS dance-twirl (90 frames, 854x480, hand-made masks): mean IoU of the automatic
@@ -43,7 +43,9 @@ def track(inp: Path, out: Path, extra: list[str]) -> float:
 
 
 def body_ious(out: Path, reference) -> list[float]:
-    """Silhouette IoU of the fitted body per tracked frame against ``reference(frame) -> mask``."""
+    """Silhouette IoU of the fitted body per tracked frame against ``reference(frame) -> mask``,
+    at the reference masks' size (the body is drawn with the tracked camera scaled to it when
+    the frames were tracked at a reduced size)."""
     from flowmocap.body import load_body_model
     from flowmocap.eval.metrics import render_silhouettes
     from flowmocap.geometry.camera import PinholeCamera
@@ -54,6 +56,10 @@ def body_ious(out: Path, reference) -> list[float]:
     model = load_body_model(run["model"] if run.get("model") and Path(run["model"]).exists() else "default",
                             gender=run["gender"])
     camera = PinholeCamera.from_dict(json.loads(str(motion["camera"])))
+    h, w = reference(int(motion["frame_index"][0])).shape
+    if (camera.width, camera.height) != (w, h):
+        sx, sy = w / camera.width, h / camera.height  # the image spans [0, W] x [0, H] (flowmocap.geometry.camera)
+        camera = PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, w, h, camera.R, camera.t)
     body = render_silhouettes(model, motion["poses"], motion["trans"], motion["betas"], camera)
     return mask_iou(body, np.stack([reference(int(f)) for f in motion["frame_index"]])).tolist()
 
@@ -68,7 +74,15 @@ def davis(work: Path, extra: list[str], data: Path = DATA) -> dict:
     seconds = track(clip / "JPEGImages", out, extra)
     gt = [load_mask(p) for p in sorted((clip / "Annotations").glob("*.png"))]
     det = load_detections(out)
-    auto_iou = mask_iou(np.stack([det.mask(i) for i in range(len(gt))]), np.stack(gt))
+    auto = np.stack([det.mask(i) for i in range(len(gt))])
+    if auto.shape[1:] != gt[0].shape:  # tracked at a reduced size: the hand-made masks scaled down alike
+        import cv2
+
+        gt_at = np.stack([cv2.resize(g.astype(np.uint8) * 255, auto.shape[:0:-1], interpolation=cv2.INTER_AREA) >= 128
+                          for g in gt])
+    else:
+        gt_at = np.stack(gt)
+    auto_iou = mask_iou(auto, gt_at)
     ious = body_ious(out, lambda f: gt[f])
     motion, run = read_result(out)
     return {
@@ -117,6 +131,7 @@ def main() -> int:
     p.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "real_video"))
     p.add_argument("--only", choices=["davis", "walk"])
     p.add_argument("--config", help="tracker settings JSON passed to flowmocap track --config")
+    p.add_argument("--fast", action="store_true", help="pass --fast to flowmocap track")
     p.add_argument("--max-size", type=int, default=640, help="--max-size for the 1768x994 walk (default 640)")
     p.add_argument("--data", default=str(DATA), help="folder holding davis-dance-twirl/ and sports2d-walk/")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "real_video.json"))
@@ -126,7 +141,7 @@ def main() -> int:
         print(f"shared data not found at {data}; nothing to do")
         return 1
     work = Path(args.work)
-    extra = ["--config", args.config] if args.config else []
+    extra = (["--config", args.config] if args.config else []) + (["--fast"] if args.fast else [])
     results = []
     if args.only in (None, "davis"):
         results.append(davis(work, extra, data))

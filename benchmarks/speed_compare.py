@@ -14,7 +14,7 @@ re-initialisations; then the medians over the CMU seeds and the new/old ratios. 
 table and writes JSON.
 
 Usage: python benchmarks/speed_compare.py --old CHECKOUT [--new CHECKOUT] [--seeds 0,1,2]
-       [--real davis,walk] [--old-config JSON] [--new-config JSON] [--work DIR]
+       [--real davis,walk] [--old-config JSON] [--new-config JSON] [--new-fast] [--work DIR]
        [--out benchmarks/results/speed_compare.json]
 
 ``--old-config`` / ``--new-config``: tracker settings (a JSON file, as ``flowmocap track
@@ -75,10 +75,10 @@ def cmu(checkout: Path, name: str, seed: int, work: Path, config: str | None = N
     return {"s_per_frame_median": r["s_per_frame_median"], "local_cm": r["local_cm"], "global_cm": r["global_cm"]}
 
 
-def real(checkout: Path, name: str, clip: str, work: Path, config: str | None = None) -> dict:
+def real(checkout: Path, name: str, clip: str, work: Path, config: str | None = None, fast: bool = False) -> dict:
     out = work / name / f"real_{clip}.json"
     _run(checkout, ["benchmarks/real_video.py", "--only", clip, "--work", str(work / name / "real"), "--out", str(out),
-                    *_config(config)],
+                    *_config(config), *(["--fast"] if fast else [])],
          work / name / f"real_{clip}.log")
     r = json.loads(out.read_text())["results"][0]
     return {"clip": r["clip"], "tracked_frames": r["tracked_frames"], "seconds": r["seconds"],
@@ -95,6 +95,8 @@ def main() -> int:
     ap.add_argument("--real", default="davis,walk", help="real clips (real_video.py --only); '' for none")
     ap.add_argument("--old-config", help="tracker settings JSON for the old side's runs")
     ap.add_argument("--new-config", help="tracker settings JSON for the new side's runs")
+    ap.add_argument("--new-fast", action="store_true", help="the new side's real clips with flowmocap track --fast "
+                    "(its detector settings too; a config cannot say those)")
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "work" / "speed_compare"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "speed_compare.json"))
     args = ap.parse_args()
@@ -116,7 +118,8 @@ def main() -> int:
                                                 rows["cmu"][seed].items()), flush=True)
     for k, clip in enumerate(clips):
         order = ("old", "new") if k % 2 == 0 else ("new", "old")
-        rows["real"][clip] = {name: real(trees[name], name, clip, work, configs[name]) for name in order}
+        rows["real"][clip] = {name: real(trees[name], name, clip, work, configs[name], name == "new" and args.new_fast)
+                              for name in order}
         print(f"{clip}: " + ", ".join(f"{n} {r['s_per_frame_mean']:.3f} s/frame" for n, r in
                                       rows["real"][clip].items()), flush=True)
 
@@ -151,7 +154,7 @@ def main() -> int:
         print(f"{'mean over the clips':<26}{mean['old']:>10.3f}{mean['new']:>10.3f}{summary['real_ratio']:>8.2f}")
     out = {"benchmark": "speed_compare",
            "old": {"path": str(trees["old"]), "commit": _commit(trees["old"]), "config": configs["old"]},
-           "new": {"path": str(trees["new"]), "commit": _commit(trees["new"]), "config": configs["new"]},
+           "new": {"path": str(trees["new"]), "commit": _commit(trees["new"]), "config": configs["new"], "fast": bool(args.new_fast)},
            "seeds": seeds, "clips": clips,
            "rows": {"cmu": {str(k): v for k, v in rows["cmu"].items()}, "real": rows["real"]}, "summary": summary,
            "wall_s": time.perf_counter() - t0, "load_average_end": os.getloadavg()}
