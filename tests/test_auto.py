@@ -200,6 +200,31 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     assert run["config"]["iterations"] == 4
 
 
+@pytest.mark.parametrize("fast, made", [(False, [True, False]), (True, [False, False])])
+def test_fast_runs_the_detector_without_its_mask_augmentation(small_clip, tmp_path, monkeypatch, fast, made):
+    """--fast: the detector without the mask augmentation (augment=False); the searcher
+    for other people (also augment=False) stays either way."""
+    import flowmocap
+    import flowmocap.vision.detect as detect
+    from flowmocap.io.sequence import load_sequence
+
+    built = []
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
+    monkeypatch.setattr(detect, "MediaPipePoseDetector",
+                        lambda augment=True: built.append(augment) or GroundTruthDetector(load_sequence(small_clip)))
+    res = flowmocap.track(small_clip, tmp_path / "out", masks="auto", frames="0:3", log=None, progress=False,
+                          config={"init_iterations": 4, "init_flow_iterations": 2, "iterations": 2}, fast=fast)
+    assert len(res) == 3 and np.isfinite(res.poses).all()
+    assert built == made
+
+
+def test_unknown_detector_name_is_refused(tmp_path):
+    from flowmocap.errors import InputError
+
+    with pytest.raises(InputError, match="'plain', 'unaugmented'"):
+        detect_sequence(Frames(3), tmp_path, detector="quick", progress=False)
+
+
 class WorldDetector(GroundTruthDetector):
     """Ground-truth keypoints plus their 3D positions in the camera's axes about the hips."""
 

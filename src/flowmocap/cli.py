@@ -191,9 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for videos: "
                    "about 2.5 MB a frame at 640x480)")
     t.add_argument("--fast", action="store_true", help="faster, at some cost in the 2D fit: every optimisation "
-                   "stops at a coarser stall, refits take fewer iterations and a refit turned down waits longer "
-                   "before the next; about 0.9x the time on real video, 0.95x on synthetic clips (docs/settings.md "
-                   "has the measurements)")
+                   "stops at a coarser stall, refits take fewer iterations, a refit turned down waits longer "
+                   "before the next and the detector runs without its mask augmentation (docs/settings.md has the "
+                   "measurements)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
     t.add_argument("--quiet", action="store_true", help="no progress bars")

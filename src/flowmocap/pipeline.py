@@ -245,9 +245,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             for frame folders, not for videos, whose flows would fill the disk (a resume and
             ``render`` compute them again, giving the same values).
         fast: the :data:`~flowmocap.fit.config.FAST_SETTINGS` over the profile's (``config``
-            still overrides them) and, when the largest person is tracked, the detector run
-            once a frame (no mask augmentation, no search for other people): faster at some
-            cost in the 2D fit on real video (``docs/settings.md``, "Speed and --fast").
+            still overrides them) and the detector without its mask augmentation: faster at
+            some cost in the 2D fit on real video (``docs/settings.md``, "Speed and --fast").
 
     Returns:
         the :class:`Result`.
@@ -372,10 +371,10 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         choice = ("point", (choice[1][0] * scale, choice[1][1] * scale))
     if auto_masks or auto_init:  # the detections also drive re-initialisation
         say(f"finding the person in {len(seq)} frames (MediaPipe pose; stored in {out / 'detections'}) ...")
-        # --fast: MediaPipe once a frame (no mask augmentation, no search for other people)
-        # where the largest person is wanted; choosing another person needs the search
-        detections = detect_sequence(seq, out, progress=progress, detector="plain" if fast and choice[0] == "largest"
-                                     else None, person="largest" if choice[0] == "largest" else choice[1])
+        # --fast: MediaPipe without the mask augmentation (its three extra runs a frame); the
+        # search for other people stays (without it the tracked person can be the wrong one)
+        detections = detect_sequence(seq, out, progress=progress, detector="unaugmented" if fast else None,
+                                     person="largest" if choice[0] == "largest" else choice[1])
         if auto_masks:
             seq.masks = list(detections.mask_paths)
     notes: dict = {"camera_source": camera_source,

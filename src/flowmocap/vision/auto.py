@@ -43,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from flowmocap.errors import NoPersonError
+from flowmocap.errors import InputError, NoPersonError
 from flowmocap.memory import release_free_memory
 from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS, PersonDetector
 from flowmocap.vision.person import (box_iou, choose_person, clean_mask, describe_person, parse_person, person_box,
@@ -188,7 +188,8 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
             ``seq.size = (W, H)`` (a :class:`~flowmocap.io.sequence.Sequence`).
         out_dir: the result folder (detections go to ``out_dir/detections``).
         detector: None: :class:`~flowmocap.vision.detect.MediaPipePoseDetector` (with its
-            mask augmentation); ``"plain"``: MediaPipe without it and no searcher; either
+            mask augmentation); ``"unaugmented"``: MediaPipe without it (the searcher as
+            with None); ``"plain"``: MediaPipe without it and no searcher; each
             runs in processes of its own (:data:`DETECT_IN_CHILD`, :class:`_InChildren`)
             when ``seq`` can be pickled. A detector object runs in this process.
         progress: show a progress bar.
@@ -213,9 +214,13 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     out_dir = Path(out_dir)
     from flowmocap.vision.detect import MediaPipePoseDetector
 
+    if isinstance(detector, str) and detector not in ("plain", "unaugmented"):
+        raise InputError(f"detector must be None, 'plain', 'unaugmented' or a detector object; got {detector!r}.")
     plain = detector == "plain"
-    if (detector is None or plain) and searcher in ("default", None) and DETECT_IN_CHILD and _picklable(seq):
-        spec = {"augment": not plain, "search": searcher == "default" and not plain}
+    augment = detector is None
+    if (detector is None or isinstance(detector, str)) and searcher in ("default", None) and DETECT_IN_CHILD \
+            and _picklable(seq):
+        spec = {"augment": augment, "search": searcher == "default" and not plain}
         name = MediaPipePoseDetector.describe(augment=spec["augment"])
         if spec["search"]:
             name += f"+search:{MediaPipePoseDetector.describe(augment=False)}"
@@ -225,9 +230,9 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         track = _detect_sequence(seq, out_dir, passes, name, choice, reuse)
         passes.clear()  # the stretches are in keypoints.npz and the masks now
         return track
-    own = detector is None or plain  # made here: closed here once the pass is over
+    own = detector is None or isinstance(detector, str)  # made here: closed here once the pass is over
     if own:
-        detector = MediaPipePoseDetector(augment=not plain)
+        detector = MediaPipePoseDetector(augment=augment)
         if searcher == "default" and not plain:
             searcher = MediaPipePoseDetector(augment=False)
     if searcher == "default":
