@@ -212,6 +212,33 @@ def test_runner_checks_its_input(tmp_path):
         run_real3d(tmp_path, data_dir=tmp_path / "nowhere")
 
 
+@pytest.mark.parametrize("fast", [False, True])
+def test_runner_passes_fast_to_the_tracker_and_records_it(tmp_path, monkeypatch, fast):
+    import flowmocap.eval.real3d as r3
+    from flowmocap.errors import OptimizationError
+
+    calls = []
+    monkeypatch.setattr(r3, "build_reference", lambda *a, **k: {"people": {"person1": {"tracks": {"cam01": (1,)}}},
+                                                                 "info": {}})
+    monkeypatch.setattr(r3, "person_pixel", lambda *a: (0, (10.0, 20.0)))
+    monkeypatch.setattr(r3, "format_real3d_table", lambda result: "table")  # the stand-in reference has no numbers
+
+    def track(video, res, **kw):
+        calls.append(kw)
+        raise OptimizationError("stand-in tracker")
+
+    monkeypatch.setattr(r3, "track", track)
+    out = run_real3d(tmp_path, person_views=["person1@cam01"], log=None, progress=False, fast=fast)
+    assert [c["fast"] for c in calls] == [fast] and calls[0]["person"] == "10,20" and calls[0]["max_size"] == 640
+    assert out["settings"]["fast"] is fast and out["rows"][0]["failed"].startswith("OptimizationError")
+
+
+def test_bench_fast_is_for_real_video_only(tmp_path):
+    from flowmocap.cli import main
+
+    assert main(["bench", "--suite", "quick", "--fast", "--out", str(tmp_path / "o"), "--quiet"]) == 2
+
+
 # ------------------------------------------------------------------ the real recording
 
 

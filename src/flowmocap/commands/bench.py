@@ -24,6 +24,7 @@ def register(subparsers) -> None:
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.add_argument("--config", default=None,
                    help="tracker settings JSON (fields of TrackerConfig), recorded in bench.json")
+    b.add_argument("--fast", action="store_true", help="real3d: track with flowmocap track --fast")
     # hidden overrides for tests and quick experiments
     b.add_argument("--num-frames", type=int, default=None, help=argparse.SUPPRESS)
     b.add_argument("--size", default=None, help=argparse.SUPPRESS)
@@ -38,11 +39,14 @@ def cmd_bench(args) -> int:
 
     if args.num_frames is not None and args.num_frames < 3:
         raise InputError("--num-frames must be at least 3 (the acceleration error needs 3 frames).")
+    if args.fast and args.suite != "real3d":
+        raise InputError("--fast applies to --suite real3d (real video); the other suites measure the tracker's "
+                         "settings: give them with --config.")
     if args.suite == "real3d":
         from flowmocap.eval.real3d import run_real3d
 
         run_real3d(args.out, frames=args.num_frames, tracker_config=_tracker_overrides(args.config),
-                   progress=not args.quiet)
+                   progress=not args.quiet, fast=args.fast)
         print(f"wrote {args.out}/real3d.md and {args.out}/real3d.json")
         return 0
     if args.mocap:

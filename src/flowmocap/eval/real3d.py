@@ -816,7 +816,7 @@ def _person_views(person_views, people: list[str]) -> list[tuple[str, str]]:
 
 def run_real3d(out_dir: str | Path, frames: int | None = None, max_size: int = 640, person_views=None,
                progress: bool = True, log=print, tracker_config: dict | None = None,
-               data_dir: str | Path = DATA) -> dict:
+               data_dir: str | Path = DATA, fast: bool = False) -> dict:
     """The ``real3d`` benchmark: reference, monocular runs, scores; writes
     ``out_dir/real3d.json`` and ``out_dir/real3d.md``.
 
@@ -829,6 +829,8 @@ def run_real3d(out_dir: str | Path, frames: int | None = None, max_size: int = 6
             from every view).
         tracker_config: overrides of :class:`~flowmocap.fit.config.TrackerConfig` fields.
         data_dir: the recording.
+        fast: track with ``track(fast=True)`` (``flowmocap track --fast``: its settings and
+            its detector).
 
     Returns:
         the contents of ``real3d.json``: ``settings``, ``reference`` (offsets, people,
@@ -843,7 +845,7 @@ def run_real3d(out_dir: str | Path, frames: int | None = None, max_size: int = 6
     reference = build_reference(out_dir, data_dir, progress=progress, log=log)
     people = list(reference["people"])
     todo = _person_views(person_views, people)
-    settings = {"frames": frames, "max_size": max_size, "tracker_config": tracker_config or {},
+    settings = {"frames": frames, "max_size": max_size, "tracker_config": tracker_config or {}, "fast": bool(fast),
                 "data": str(data_dir), "person_views": [f"{p}@{v}" for p, v in todo],
                 "protocol": ("flowmocap.pipeline.track(video, person='x,y' at the person's reference detections in "
                              "the first frame they appear, max_size) with everything else automatic (the camera as "
@@ -869,7 +871,7 @@ def run_real3d(out_dir: str | Path, frames: int | None = None, max_size: int = 6
             try:
                 track(video, res, person=spec, max_size=max_size, frames=None if frames is None else f"0:{frames}",
                       config=tracker_config or None, resume=has_result(res), progress=progress,
-                      log=None)
+                      log=None, fast=fast)
             except FlowMocapError as e:  # one failed run must not cost the others; reported, not in the mean
                 done = load_result(res).frame_index if has_result(res) else []
                 msg = f"{type(e).__name__}: {e}"
