@@ -46,9 +46,9 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: at some cost in the 2D fit on real video (docs/settings.md, "Speed and --fast", has the
 #: measurements): every L-BFGS run stops at a stall ten times larger than the default's, a
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
-#: down doubles the wait before the next attempt, up to 8 frames (side by side with the
-#: defaults: real clips 0.90x, refits 29 + 27 -> 27 + 18, body IoU DAVIS 0.775 -> 0.744 and
-#: walk 0.768 -> 0.765; real3d 99.1 -> 96.0 mm, within its chance spread).
+#: down doubles the wait before the next attempt, up to 8 frames. ``track(fast=True)`` also
+#: runs the detector without its mask augmentation (flowmocap.pipeline); together, on the
+#: real clips, 0.74x the defaults' time (docs/settings.md).
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
