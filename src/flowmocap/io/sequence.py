@@ -55,7 +55,7 @@ class Sequence:
         """Frame ``i`` as ``(H, W, 3)`` uint8 RGB (scaled to :attr:`size`)."""
         if self.source_size is None:
             return read_image(self.frames[i], self.size)
-        return _scaled(read_image(self.frames[i], self.source_size), self.size)
+        return scale_image(read_image(self.frames[i], self.source_size), self.size)
 
     def mask(self, i: int) -> np.ndarray | None:
         """Mask ``i`` as ``(H, W)`` bool, or ``None`` without masks. With scaled frames a
@@ -67,7 +67,7 @@ class Sequence:
             return read_image(self.masks[i], self.size, gray=True) > 0
         m = read_image(self.masks[i], None, gray=True)
         if (m.shape[1], m.shape[0]) == tuple(self.source_size):
-            return _scaled(((m > 0) * np.uint8(255)), self.size) >= 128
+            return scale_image(((m > 0) * np.uint8(255)), self.size) >= 128
         if (m.shape[1], m.shape[0]) != tuple(self.size):
             raise DataError(f"{self.masks[i]} is {m.shape[1]}x{m.shape[0]} but the frames are "
                             f"{self.source_size[0]}x{self.source_size[1]} (scaled to {self.size[0]}x{self.size[1]}); "
@@ -75,7 +75,7 @@ class Sequence:
         return m > 0
 
 
-def _scaled(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def scale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``img`` resized to ``size = (width, height)`` by area averaging (OpenCV)."""
     import cv2
 

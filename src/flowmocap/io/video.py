@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from flowmocap.errors import DataError
-from flowmocap.io.sequence import Sequence, list_images, read_image
+from flowmocap.io.sequence import Sequence, list_images, read_image, scale_image, scaled_size
 
 if TYPE_CHECKING:  # torch (via the camera) only where a camera is made
     from flowmocap.geometry.camera import PinholeCamera
@@ -193,15 +193,12 @@ class VideoReader:
         return info, (pts if usable else None)
 
     def _convert(self, frame) -> np.ndarray:
-        import cv2
-
         img = frame.to_ndarray(format="rgb24")
         if self._rotation:
             img = np.rot90(img, k=(self._rotation // 90) % 4)
-        if self.max_side and max(img.shape[:2]) > self.max_side:
-            s = self.max_side / max(img.shape[:2])
-            img = cv2.resize(img, (max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s))),
-                             interpolation=cv2.INTER_AREA)
+        size, scale = scaled_size((img.shape[1], img.shape[0]), self.max_side)
+        if scale != 1.0:
+            img = scale_image(img, size)
         return np.ascontiguousarray(img)
 
     def _restart(self, i: int) -> None:
