@@ -635,6 +635,39 @@ def test_anchor_term_pulls_towards_the_first_frame_of_the_track(clip, model, tmp
         TrackerConfig.load(anchor_weight=-1.0)
 
 
+def test_anchor_any_start_anchors_a_guessed_start_and_each_refit(clip, model, tmp_path):
+    """With ``anchor_any_start`` the automatic init's start is anchored too (the pipeline
+    passes it as ``anchored``), and a re-initialisation moves the anchor to the refit's
+    pose instead of dropping it; the state round trip keeps it."""
+    seq = load_sequence(clip)
+    gt = seq.gt
+    scene = Scene(model, torch.as_tensor(gt["betas"], dtype=torch.float32)[None], seq.camera)
+    gts = [FrameState(_f32(p), _f32(t)) for p, t in zip(gt["poses"], gt["trans"])]
+    cfg = TrackerConfig(anchor_weight=0.5, anchor_any_start=True, iterations=3, **DEPTH_CUES_OFF)
+    data = lambda i: frame_data(seq.mask(i), None, cfg, 1.0)  # noqa: E731
+    tr = SequenceTracker(scene, cfg, lambda i, state, scene, mask: (gts[i].clone(), {"why": "test"}) if i == 3
+                         else None)
+    tr.start(gts[0], gts[1], anchored=True)
+    tr.step(2, seq.mask(2), data(2))
+    res = tr.step(3, seq.mask(3), data(3))
+    assert [e["event"] for e in res.events] == ["re-initialised"]
+    assert torch.equal(tr.anchor.pose, gts[3].pose)
+    assert "anchor" in tr.step(4, seq.mask(4), data(4)).terms
+    restored = SequenceTracker(scene, cfg)
+    restored.load_state_dict(json.loads(json.dumps(tr.state_dict())))
+    assert torch.equal(restored.anchor.pose, gts[3].pose)
+
+    bare = {"joints2d": noisy_init(gt, frame=0, seed=1)["joints2d"]}  # no rough pose: a guessed start
+    motion, run = _track(seq, tmp_path / "bare", model, TrackerConfig(anchor_weight=0.5, anchor_any_start=True,
+                                                                      init_iterations=10, init_flow_iterations=5),
+                         frames="0:4", init=bare)
+    np.testing.assert_array_equal(np.asarray(run["tracker"]["anchor"], np.float32), motion["poses"][0])
+    col = list(motion["energy_names"]).index("anchor")
+    assert np.isfinite(motion["energies"][2:, col]).all()
+    with pytest.raises(InputError, match="anchor_any_start"):
+        TrackerConfig.load(anchor_any_start=1)
+
+
 def test_the_flow_step_of_the_init_keeps_frame_0_to_its_rough_pose(clip, model, tmp_path):
     """Init step 3 (the flow step on frame 1 while frame 0 may still move) keeps frame 0's
     prior towards the init's rough pose: with that prior far above the other terms, frame

@@ -743,7 +743,8 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
                 start = initialise(model, camera, init, d0, d1, cfg)
                 scene, s0, s1 = start.scene, start.first, start.second
                 terms0, terms1 = start.first_terms, start.second_terms
-                anchored = init.states_rough_pose  # E_a holds the track only to a start someone vouched for
+                # E_a holds the track only to a start someone vouched for, unless asked otherwise
+                anchored = init.states_rough_pose or cfg.anchor_any_start
             timings["init_s"] = time.perf_counter() - t0
             log = FrameLog.start(out, {"betas": scene.betas[0].numpy(), "gender": scene.model.gender, "fps": fps,
                                        "camera": camera.to_dict(), "energy_names": ENERGY_NAMES})

@@ -126,6 +126,8 @@ class TrackerConfig:
     penetration_weight: float = 10.0   # lambda_sp, E_sp: limbs must not pass through each other
     temporal_weight: float = 0.5       # lambda_theta, E_theta: towards the Kalman prediction, smooths
     anchor_weight: float = 0.5         # lambda_a, E_a: towards the stated first pose, against drift
+    anchor_any_start: bool = False     # E_a also from a start nobody stated (the automatic init), and
+    #                                    from each re-initialisation's pose (else E_a ends there)
     levels: int = 3                    # Gaussian pyramid levels of E_f, for motions beyond a few px
     stages: tuple[tuple[int, ...], ...] = ((2,), (0, 1, 2))  # coarse to fine: levels used per stage
     iterations: int = 20               # L-BFGS iterations per stage

@@ -168,7 +168,8 @@ class SequenceTracker:
     def start(self, first: FrameState, second: FrameState, anchored: bool) -> None:
         """Begin after the first two frames. ``anchored``: the start is one someone vouched
         for (an init that states a rough pose, or a known start), so ``E_a`` holds the
-        track to ``first``; the automatic init's start is a guess and is not."""
+        track to ``first``; the automatic init's start is a guess and is not, unless the
+        settings' ``anchor_any_start`` says so (the pipeline passes that in ``anchored``)."""
         self.prev = second
         self.anchor = first if anchored else None
         self.kf = new_filter(first.pose.numpy(), first.trans.numpy(), self.cfg) if self.cfg.kalman else None
@@ -247,7 +248,8 @@ class SequenceTracker:
         if reinit is not None:
             state, info = reinit
             events.append({"frame": i, "event": "re-initialised", **info})
-            self.anchor = None  # the first frame no longer describes the track
+            # the first frame no longer describes the track; with anchor_any_start the refit's pose does
+            self.anchor = state.clone() if self.cfg.anchor_any_start else None
             if self.kf is not None:
                 self.kf = new_filter(state.pose.numpy(), state.trans.numpy(), self.cfg)
         elif self.kf is not None:
