@@ -90,3 +90,31 @@ def test_the_joint_fits_take_the_prior(scene64, monkeypatch):
     assert "learned_prior" not in out[0.0][1] and out[50.0][1]["learned_prior"] == pytest.approx(50.0 * out[50.0][0],
                                                                                                   rel=1e-5)
     assert out[50.0][0] < out[0.0][0]
+
+
+def test_uncovered_joints_prior_closed_form_and_gradient(scene64):
+    """``uncovered_prior_weight`` adds, to ``E_p``, that weight times the squared rotations
+    of the joints the learned prior does not cover (closed form), with that gradient."""
+    from flowmocap.fit.objective import uncovered_joint_weights
+
+    w = uncovered_joint_weights()
+    names = {n for n, j in J.items() if w[j] > 0}
+    assert names == {"spine3", "left_collar", "right_collar", "left_foot", "right_foot", "left_hand", "right_hand"}
+    pose = torch.tensor(walk_poses(np.array([0.3]))[0])
+    pose[3 * J["left_collar"]:3 * J["left_collar"] + 3] = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    pose[3 * J["spine3"] + 2] = 0.25
+    state = FrameState(pose.clone().requires_grad_(), torch.zeros(3, dtype=torch.float64))
+    expected = sum(float((pose[3 * J[n]:3 * J[n] + 3] ** 2).sum()) for n in names)
+    cfg = TrackerConfig(pose_prior_weight=0.0, uncovered_prior_weight=2.0, **ALL_OFF)
+    total, terms = frame_energy(scene64, state, _data(), cfg, None, None, None)
+    assert terms == {"learned_prior": pytest.approx(2.0 * expected, rel=1e-12)}
+    total.backward()
+    grad = torch.zeros(72, dtype=torch.float64)
+    for n in names:
+        grad[3 * J[n]:3 * J[n] + 3] = 4.0 * pose[3 * J[n]:3 * J[n] + 3]
+    torch.testing.assert_close(state.pose.grad, grad)
+    both = TrackerConfig(pose_prior_weight=0.01, uncovered_prior_weight=2.0, **ALL_OFF)
+    _, terms = frame_energy(scene64, FrameState(pose, state.trans), _data(), both, None, None, None)
+    gmm = 0.01 * float(learned_pose_prior().energy(pose[None])[0])
+    assert terms["learned_prior"] == pytest.approx(gmm + 2.0 * expected, rel=1e-12)
+    assert TrackerConfig().uncovered_prior_weight == 0.0

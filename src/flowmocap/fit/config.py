@@ -78,7 +78,7 @@ _RANGE_OK = {
 _RANGES: dict[str, str] = {
     "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
-    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
+    "anchor_weight": _AT_LEAST_0, "uncovered_prior_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
     "keypoint_hold_sigma": _ABOVE_0, "keypoint_hold_weight": _AT_LEAST_0,
     "keypoint_hold_frames": _AT_LEAST_0,
@@ -155,6 +155,8 @@ class TrackerConfig:
     flip_without_temporal: bool = False  # judge a flip by the energy without E_theta (whose Kalman
                                        # prediction carries a flipped limb on to the next frames)
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off
+    uncovered_prior_weight: float = 0.0  # per rad^2, added to E_p: the joints the learned prior does not
+    #                                    cover (spine3, collars, feet, hands) towards rest; 0: off
     depth_temporal_weight: float = 0.0  # lambda_z, E_z: root depth along the camera ray towards a
     #                                    reference (m^2); 0: off (measured, not better: docs/experiments.md)
     depth_temporal_reference: str = "prediction"  # E_z's reference: the Kalman "prediction" or the "previous" frame

@@ -58,6 +58,15 @@ def learned_pose_prior() -> PosePrior:
     return PosePrior.load()
 
 
+def uncovered_joint_weights() -> torch.Tensor:
+    """``(24,)``: 1 for each joint but the root that the packaged learned prior does not
+    cover (its training skeletons lack them: ``spine3``, the collars, feet and hands), else 0."""
+    w = torch.ones(24)
+    w[0] = 0.0
+    w[list(learned_pose_prior().joints)] = 0.0
+    return w
+
+
 @dataclass
 class FrameState:
     """Fitted parameters of one frame: ``pose (72,)`` radians, ``trans (3,)`` metres."""
@@ -225,6 +234,10 @@ def frame_energy(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerC
                 points, scene.camera, data.joints3d, cfg.detector3d_scale)[0]
     if cfg.pose_prior_weight > 0:
         terms["learned_prior"] = cfg.pose_prior_weight * learned_pose_prior().energy(state.pose.reshape(1, 72))[0]
+    if cfg.uncovered_prior_weight > 0:  # the joints the learned prior says nothing about, towards rest
+        rest = cfg.uncovered_prior_weight * en.pose_prior_energy(state.pose.reshape(1, 72), torch.zeros(72),
+                                                                 uncovered_joint_weights())[0]
+        terms["learned_prior"] = terms["learned_prior"] + rest if "learned_prior" in terms else rest
     if data.depth_ref is not None and cfg.depth_temporal_weight > 0:
         terms["depth_temporal"] = cfg.depth_temporal_weight * en.depth_temporal_energy(
             state.trans.reshape(1, 3), *data.depth_ref)[0]
