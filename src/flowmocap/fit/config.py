@@ -78,7 +78,8 @@ _RANGE_OK = {
 _RANGES: dict[str, str] = {
     "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
-    "anchor_weight": _AT_LEAST_0, "uncovered_prior_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
+    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
+    "uncovered_prior_weight": _AT_LEAST_0,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
     "keypoint_hold_sigma": _ABOVE_0, "keypoint_hold_weight": _AT_LEAST_0,
     "keypoint_hold_frames": _AT_LEAST_0,
