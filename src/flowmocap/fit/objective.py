@@ -58,9 +58,11 @@ def learned_pose_prior() -> PosePrior:
     return PosePrior.load()
 
 
+@cache
 def uncovered_joint_weights() -> torch.Tensor:
     """``(24,)``: 1 for each joint but the root that the packaged learned prior does not
-    cover (its training skeletons lack them: ``spine3``, the collars, feet and hands), else 0."""
+    cover (its training skeletons lack them: ``spine3``, the collars, feet and hands), else 0.
+    Made once per process (the energy reads it at every evaluation); do not modify it."""
     w = torch.ones(24)
     w[0] = 0.0
     w[list(learned_pose_prior().joints)] = 0.0
