@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.errors import DataError, InputError
 from flowmocap.eval.real3d import (DATA, EVAL_NAMES, VIEWS, associate_people, bone_lengths, consistent_joints,
-                                   eval_points, pa_mpjpe, person_pixel, run_real3d, score_run, triangulate_person)
+                                   eval_points, pa_mpjpe, person_pixel, run_real3d, score_run, scored_frames,
+                                   triangulate_person)
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
 from test_triangulate import moving_person, ring_cameras
@@ -200,6 +201,12 @@ def test_score_run_matches_frames_by_the_offset(tmp_path):
     assert row["frames_scored"] == 28
     for m in ("flowmocap", "detector3d"):
         assert row[m]["per_frame_mm"] < 1e-3 and row[m]["per_sequence_mm"] < 1e-3
+    # the arrays behind the scores: the run's frames, the fit and the reference at time f + 4
+    d = scored_frames(res, reference, "p", "cam02")
+    assert d["used"] == [f for f in range(30) if f not in (1, 7)]
+    assert d["ours"].shape == d["detector"].shape == d["ref"].shape == (28, 13, 3)
+    assert d["valid"].shape == (28, 13) and d["ours_kp"] is None  # the fake result has no body parameters
+    np.testing.assert_allclose(d["ref"][2], eval_points(X[3 + 4]))  # frame 3 (the third used) at time 7
     # scored with the wrong offset the same run is off
     reference["offsets"]["cam02"] = 0
     assert score_run(res, reference, "p", "cam02")["flowmocap"]["per_frame_mm"] > 5

@@ -597,31 +597,20 @@ def keypoint_joints(res) -> np.ndarray:
     return pts
 
 
-def score_run(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
-    """Score one monocular run (view ``view``, person ``person``) against the reference
-    triangulated without that view; flowmocap's fit and the detector's own 3D on the
-    same frames and joints.
-
-    Frame ``f`` of the run is reference time ``f + offset[view]``. A frame is scored when
-    the reference has at least :data:`MIN_JOINTS` of the 13 joints (both hips among
-    them) that fit the person's skeleton (:func:`consistent_joints`, bone lengths from
-    the all-view reference), the run's detection has 3D landmarks and the run has a
-    fitted body; the reference's missing or inconsistent joints are left out of that
-    frame, for both methods.
+def scored_frames(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
+    """The frames and joints :func:`score_run` scores, as arrays.
 
     Returns:
-        ``frames_scored``, ``joints_scored`` (mean per frame), ``skipped`` (counts:
-        ``no_reference``, ``no_detection``, ``no_fit``), ``flowmocap`` and
-        ``detector3d``: ``{"per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm",
-        "per_sequence_all_views_mm", "per_frame_curve_mm"}``, and ``flowmocap_kp`` the
-        same for the fit at the detector's keypoints (:func:`keypoint_joints`; None for a
-        result without the body's parameters) (the ``all_views`` ones
-        against the reference from every view, the run's own included, on the same
-        frames), ``reference_without_vs_all_mm``: per-frame PA-MPJPE between the
-        reference without the view and with it (how much leaving the view out moves
-        the reference), ``det2d_px``: median distance between the run's confident 2D
-        detections and the reference (all views) projected into this view, in
-        full-resolution pixels (a check that the run followed the intended person).
+        ``used`` (the run's frame numbers), ``skipped`` (counts: ``no_reference``,
+        ``no_detection``, ``no_fit``), ``offset`` (reference time of frame ``f`` is
+        ``f + offset``), ``ours`` ``(F, 13, 3)`` the fit's joints (metres, the run's
+        world axes), ``ours_kp`` the same at the detector's keypoints (None without the
+        body's parameters), ``detector`` ``(F, 13, 3)`` MediaPipe's world landmarks
+        (metres, hip-centred, the detector's axes), ``ref`` / ``valid`` ``(F, 13, 3)`` /
+        ``(F, 13)`` the reference without the view and its scored joints, ``ref_all`` /
+        ``valid_all`` the same from every view, ``result`` and ``detections`` (the
+        loaded run), all in the order of :data:`EVAL_NAMES`; F = ``len(used)``, the
+        arrays empty when it is 0.
     """
     from flowmocap.vision.auto import load_detections
 
@@ -682,24 +671,63 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         got_all = at(all_c, f + offset) or got
         ref_all.append(got_all[0])
         ok_all.append(got_all[1])
+    arr = lambda xs: np.asarray(xs, np.float64).reshape(-1, len(EVAL_NAMES), 3)  # noqa: E731
+    flags = lambda xs: np.asarray(xs, bool).reshape(-1, len(EVAL_NAMES))  # noqa: E731
+    return {"used": used, "skipped": skipped, "offset": offset, "ours": arr(ours),
+            "ours_kp": arr(ours_kp) if kp13 is not None else None, "detector": arr(mp), "ref": arr(ref),
+            "valid": flags(ok_wo), "ref_all": arr(ref_all), "valid_all": flags(ok_all), "result": res,
+            "detections": det}
+
+
+def score_run(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
+    """Score one monocular run (view ``view``, person ``person``) against the reference
+    triangulated without that view; flowmocap's fit and the detector's own 3D on the
+    same frames and joints.
+
+    Frame ``f`` of the run is reference time ``f + offset[view]``. A frame is scored when
+    the reference has at least :data:`MIN_JOINTS` of the 13 joints (both hips among
+    them) that fit the person's skeleton (:func:`consistent_joints`, bone lengths from
+    the all-view reference), the run's detection has 3D landmarks and the run has a
+    fitted body; the reference's missing or inconsistent joints are left out of that
+    frame, for both methods.
+
+    Returns:
+        ``frames_scored``, ``joints_scored`` (mean per frame), ``skipped`` (counts:
+        ``no_reference``, ``no_detection``, ``no_fit``), ``flowmocap`` and
+        ``detector3d``: ``{"per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm",
+        "per_sequence_all_views_mm", "per_frame_curve_mm"}``, and ``flowmocap_kp`` the
+        same for the fit at the detector's keypoints (:func:`keypoint_joints`; None for a
+        result without the body's parameters) (the ``all_views`` ones
+        against the reference from every view, the run's own included, on the same
+        frames), ``reference_without_vs_all_mm``: per-frame PA-MPJPE between the
+        reference without the view and with it (how much leaving the view out moves
+        the reference), ``det2d_px``: median distance between the run's confident 2D
+        detections and the reference (all views) projected into this view, in
+        full-resolution pixels (a check that the run followed the intended person).
+    """
+    d = scored_frames(res_dir, reference, person, view, frames)
+    used, skipped, offset, det = d["used"], d["skipped"], d["offset"], d["detections"]
+    ours, ours_kp, mp, ref, ok_wo = d["ours"], d["ours_kp"], d["detector"], d["ref"], d["valid"]
+    ref_all, ok_all = d["ref_all"], d["valid_all"]
+    allv = reference["people"][person]["all"]
+    hips = [EVAL_NAMES.index("left_hip"), EVAL_NAMES.index("right_hip")]
     out = {"person": person, "view": view, "offset": offset, "frames_scored": len(used),
            "frames": [used[0], used[-1]] if used else None, "skipped": skipped}
     if not used:
         return {**out, "flowmocap": None, "detector3d": None, "flowmocap_kp": None, "det2d_px": None}
     out["joints_scored"] = float(np.mean([o.sum() for o in ok_wo]))
     out["flowmocap_kp"] = None
-    for name, pred in (("flowmocap", np.asarray(ours)), ("detector3d", np.asarray(mp)),
-                       ("flowmocap_kp", np.asarray(ours_kp) if kp13 is not None else None)):
+    for name, pred in (("flowmocap", ours), ("detector3d", mp), ("flowmocap_kp", ours_kp)):
         if pred is None:
             continue
-        pf, ps, curve = pa_mpjpe(pred, np.asarray(ref), np.asarray(ok_wo))
-        pfa, psa, _ = pa_mpjpe(pred, np.asarray(ref_all), np.asarray(ok_all))
+        pf, ps, curve = pa_mpjpe(pred, ref, ok_wo)
+        pfa, psa, _ = pa_mpjpe(pred, ref_all, ok_all)
         out[name] = {"per_frame_mm": pf, "per_sequence_mm": ps, "per_frame_all_views_mm": pfa,
                      "per_sequence_all_views_mm": psa, "per_frame_curve_mm": np.round(curve, 1).tolist()}
     # how much the reference itself moves when the view is left out (its noise floor here)
-    both = np.asarray(ok_wo) & np.asarray(ok_all)
+    both = ok_wo & ok_all
     keep = (both.sum(1) >= MIN_JOINTS) & both[:, hips].all(1)
-    out["reference_without_vs_all_mm"] = (pa_mpjpe(np.asarray(ref)[keep], np.asarray(ref_all)[keep], both[keep])[0]
+    out["reference_without_vs_all_mm"] = (pa_mpjpe(ref[keep], ref_all[keep], both[keep])[0]
                                           if keep.any() else None)
     # the run's 2D detections against the reference projected into this view
     cam = reference["cameras"][view]
