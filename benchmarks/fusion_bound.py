@@ -22,7 +22,12 @@ the way its suite scores a method, on the frames where the detector gives all 13
 The blend is not a method (the output would no longer be a body): it says how much the
 two sources' errors cancel, i.e. whether a stronger detector term could reach a target.
 
-Usage: python benchmarks/fusion_bound.py [--real3d DIR] [--diverse DIR]
+``--source lifter`` (or ``both``) takes the second source from flowmocap's keypoint lifter
+of the detector's 2D keypoints (:func:`flowmocap.vision.lifter.lifted_track`; ``both``:
+its mean with MediaPipe's), as the tracker's ``detector3d_source`` setting does; ``w = 1``
+is then that source's own score.
+
+Usage: python benchmarks/fusion_bound.py [--real3d DIR] [--diverse DIR] [--source mediapipe|lifter|both]
        [--weights 0,0.25,0.5,0.75,1] [--out PREFIX]   (PREFIX.json and PREFIX.md)
 """
 
@@ -61,7 +66,16 @@ def blend(fit: np.ndarray, det: np.ndarray, w: float, mode: str) -> np.ndarray:
     return out
 
 
-def real3d_rows(bench_dir: Path, weights: list[float]) -> list[dict]:
+def _source(track, source: str):
+    """The track with its 3D keypoints from ``source`` (see the module docstring)."""
+    if source == "mediapipe":
+        return track
+    from flowmocap.vision.lifter import lifted_track
+
+    return lifted_track(track, mix=source == "both")
+
+
+def real3d_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe") -> list[dict]:
     from flowmocap.eval import real3d as R
 
     reference = R.build_reference(bench_dir, progress=False, log=None)
@@ -73,15 +87,22 @@ def real3d_rows(bench_dir: Path, weights: list[float]) -> list[dict]:
         d = R.scored_frames(res, reference, person, view)
         if not d["used"]:
             continue
-        row = {"name": res.name, "frames": len(d["used"])}
+        det = d["detector"]
+        if source != "mediapipe":  # the suite's frames, the other source's 3D (NaN where it has none)
+            det = R.eval_points(_source(d["detections"], source).world[d["used"]])
+        ok = np.isfinite(det).all((1, 2))
+        row = {"name": res.name, "frames": int(ok.sum())}
+        if not ok.any():
+            rows.append(row)
+            continue
         for mode in MODES:
-            row[mode] = [R.pa_mpjpe(blend(d["ours"], d["detector"], w, mode), d["ref"], d["valid"])[0]
+            row[mode] = [R.pa_mpjpe(blend(d["ours"][ok], det[ok], w, mode), d["ref"][ok], d["valid"][ok])[0]
                          for w in weights]
         rows.append(row)
     return rows
 
 
-def diverse_rows(bench_dir: Path, weights: list[float]) -> list[dict]:
+def diverse_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe") -> list[dict]:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from global_error import camera_joints
 
@@ -99,7 +120,7 @@ def diverse_rows(bench_dir: Path, weights: list[float]) -> list[dict]:
         track = load_detections(res)
         if track is None:
             continue
-        det = detector_joints3d(track)[idx][:, E]
+        det = detector_joints3d(_source(track, source))[idx][:, E]
         ok = np.isfinite(det).all((1, 2))
         row = {"name": seq.name, "frames": int(ok.sum())}
         if not ok.any():
@@ -148,6 +169,8 @@ def main() -> int:
     ap.add_argument("--real3d", type=Path, help="a flowmocap bench --suite real3d folder")
     ap.add_argument("--diverse", type=Path, help="a diverse bench or tracker_only folder")
     ap.add_argument("--weights", default="0,0.25,0.5,0.75,1", help="the detector's shares, comma-separated")
+    ap.add_argument("--source", default="mediapipe", choices=("mediapipe", "lifter", "both"),
+                    help="the second 3D source: MediaPipe's own, flowmocap's lifter, or their mean")
     ap.add_argument("--out", help="write PREFIX.json and PREFIX.md")
     a = ap.parse_args()
     if a.real3d is None and a.diverse is None:
@@ -155,13 +178,14 @@ def main() -> int:
     weights = [float(x) for x in a.weights.split(",")]
     if any(not 0 <= w <= 1 for w in weights):
         ap.error("weights must lie in [0, 1]")
-    result, md = {"weights": weights, "modes": list(MODES)}, ["# The fit blended with the detector's 3D\n"]
+    result = {"weights": weights, "modes": list(MODES), "source": a.source}
+    md = [f"# The fit blended with a second 3D source: {a.source}\n"]
     if a.real3d is not None:
-        rows = real3d_rows(a.real3d, weights)
+        rows = real3d_rows(a.real3d, weights, a.source)
         result["real3d"] = {"dir": str(a.real3d), "rows": rows, "summary": summary(rows, weights)}
         md.append(table("real3d, per-frame PA-MPJPE", "mm", rows, weights))
     if a.diverse is not None:
-        rows = diverse_rows(a.diverse, weights)
+        rows = diverse_rows(a.diverse, weights, a.source)
         result["diverse"] = {"dir": str(a.diverse), "rows": rows, "summary": summary(rows, weights)}
         md.append(table("diverse, local error on the detector's frames", "cm", rows, weights))
     text = "\n".join(md)

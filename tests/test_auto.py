@@ -271,6 +271,15 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
     joints3d, note = detect_joints3d(seq, tmp_path / "b", progress=False)
     assert joints3d is not None and joints3d(2) is not None and "3D joints" in note
+    # the same from flowmocap's lifter of the 2D keypoints (detector3d_source "lifter"): other
+    # numbers, the same body up to a similarity (the stand-in's 2D is the truth's projection)
+    from flowmocap.geometry.procrustes import similarity_procrustes
+
+    lifted, _ = detect_joints3d(seq, tmp_path / "b", progress=False, lift=True)
+    (a, ca), (b, cb) = joints3d(2), lifted(2)
+    ok = ca > 0
+    assert (cb == ca).all() and not np.allclose(a[ok], b[ok])
+    assert np.linalg.norm(similarity_procrustes(b[ok], a[ok])[0] - a[ok], axis=-1).mean() < 0.04  # 1.7 cm
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: Nobody())
     joints3d, note = detect_joints3d(seq, tmp_path / "c", progress=False)
     assert joints3d is None and "no 3D joints" in note

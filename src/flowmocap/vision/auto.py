@@ -812,7 +812,8 @@ def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> t
     return track, f"detector joints: {track.info['detector']}, {track.info['frames_with_person']} frames"
 
 
-def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True) -> tuple:
+def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True, lift: bool = False,
+                    mix: bool = False) -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
     0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
@@ -821,11 +822,17 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
         ``(joints3d, note)``: the callable ``joints3d(i) -> (j3d (24, 3), conf (24,)) |
         None`` the tracker takes (:meth:`PersonTrack.smpl_joints3d`, in the axes of the
         ``camera`` when given), or None when no detector is installed or it finds no
-        person; and a sentence for ``input.json``.
+        person; and a sentence for ``input.json``. ``lift``: the 3D joints from
+        :func:`flowmocap.vision.lifter.lifted_track` (``mix``: its mean with the
+        detector's own) instead of the detector's own.
     """
     track, note = detect_for_given_masks(seq, out_dir, progress)
     if track is None:
         return None, note.replace("no detector joints", "no 3D joints for E_d")
+    if lift:
+        from flowmocap.vision.lifter import lifted_track
+
+        track = lifted_track(track, mix=mix)
     return (lambda i: track.smpl_joints3d(i, camera)), (f"3D joints for E_d: {track.info['detector']}, "
                                                         f"{track.info['frames_with_person']} frames")
 

@@ -1,0 +1,212 @@
+"""A learned lifter from the detector's 2D keypoints to root-relative 3D (issue 18).
+
+MediaPipe's own 3D keypoints ("world landmarks") are the depth cue of ``E_d``, ``E_3d``
+and the 3D re-initialisation criterion. This module offers a second source for the same
+cues: a small network (a residual MLP in the manner of Martinez et al., "A simple yet
+effective baseline for 3d human pose estimation", 2017) that maps the 13 evaluation
+keypoints of one frame's 2D detection to their 3D positions relative to the middle of the
+hips. It was trained by ``tools/train_lifter.py`` on the ``train`` clips of
+``../shared/data/mocap/prior`` only (CMU mocap retargeted onto the body model, the
+detector's keypoints placed on the posed body by the learned offsets of
+:mod:`flowmocap.vision.keypoint_map`, random bodies, random views, 2D noise and
+dropped joints); the weights ship with the package (``vision/data/lifter.npz``, licence in
+``vision/data/README.md``).
+
+Conventions:
+
+- Input: pixels of one camera (any size; square pixels), the keypoints of
+  :data:`~flowmocap.vision.detect.KEYPOINT_NAMES` with their confidences. The 13 points are
+  those of :func:`flowmocap.eval.real3d.eval_points` (the head is the middle of the ears).
+  They are centred on the middle of the hips and divided by their RMS distance from it,
+  so neither the image size nor the focal length matters.
+- Output: metres in the axes of the ray through the person (x right, y down, z away from
+  the camera along the ray), hip-centred, like the detector's world landmarks; the size
+  is that of an average training body (only the shape is learned: every consumer aligns
+  it by a similarity).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flowmocap.errors import InputError, ModelFileError
+
+__all__ = ["LIFTER_FILE", "LIFTER_KIND", "Lifter", "LifterNet", "eval_points_2d", "lifted_track", "load_lifter",
+           "normalise_2d"]
+
+LIFTER_KIND = "flowmocap-keypoint-lifter"
+LIFTER_FORMAT = 1
+LIFTER_FILE = Path(__file__).resolve().parent / "data" / "lifter.npz"
+#: the 13 points, in the order of :data:`flowmocap.eval.real3d.EVAL_NAMES`
+POINTS = ("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+          "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle")
+HIPS = (7, 8)
+#: fewer confident points than this (both hips among them) and a frame is not lifted
+MIN_POINTS = 8
+
+
+class LifterNet(torch.nn.Module):
+    """``(B, 13, 2)`` normalised 2D points and ``(B, 13)`` masks (1 = given) to ``(B, 13,
+    3)`` normalised 3D: a linear layer to ``hidden``, ``blocks`` residual blocks (two
+    linear layers with layer norm, ReLU and dropout each), a linear layer out."""
+
+    def __init__(self, hidden: int = 512, blocks: int = 2, dropout: float = 0.1):
+        super().__init__()
+        n = len(POINTS)
+        self.inp = torch.nn.Linear(3 * n, hidden)
+
+        def half():
+            return [torch.nn.Linear(hidden, hidden), torch.nn.LayerNorm(hidden), torch.nn.ReLU(),
+                    torch.nn.Dropout(dropout)]
+
+        self.blocks = torch.nn.ModuleList([torch.nn.Sequential(*half(), *half()) for _ in range(blocks)])
+        self.out = torch.nn.Linear(hidden, 3 * n)
+
+    def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([(points * mask[..., None]).flatten(1), mask], 1)
+        x = torch.relu(self.inp(x))
+        for b in self.blocks:
+            x = x + b(x)
+        return self.out(x).view(-1, len(POINTS), 3)
+
+
+def normalise_2d(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(points - hips) / s`` and ``s (B, 1, 1)``: ``points (B, 13, 2)`` centred on the
+    middle of the hips and divided by the RMS distance of the masked points from it
+    (masked-out points: 0)."""
+    v = points - points[:, list(HIPS)].mean(1, keepdim=True)
+    s = (((v ** 2).sum(-1) * mask).sum(1) / mask.sum(1).clamp(min=1)).sqrt().clamp(min=1e-9)[:, None, None]
+    return v / s * mask[..., None], s
+
+
+def eval_points_2d(keypoints: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, 13, 2)`` points and ``(T, 13)`` confidences from ``keypoints (T, K, 2)`` and
+    ``confidence (T, K)`` of :data:`~flowmocap.vision.detect.KEYPOINT_NAMES` (the head: the
+    middle of the ears, with the lower of their confidences)."""
+    from flowmocap.vision.detect import KEYPOINT_NAMES
+
+    kp, cf = np.asarray(keypoints, np.float64), np.asarray(confidence, np.float64)
+    ears = [KEYPOINT_NAMES.index("left_ear"), KEYPOINT_NAMES.index("right_ear")]
+    idx = [KEYPOINT_NAMES.index(n) for n in POINTS[1:]]
+    pts = np.concatenate([kp[:, ears].mean(1, keepdims=True), kp[:, idx]], 1)
+    conf = np.concatenate([cf[:, ears].min(1, keepdims=True), cf[:, idx]], 1)
+    return pts, conf
+
+
+class Lifter:
+    """The trained network with its metadata (``info``: training data, settings, the
+    held-out check) and ``metres``, the size of one normalised unit in metres."""
+
+    def __init__(self, net: LifterNet, info: dict, metres: float):
+        self.net = net.eval()
+        self.info = info
+        self.metres = float(metres)
+
+    def lift(self, keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5) -> np.ndarray:
+        """The detector's keypoints in 3D.
+
+        Args:
+            keypoints: ``(T, K, 2)`` pixels, :data:`~flowmocap.vision.detect.KEYPOINT_NAMES`.
+            confidence: ``(T, K)``; a point below ``min_confidence`` is left out of the
+                input (the network was trained with dropped points).
+
+        Returns:
+            ``(T, K, 3)`` metres in the ray's axes, hip-centred (see the module
+            docstring), in the order of ``KEYPOINT_NAMES``: the 12 limb keypoints, both
+            ears and the nose at the head point; NaN for frames with fewer than
+            :data:`MIN_POINTS` confident points or without both hips.
+        """
+        from flowmocap.vision.detect import KEYPOINT_NAMES
+
+        kp = np.asarray(keypoints, np.float64)
+        if kp.ndim != 3 or kp.shape[1:] != (len(KEYPOINT_NAMES), 2):
+            raise InputError(f"keypoints must be (T, {len(KEYPOINT_NAMES)}, 2) pixels; got {kp.shape}.")
+        cf = np.asarray(confidence, np.float64)
+        if cf.shape != kp.shape[:2]:
+            raise InputError(f"confidence must be (T, {len(KEYPOINT_NAMES)}); got {cf.shape}.")
+        pts, conf = eval_points_2d(kp, cf)
+        mask = (conf >= min_confidence) & np.isfinite(pts).all(-1)
+        ok = mask[:, list(HIPS)].all(1) & (mask.sum(1) >= MIN_POINTS)
+        out = np.full((len(kp), len(KEYPOINT_NAMES), 3), np.nan)
+        if not ok.any():
+            return out
+        m = torch.as_tensor(mask[ok], dtype=torch.float32)
+        v, _ = normalise_2d(torch.as_tensor(np.nan_to_num(pts[ok]), dtype=torch.float32), m)
+        with torch.no_grad():
+            y = self.net(v, m).double().numpy() * self.metres
+        y -= y[:, list(HIPS)].mean(1, keepdims=True)
+        for k, name in enumerate(POINTS[1:], start=1):
+            out[ok, KEYPOINT_NAMES.index(name)] = y[:, k]
+        for name in ("left_ear", "right_ear", "nose"):
+            out[ok, KEYPOINT_NAMES.index(name)] = y[:, 0]
+        return out
+
+    def save(self, path: str | Path) -> None:
+        """Write the ``.npz`` (weights as float16, ``info`` and the architecture as JSON)."""
+        arrays = {f"w/{k}": v.detach().numpy().astype(np.float16) for k, v in self.net.state_dict().items()}
+        meta = {"kind": LIFTER_KIND, "format": LIFTER_FORMAT, "metres": self.metres,
+                "hidden": self.net.inp.out_features, "blocks": len(self.net.blocks), "info": self.info}
+        np.savez_compressed(path, meta=np.array(json.dumps(meta)), **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> "Lifter":
+        """Read a lifter file (default: the packaged one).
+
+        Raises:
+            ModelFileError: missing, unreadable, or not a lifter file of this format.
+        """
+        p = LIFTER_FILE if path is None else Path(path).expanduser()
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                weights = {k[2:]: torch.as_tensor(z[k].astype(np.float32)) for k in z.files if k.startswith("w/")}
+        except (OSError, KeyError, ValueError) as e:
+            raise ModelFileError(f"{p} is not a readable lifter file ({e}); reinstall flowmocap or retrain it with "
+                                 "tools/train_lifter.py.") from e
+        if meta.get("kind") != LIFTER_KIND or meta.get("format") != LIFTER_FORMAT:
+            raise ModelFileError(f"{p} is not a flowmocap keypoint lifter (kind {meta.get('kind')!r}, format "
+                                 f"{meta.get('format')!r}; expected {LIFTER_KIND!r}, {LIFTER_FORMAT}).")
+        net = LifterNet(hidden=int(meta["hidden"]), blocks=int(meta["blocks"]))
+        try:
+            net.load_state_dict(weights)
+        except RuntimeError as e:
+            raise ModelFileError(f"{p}: the weights do not fit the stated architecture ({e}).") from e
+        return cls(net, meta.get("info", {}), meta["metres"])
+
+
+@lru_cache(maxsize=2)
+def load_lifter(path: str | None = None) -> Lifter:
+    """:meth:`Lifter.load`, once per process and path."""
+    return Lifter.load(path)
+
+
+def lifted_track(track, lifter: Lifter | None = None, mix: bool = False):
+    """A copy of a :class:`~flowmocap.vision.auto.PersonTrack` whose ``world`` (the 3D
+    keypoints every depth cue reads) is the lifter's 3D of its 2D keypoints; frames
+    without the person, or with too few confident points, get NaN (no 3D cue there).
+
+    ``mix``: where the track has the detector's own 3D keypoints too, the mean of the two
+    instead (the lifter's aligned onto the detector's by a similarity per frame, fitted on
+    the 12 limb keypoints, then averaged point by point); the lifter's alone where the
+    detector gave none.
+    """
+    from flowmocap.geometry.procrustes import similarity_procrustes
+    from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS
+
+    lifter = load_lifter() if lifter is None else lifter
+    world = lifter.lift(track.keypoints, track.confidence)
+    world[~np.asarray(track.found, bool)] = np.nan
+    if mix and track.world is not None:
+        own = np.asarray(track.world, np.float64)
+        both = np.isfinite(world).all((1, 2)) & np.isfinite(own).all((1, 2))
+        if both.any():
+            w = np.isin(np.asarray(KEYPOINT_NAMES), SMPL_KEYPOINTS).astype(np.float64)
+            aligned = similarity_procrustes(world[both], own[both], weights=w)[0]
+            world[both] = 0.5 * (aligned + own[both])
+    return replace(track, world=world)

@@ -1,0 +1,190 @@
+"""flowmocap.vision.lifter: the packaged 2D-to-3D keypoint lifter."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from flowmocap.body import load_body_model
+from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
+from flowmocap.errors import InputError, ModelFileError
+from flowmocap.fit.config import TrackerConfig
+from flowmocap.geometry.procrustes import similarity_procrustes
+from flowmocap.vision.auto import PersonTrack
+from flowmocap.vision.detect import KEYPOINT_NAMES
+from flowmocap.vision.keypoint_map import load_keypoint_map
+from flowmocap.vision.lifter import POINTS, Lifter, lifted_track, load_lifter
+
+
+def _pose(**joints_deg):
+    p = np.zeros(72)
+    for name, rv in joints_deg.items():
+        p[3 * JOINT_INDEX[name]:3 * JOINT_INDEX[name] + 3] = np.radians(rv)
+    return p
+
+
+def _prior_poses():
+    """``(8, 72)`` typical poses not chosen by hand: the means of the packaged pose
+    prior's mixture components (other joints at rest)."""
+    from flowmocap.fit.pose_prior import PosePrior
+
+    prior = PosePrior.load()
+    out = np.zeros((prior.num_components, 72))
+    out[:, prior.columns] = prior.means
+    return out
+
+
+#: hand-made poses with clear reach in depth: an arm forward, a stride, a knee raised
+POSES = [
+    _pose(left_shoulder=(0, 0, -70), right_shoulder=(0, 0, 70), left_elbow=(0, -30, 0)),
+    _pose(left_hip=(-35, 0, 0), right_hip=(25, 0, 0), right_knee=(40, 0, 0), left_shoulder=(0, 0, -75),
+          right_shoulder=(0, 0, 75)),
+    _pose(right_hip=(-80, 0, 0), right_knee=(90, 0, 0), left_shoulder=(0, -60, -60), right_shoulder=(0, 0, 70),
+          right_elbow=(0, 90, 0)),
+]
+
+
+def _points3d(poses):
+    """``(N, 13, 3)`` the detector's points on the posed default body (y up), hip-centred."""
+    model, kmap = load_body_model("default"), load_keypoint_map()
+    with torch.no_grad():
+        o = model(betas=torch.zeros(len(poses), 10), pose=torch.as_tensor(np.asarray(poses), dtype=torch.float32),
+                  trans=torch.zeros(len(poses), 3))
+    j, t = o.joints.double().numpy(), o.transforms.double().numpy()
+    pts = kmap.apply(j, t)[:, list(EVAL_JOINTS)]
+    pts[:, 0] = kmap.ears_middle(j, t)
+    return pts - pts[:, 7:9].mean(1, keepdims=True)
+
+
+def _view(pts, azimuth_deg, distance=4.0, f=600.0, c=(320.0, 240.0)):
+    """Camera axes (x right, y down, z forward) and pixels of hip-centred ``pts (13, 3)`` seen
+    from ``azimuth_deg`` about the vertical at ``distance`` m."""
+    R = np.diag([1.0, -1.0, -1.0]) @ Rotation.from_euler("y", azimuth_deg, degrees=True).as_matrix()
+    cam = pts @ R.T + (0, 0, distance)
+    return cam, f * cam[:, :2] / cam[:, 2:] + c
+
+
+def _keypoints(px13):
+    """``(15, 2)`` detector keypoints from the 13 points (both ears at the head, nose too)."""
+    kp = np.zeros((len(KEYPOINT_NAMES), 2))
+    for k, name in enumerate(POINTS[1:], start=1):
+        kp[KEYPOINT_NAMES.index(name)] = px13[k]
+    for name in ("left_ear", "right_ear", "nose"):
+        kp[KEYPOINT_NAMES.index(name)] = px13[0]
+    return kp
+
+
+def _lift_views(lifter, pts, azimuths):
+    cams, kps = zip(*(_view(pts, a) for a in azimuths))
+    kp = np.stack([_keypoints(p) for p in kps])
+    world = lifter.lift(kp, np.ones(kp.shape[:2]))
+    idx = [KEYPOINT_NAMES.index("left_ear")] + [KEYPOINT_NAMES.index(n) for n in POINTS[1:]]
+    return np.stack(cams), world[:, idx]
+
+
+def _aligned_cm(pred, ref):
+    return 100 * np.linalg.norm(similarity_procrustes(pred, ref)[0] - ref, axis=-1).mean(-1)
+
+
+def test_packaged_lifter_recovers_depth_from_any_side():
+    lifter = load_lifter()
+    assert lifter.info["train_subjects"] and not set(lifter.info["train_subjects"]) & {2, 8, 13, 61}
+    azimuths = [0, 45, 90, 135, 180, 225, 270, 315]
+    errs, flat = [], []
+    for p in _points3d(np.concatenate([POSES, _prior_poses()])):
+        cam, lifted = _lift_views(lifter, p, azimuths)
+        errs.append(_aligned_cm(lifted, cam))
+        flat_guess = cam.copy()
+        flat_guess[..., 2] = cam[:, 7:9, 2].mean(1, keepdims=True)  # every point at the hips' depth
+        flat.append(_aligned_cm(flat_guess, cam))
+    errs, flat = np.array(errs), np.array(flat)
+    # a few centimetres on clean 2D from every side, far better than knowing no depth at all
+    assert np.median(errs) < 5.0, errs.round(1)
+    assert errs.mean() < 0.5 * flat.mean(), (errs.mean(), flat.mean())
+    # in metres, hip-centred, of a body's size
+    _, lifted = _lift_views(lifter, _points3d(POSES[:1])[0], [30])
+    assert np.abs(lifted[0, 7:9].mean(0)).max() < 1e-6
+    assert 0.5 < np.linalg.norm(lifted[0, 0] - lifted[0, 11:13].mean(0)) < 2.2
+
+
+def test_frames_without_hips_or_with_few_points_are_not_lifted():
+    lifter = load_lifter()
+    _, px = _view(_points3d(POSES[:1])[0], 20)
+    kp = np.stack([_keypoints(px)] * 3)
+    conf = np.ones(kp.shape[:2])
+    conf[1, KEYPOINT_NAMES.index("left_hip")] = 0.1  # no hip
+    conf[2, [KEYPOINT_NAMES.index(n) for n in ("left_knee", "right_knee", "left_ankle", "right_ankle",
+                                               "left_wrist", "right_wrist")]] = 0.0  # 7 points left
+    world = lifter.lift(kp, conf)
+    assert np.isfinite(world[0]).all() and np.isnan(world[1]).all() and np.isnan(world[2]).all()
+    # a dropped point is still given (the network fills it in), the others barely move
+    conf2 = np.ones(kp.shape[:2])
+    conf2[0, KEYPOINT_NAMES.index("left_wrist")] = 0.0
+    w2 = lifter.lift(kp[:1], conf2[:1])
+    assert np.isfinite(w2).all()
+    with pytest.raises(InputError, match="keypoints must be"):
+        lifter.lift(kp[:, :13], conf[:, :13])
+    with pytest.raises(InputError, match="confidence must be"):
+        lifter.lift(kp, conf[:, :3])
+
+
+def test_save_load_round_trip_and_wrong_files(tmp_path):
+    lifter = load_lifter()
+    path = tmp_path / "l.npz"
+    lifter.save(path)
+    again = Lifter.load(path)
+    _, px = _view(_points3d(POSES[1:2])[0], 60)
+    kp = _keypoints(px)[None]
+    np.testing.assert_allclose(again.lift(kp, np.ones((1, 15))), lifter.lift(kp, np.ones((1, 15))), atol=1e-6)
+    from flowmocap.fit.pose_prior import default_prior_path
+
+    with pytest.raises(ModelFileError, match="not a"):
+        Lifter.load(default_prior_path())  # an .npz of another kind
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="readable lifter"):
+        Lifter.load(tmp_path / "junk.npz")
+    with pytest.raises(ModelFileError):
+        Lifter.load(tmp_path / "missing.npz")
+
+
+def test_lifted_track_replaces_the_3d_only(tmp_path):
+    _, px = _view(_points3d(POSES[2:3])[0], 200)
+    kp = np.stack([_keypoints(px)] * 2).astype(np.float32)
+    conf = np.ones((2, 15), np.float32)
+    found = np.array([True, False])
+    track = PersonTrack(kp, conf, found, [tmp_path / "a.png", tmp_path / "b.png"], {"detector": "x"},
+                        np.zeros((2, 15, 3)))
+    lifted = lifted_track(track)
+    assert lifted.keypoints is track.keypoints and lifted.found is track.found
+    assert np.isfinite(lifted.world[0]).all() and np.isnan(lifted.world[1]).all()
+    j3d, c = lifted.smpl_joints3d(0)
+    assert np.isfinite(j3d).all() and lifted.smpl_joints3d(1) is None
+    assert not np.allclose(j3d, 0)
+
+
+def test_config_names_the_3d_source():
+    assert TrackerConfig().detector3d_source == "mediapipe"
+    assert TrackerConfig(detector3d_source="lifter").detector3d_source == "lifter"
+    with pytest.raises(InputError, match="detector3d_source"):
+        TrackerConfig(detector3d_source="openpose")
+
+
+def test_both_sources_average_the_lifter_and_the_detector(tmp_path):
+    lifter = load_lifter()
+    cam, px = _view(_points3d(POSES[1:2])[0], 120)
+    kp = np.stack([_keypoints(px)] * 3).astype(np.float32)
+    own = np.full((3, 15, 3), np.nan)
+    for k, name in enumerate(POINTS[1:], start=1):  # the detector's 3D: the truth, scaled and shifted
+        own[:2, KEYPOINT_NAMES.index(name)] = 0.9 * cam[k] + (0.1, 0.2, 0.3)
+    for name in ("left_ear", "right_ear", "nose"):
+        own[:2, KEYPOINT_NAMES.index(name)] = 0.9 * cam[0] + (0.1, 0.2, 0.3)
+    track = PersonTrack(kp, np.ones((3, 15), np.float32), np.ones(3, bool), [tmp_path / "a.png"] * 3, {}, own)
+    alone, both = lifted_track(track, lifter).world, lifted_track(track, lifter, mix=True).world
+    limbs = [KEYPOINT_NAMES.index(n) for n in POINTS[1:]]
+    truth = own[0, limbs]
+    err = lambda w: np.linalg.norm(similarity_procrustes(w[limbs], truth)[0] - truth, axis=-1).mean()  # noqa: E731
+    # the mean lies between the two: half the lifter's error against an exact detector
+    assert err(both[0]) == pytest.approx(0.5 * err(alone[0]), rel=0.05) and err(alone[0]) > 0.005
+    # in the detector's frame (its scale and origin); the lifter's alone where the detector has nothing
+    np.testing.assert_allclose(both[0, limbs].mean(0), truth.mean(0), atol=1e-9)
+    np.testing.assert_allclose(both[2], alone[2])
