@@ -72,6 +72,7 @@ from flowmocap.vision.auto import (
     first_person_frame,
     frame_runs,
 )
+from flowmocap.vision.lifter import lifted_track
 from flowmocap.vision.person import describe_person, parse_person
 
 __all__ = ["Result", "load_result", "parse_frame_range", "read_init", "track"]
@@ -402,19 +403,28 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                                   "scale": seq.meta["scale"], "max_side": max_size}
 
     keypoints = j3d = None
+    lift = cfg.detector3d_source != "mediapipe"  # the 3D cues from flowmocap's lifter of the 2D keypoints
+    mix = cfg.detector3d_source == "both"  # ... averaged with the detector's own 3D
+    if lift and joints3d == "auto":
+        notes["joints3d_source"] = ("the mean of MediaPipe's 3D keypoints and flowmocap.vision.lifter's" if mix else
+                                    "flowmocap.vision.lifter, from the detector's 2D keypoints")
     watch = detections  # the detections the re-initialisation compares each frame with
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
-        j3d = lambda i: detections.smpl_joints3d(i, cam)
+        if lift:
+            watch = lifted_track(detections, mix=mix)
+        j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
         watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
         if watch is not None:
+            if lift:
+                watch = lifted_track(watch, mix=mix)
             keypoints = lambda i: watch.smpl_joints(i) if i < len(watch) and watch.found[i] else None
             j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
-        j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress)
+        j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress, lift=lift, mix=mix)
     if (out / "detections").is_dir():
         write_json(out / "detections" / "source.json", {"input": cache_key})
     write_json(out / "input.json", notes)
@@ -423,6 +433,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     monitor = watch if (watch is not None and reinit) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
                {"fingerprint": fingerprint, **notes}, keep_flow)
+    if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off" and has_result(out):
+        run = _lifter_refit(out, watch, body, cfg, run, say)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
     say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
@@ -770,6 +782,26 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
     run["tracker"] = tracker.state_dict()  # where it ended (the resume state lived in progress.json)
     _record_end(out, run, log, timings, "finished", cfg=cfg)
     log.close()
+    return run
+
+
+def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
+    """The finished ``motion.npz`` refitted towards the lifter's depths
+    (:func:`~flowmocap.fit.lift_refit.lifter_refit_motion`, ``cfg.lifter_refit_weight``),
+    written atomically; ``run.json`` records it under ``lifter_refit``. Returns the run info."""
+    from flowmocap.fit.lift_refit import lifter_refit_motion
+
+    motion, _ = read_result(out)
+    if "poses_tracked" in motion:  # already refitted (a resumed run that had finished)
+        return run
+    t0 = time.perf_counter()
+    refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight)
+    write_motion(out, refit)
+    info["seconds"] = round(time.perf_counter() - t0, 2)
+    run = {**run, "lifter_refit": info}
+    write_run(out, run)
+    say(f"refitted {info['frames_refit']} frames towards the lifter's depths (share {cfg.lifter_refit_weight:g}): "
+        f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average")
     return run
 
 

@@ -87,7 +87,7 @@ _RANGES: dict[str, str] = {
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
-    "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0,
+    "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
@@ -100,6 +100,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "silhouette_model": ("capsules", "mesh"),
     "flow_method": tuple(FLOW_METHODS),
     "depth_temporal_reference": ("previous", "prediction"),
+    "detector3d_source": ("mediapipe", "lifter", "both"),
 }
 
 
@@ -114,7 +115,7 @@ def _bad(name: str, value: Any, expected: str) -> InputError:
 #: ``TrackerConfig.load(None, **DEPTH_CUES_OFF)`` or the same as a config file.
 DEPTH_CUES_OFF: dict = {"detector3d_weight": 0.0, "init_detector3d_weight": 0.0, "flip_test": False,
                         "pose_prior_weight": 0.0, "init_learned_prior_weight": 0.0,
-                        "reinit_max_joint3d_error": 0.0, "depth_temporal_weight": 0.0}
+                        "reinit_max_joint3d_error": 0.0, "depth_temporal_weight": 0.0, "lifter_refit_weight": 0.0}
 
 
 @dataclass
@@ -151,6 +152,9 @@ class TrackerConfig:
     silhouette_model: str = "capsules"  # S_M/C_M of E_c: "capsules" (paper) or the "mesh" itself
     detector3d_weight: float = 100.0   # lambda_3d, E_3d: detector's 3D joints after a similarity; 0: off
     detector3d_scale: float = 0.1      # its pseudo-Huber scale, m: quadratic below, linear above
+    detector3d_source: str = "mediapipe"  # the 3D keypoints of E_d, E_3d and the 3D refit criterion: the
+    #                                    detector's own ("mediapipe"), flowmocap.vision.lifter's ("lifter")
+    #                                    or the mean of the two ("both")
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     flip_without_temporal: bool = False  # judge a flip by the energy without E_theta (whose Kalman
@@ -164,6 +168,9 @@ class TrackerConfig:
     depth_smoothing_s: float = 0.5     # s: the finished motion's root distance from the camera smoothed over
     #                                    this window (Savitzky-Golay, degree 1; fit.smooth.smooth_root_depth)
     #                                    between re-initialisations; 0: off (the tracker's own frames)
+    lifter_refit_weight: float = 0.5   # after tracking (and the depth smoothing): each frame's body refitted
+    #                                    towards its keypoints' depths blended with this share of the lifter's
+    #                                    (fit.lift_refit; the image kept); 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

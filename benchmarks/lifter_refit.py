@@ -1,0 +1,154 @@
+"""The lifter refit (``lifter_refit_weight``, :mod:`flowmocap.fit.lift_refit`) applied to
+finished runs of the three issue-18 suites and scored before and after.
+
+The refit is a pass after tracking, so it can be judged on runs that were made without
+it: the tracking is the same, only the finished motion changes. For each suite given:
+
+- ``--real3d DIR`` (a ``flowmocap bench --suite real3d`` folder): per person-view the
+  per-frame and per-sequence PA-MPJPE (mm) on the suite's own frames and joints
+  (:func:`flowmocap.eval.real3d.scored_frames`), before and after;
+- ``--diverse DIR`` (a diverse bench or ``tracker_only.py`` folder) and ``--seeds DIR``
+  (a ``benchmarks/track_seeds.py --work`` folder, CMU 35_01): per clip the local and
+  global error (cm) and the 2D error of the 24 joints against the truth (px), before and
+  after.
+
+Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
+       [--weight 0.5] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.body import load_body_model
+from flowmocap.body.skeleton import EVAL_JOINTS
+from flowmocap.eval import metrics as M
+from flowmocap.fit.lift_refit import lifter_refit_motion
+from flowmocap.io.results import read_result
+from flowmocap.vision.auto import load_detections
+
+E = list(EVAL_JOINTS)
+_MODELS: dict = {}
+
+
+def _refit(res: Path, weight: float, track=None):
+    motion, _ = read_result(res)
+    gender = str(np.asarray(motion.get("gender", "neutral")))
+    model = _MODELS.setdefault(gender, load_body_model("default", gender=gender))
+    track = load_detections(res) if track is None else track
+    if track is None:
+        raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
+    refit, info = lifter_refit_motion(motion, track, model, weight=weight)
+    return motion, refit, info
+
+
+def real3d_rows(bench: Path, weight: float) -> list[dict]:
+    from flowmocap.eval import real3d as R
+
+    reference = R.build_reference(bench, progress=False, log=None)
+    rows = []
+    for res in sorted((bench / "runs").iterdir()):
+        if not (res / "motion.npz").exists():
+            continue
+        person, view = res.name.split("-", 1)
+        d = R.scored_frames(res, reference, person, view)
+        if not d["used"]:
+            continue
+        motion, refit, info = _refit(res, weight, d["detections"])
+        at = {int(f): k for k, f in enumerate(motion["frame_index"])}
+        after = np.stack([np.asarray(refit["joints3d"][at[f]], np.float64)[E] for f in d["used"]])
+        b = R.pa_mpjpe(d["ours"], d["ref"], d["valid"])
+        a = R.pa_mpjpe(after, d["ref"], d["valid"])
+        rows.append({"name": res.name, "frames": len(d["used"]), "before_per_frame_mm": b[0], "after_per_frame_mm": a[0],
+                     "before_per_sequence_mm": b[1], "after_per_sequence_mm": a[1], **info})
+    return rows
+
+
+def synthetic_rows(pairs: list[tuple[str, Path, Path]], weight: float) -> list[dict]:
+    """``pairs``: (name, sequence folder, result folder)."""
+    rows = []
+    for name, seq, res in pairs:
+        if not (res / "motion.npz").exists() or not (seq / "gt.npz").exists():
+            continue
+        motion, refit, info = _refit(res, weight)
+        gt = np.load(seq / "gt.npz")
+        idx = np.asarray(motion["frame_index"], int)
+        g3, g2 = np.asarray(gt["joints3d"], np.float64)[idx], np.asarray(gt["joints2d"], np.float64)[idx]
+        row = {"name": name, "frames": int(idx.size), **info}
+        for when, m in (("before", motion), ("after", refit)):
+            p3 = np.asarray(m["joints3d"], np.float64)
+            row[f"{when}_local_cm"] = 100 * float(M.local_procrustes_error(p3, g3).mean())
+            row[f"{when}_global_cm"] = 100 * float(M.global_procrustes_error(p3, g3).mean())
+            row[f"{when}_px"] = float(np.linalg.norm(np.asarray(m["joints2d"], np.float64) - g2, axis=-1).mean())
+        rows.append(row)
+    return rows
+
+
+def _summary(rows: list[dict], keys: list[str]) -> dict:
+    out = {}
+    for k in keys:
+        v = np.array([r[k] for r in rows], float)
+        out[k] = {"median": float(np.median(v)) if v.size else None, "mean": float(v.mean()) if v.size else None}
+    return out
+
+
+def _table(title: str, rows: list[dict], keys: list[str]) -> str:
+    lines = [f"### {title}", "", "| run | " + " | ".join(keys) + " |", "|---|" + "---:|" * len(keys)]
+    for r in rows:
+        lines.append(f"| {r['name']} | " + " | ".join(f"{r[k]:.2f}" for k in keys) + " |")
+    s = _summary(rows, keys)
+    for stat in ("median", "mean"):
+        lines.append(f"| **{stat}** ({len(rows)}) | " + " | ".join(
+            "--" if s[k][stat] is None else f"{s[k][stat]:.2f}" for k in keys) + " |")
+    better = sum(1 for r in rows if r[keys[1]] < r[keys[0]])
+    lines.append(f"\n{keys[1]} below {keys[0]} on {better} of {len(rows)}\n")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--real3d", type=Path)
+    ap.add_argument("--diverse", type=Path)
+    ap.add_argument("--seeds", type=Path, help="a benchmarks/track_seeds.py --work folder")
+    ap.add_argument("--weight", type=float, default=0.5)
+    ap.add_argument("--out")
+    a = ap.parse_args()
+    if not (a.real3d or a.diverse or a.seeds):
+        ap.error("give at least one of --real3d, --diverse, --seeds")
+    result, md = {"weight": a.weight}, [f"# The lifter refit at weight {a.weight:g} on finished runs\n"]
+    syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",
+                "mean_move_px"]
+    if a.real3d:
+        rows = real3d_rows(a.real3d, a.weight)
+        keys = ["before_per_frame_mm", "after_per_frame_mm", "before_per_sequence_mm", "after_per_sequence_mm",
+                "mean_move_px"]
+        result["real3d"] = {"dir": str(a.real3d), "rows": rows, "summary": _summary(rows, keys)}
+        md.append(_table("real3d", rows, keys))
+    if a.diverse:
+        pairs = [(d.name, d / "sequence", d / "flowmocap") for d in sorted(a.diverse.iterdir()) if d.is_dir()]
+        rows = synthetic_rows(pairs, a.weight)
+        result["diverse"] = {"dir": str(a.diverse), "rows": rows, "summary": _summary(rows, syn_keys)}
+        md.append(_table("diverse", rows, syn_keys))
+    if a.seeds:
+        pairs = []
+        for seq in sorted(a.seeds.glob("seq_s*")):
+            for res in sorted(p for p in seq.iterdir() if p.is_dir() and (p / "result").is_dir()):
+                pairs.append((f"{seq.name}/{res.name}", res / "sequence" if (res / "sequence" / "gt.npz").exists()
+                              else seq / "sequence", res / "result"))
+        rows = synthetic_rows(pairs, a.weight)
+        result["seeds"] = {"dir": str(a.seeds), "rows": rows, "summary": _summary(rows, syn_keys)}
+        md.append(_table("CMU 35_01 seeds", rows, syn_keys))
+    text = "\n".join(md)
+    print(text)
+    if a.out:
+        Path(f"{a.out}.json").write_text(json.dumps(result, indent=1))
+        Path(f"{a.out}.md").write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

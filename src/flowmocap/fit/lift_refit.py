@@ -1,0 +1,174 @@
+"""After tracking: each frame's body refitted towards a depth blend with the lifter (issue 18).
+
+The tracker's fit and a 3D estimate from the 2D keypoints err in different ways: on the
+real multi-view recording, half of each (the fit's keypoints aligned onto the lifter's
+:mod:`flowmocap.vision.lifter` output, blended) scores about 13 % better than either
+(``benchmarks/fusion_bound.py``). Inside the tracker such a cue is one voice among flow,
+silhouette and priors, and the chaos of tracking moves single runs by more than it gains;
+after tracking it can be applied to every frame alike. For each frame with a lifted pose:
+
+1. ``F``: the fit's 13 keypoints (the detector's convention: the body's joints moved by
+   :mod:`flowmocap.vision.keypoint_map`'s offsets, the head at the middle of the ears) in
+   the camera's axes; ``A``: the lifter's 3D of the frame's detection, turned from the
+   axes of the ray through the detected hips into the camera's
+   (:meth:`~flowmocap.geometry.camera.PinholeCamera.ray_rotation`) and aligned onto
+   ``F`` by a similarity (so only its shape counts, at the fit's place and size).
+2. The target of keypoint ``j``: ``F_j`` moved along its own camera ray to the depth
+   ``(1 - w) z(F_j) + w z(A_j)`` (``w`` = ``weight``): the same pixel, a blended depth.
+3. The body's pose and translation are refitted to those targets by L-BFGS: ``sum_j |k_j -
+   target_j|^2 / sigma^2 + sum |theta - theta_tracked|^2 / reg^2`` over the 23 joint
+   rotations (m^2 / m^2 and rad^2 / rad^2); the shape stays.
+
+Frames without a lifted pose (no person, too few confident keypoints) keep the tracked
+body. ``joints3d`` and ``joints2d`` are recomputed; the tracked poses are kept as
+``poses_tracked``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from typing import Any
+
+import numpy as np
+import torch
+
+from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
+from flowmocap.errors import InputError
+
+__all__ = ["blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
+
+
+def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: torch.Tensor):
+    """``(keypoints (B, 13, 3), joints (B, 24, 3))`` of posed bodies, world axes, metres:
+    the 13 points in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS` where the
+    detector puts them (the head at the middle of the ears)."""
+    out = model(betas=betas.expand(len(poses), -1), pose=poses, trans=trans)
+    kp = kmap.apply(out.joints, out.transforms)[:, list(EVAL_JOINTS)]
+    rot = out.transforms[:, kmap.ears_part, :3, :3]
+    ears = torch.as_tensor(np.asarray(kmap.ears_offset), dtype=out.joints.dtype)
+    head = out.joints[:, JOINT_INDEX["head"]] + (rot @ ears[:, None])[..., 0]
+    return torch.cat([head[:, None], kp[:, 1:]], 1), out.joints
+
+
+def blend_targets(fit_cam: np.ndarray, lifted_cam: np.ndarray, weight: float) -> np.ndarray:
+    """``(T, 13, 3)`` targets in the camera's axes (step 2 of the module docstring).
+
+    Args:
+        fit_cam: ``(T, 13, 3)`` the fit's keypoints, camera axes, metres (z > 0).
+        lifted_cam: ``(T, 13, 3)`` the lifter's, camera axes (any origin and scale).
+        weight: the lifter's share of the depth, in [0, 1].
+    """
+    from flowmocap.geometry.procrustes import similarity_procrustes
+
+    aligned = similarity_procrustes(np.asarray(lifted_cam, np.float64), np.asarray(fit_cam, np.float64))[0]
+    z = (1.0 - weight) * fit_cam[..., 2] + weight * aligned[..., 2]
+    return fit_cam * (z / fit_cam[..., 2])[..., None]
+
+
+def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, sigma: float, reg: float):
+    """The refit's energy (step 3 of the module docstring), a scalar: ``targets (B, 13, 3)``
+    in world axes, ``use (B,)`` the frames that have one (0 / 1)."""
+    kp, _ = keypoints13(model, kmap, poses, betas, trans)
+    fit = (((kp - targets) ** 2).sum(-1).sum(-1) * use).sum() / sigma ** 2
+    return fit + ((poses[:, 3:] - poses_tracked[:, 3:]) ** 2).sum() / reg ** 2
+
+
+def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
+                        iterations: int = 20, chunk: int = 256, lifter=None, progress=None) -> tuple[dict, dict]:
+    """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
+
+    Args:
+        motion: ``poses (T, 72)``, ``trans (T, 3)``, ``betas``, ``joints3d (T, 24, 3)``,
+            ``joints2d (T, 24, 2)``, ``camera`` (JSON of ``PinholeCamera.to_dict()``),
+            ``frame_index (T,)`` and anything else (kept).
+        track: the :class:`~flowmocap.vision.auto.PersonTrack` of the run (its 2D
+            keypoints and confidences, by input frame number).
+        model: the run's :class:`~flowmocap.body.model.BodyModel` (copied in float64).
+        weight: the lifter's share of each keypoint's depth, in [0, 1]; 0 returns the
+            arrays unchanged.
+        sigma: metres, reg: radians: the energy's scales.
+        lifter: a :class:`~flowmocap.vision.lifter.Lifter` (default the packaged one).
+        progress: optional callable ``(done_frames, total)``.
+
+    Returns:
+        ``(motion, info)``: the new arrays, and ``frames_refit``, ``mean_move_mm`` (mean
+        distance the 24 joints moved), ``mean_move_px`` (in the image).
+    """
+    from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+    from flowmocap.vision.lifter import HIPS, eval_points_2d, load_lifter
+
+    if not 0.0 <= weight <= 1.0:
+        raise InputError(f"weight must lie in [0, 1]; got {weight!r}.")
+    if weight == 0:
+        return dict(motion), {"frames_refit": 0, "mean_move_mm": 0.0, "mean_move_px": 0.0}
+    lifter = load_lifter() if lifter is None else lifter
+    camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    idx = np.asarray(motion["frame_index"], int)
+    if idx.size and (idx.min() < 0 or idx.max() >= len(track)):
+        raise InputError(f"the result's frames reach {idx.max()} but the detections have {len(track)} frames.")
+    body = copy.deepcopy(model).double()
+    kmap = load_keypoint_map()
+    poses0 = torch.as_tensor(np.asarray(motion["poses"], np.float64))
+    trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
+    betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)
+
+    world = lifter.lift(track.keypoints[idx], track.confidence[idx])
+    world[~np.asarray(track.found, bool)[idx]] = np.nan
+    from flowmocap.eval.real3d import eval_points
+
+    lifted = eval_points(world)
+    ok = np.isfinite(lifted).all((1, 2))
+    pts2, _ = eval_points_2d(track.keypoints[idx], track.confidence[idx])
+    poses_new, trans_new = poses0.clone(), trans0.clone()
+    with torch.no_grad():
+        fit_world, joints_before = keypoints13(body, kmap, poses0, betas, trans0)
+    fit_cam = fit_world.numpy() @ R.T + t
+    for k in np.flatnonzero(ok):
+        u, v = pts2[k, list(HIPS)].mean(0)
+        lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
+    targets_cam = fit_cam.copy()
+    if ok.any():
+        targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight)
+    targets = torch.as_tensor((targets_cam - t) @ R)
+    use = torch.as_tensor(ok, dtype=torch.float64)
+    for a in range(0, len(idx), chunk):
+        b = min(a + chunk, len(idx))
+        if not ok[a:b].any():
+            continue
+        pose = poses0[a:b].clone().requires_grad_(True)
+        tr = trans0[a:b].clone().requires_grad_(True)
+        opt = torch.optim.LBFGS([pose, tr], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
+
+        def closure(pose=pose, tr=tr, a=a, b=b):
+            opt.zero_grad()
+            e = refit_energy(body, kmap, pose, tr, betas, targets[a:b], use[a:b], poses0[a:b], sigma, reg)
+            e.backward()
+            return e
+
+        opt.step(closure)
+        keep = torch.as_tensor(ok[a:b])[:, None]
+        poses_new[a:b] = torch.where(keep, pose.detach(), poses0[a:b])
+        trans_new[a:b] = torch.where(keep, tr.detach(), trans0[a:b])
+        if progress is not None:
+            progress(b, len(idx))
+    if not (torch.isfinite(poses_new).all() and torch.isfinite(trans_new).all()):
+        raise InputError("the refit towards the lifter gave non-finite values; run without it "
+                         "(\"lifter_refit_weight\": 0) and report the input.")
+    with torch.no_grad():
+        out_b = body(betas=betas.expand(len(idx), -1), pose=poses_new, trans=trans_new)
+    joints = out_b.joints.numpy()
+    j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)  # world points
+    out = dict(motion)
+    out["poses_tracked"] = np.asarray(motion["poses"]).copy()
+    out["poses"] = poses_new.numpy().astype(np.asarray(motion["poses"]).dtype)
+    out["trans"] = trans_new.numpy().astype(np.asarray(motion["trans"]).dtype)
+    out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
+    out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    before2d = np.asarray(motion["joints2d"], np.float64)
+    info = {"frames_refit": int(ok.sum()), "weight": weight,
+            "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
+            "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
+    return out, info

@@ -1,0 +1,159 @@
+"""flowmocap.fit.lift_refit: the refit of a finished motion towards the lifter's depths."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import load_body_model
+from flowmocap.body.skeleton import JOINT_INDEX
+from flowmocap.errors import InputError
+from flowmocap.fit.lift_refit import blend_targets, keypoints13, lifter_refit_motion, refit_energy
+from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.vision.auto import PersonTrack
+from flowmocap.vision.detect import KEYPOINT_NAMES
+from flowmocap.vision.keypoint_map import load_keypoint_map
+from flowmocap.vision.lifter import HIPS, POINTS
+
+T = 4
+CAM = PinholeCamera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480,
+                    R=np.diag([1.0, -1.0, -1.0]), t=np.array([0.1, 0.9, 4.0]))
+
+
+def _pose(**joints_deg):
+    p = np.zeros(72)
+    for name, rv in joints_deg.items():
+        p[3 * JOINT_INDEX[name]:3 * JOINT_INDEX[name] + 3] = np.radians(rv)
+    return p
+
+
+#: the truth: the right forearm reaching towards the camera and the left one sideways
+TRUTH = _pose(left_shoulder=(0, 0, -70), right_shoulder=(0, 0, 70), right_elbow=(0, 80, 0),
+              left_hip=(-20, 0, 0), left_knee=(30, 0, 0))
+
+
+def _bodies(poses):
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    with torch.no_grad():
+        kp, joints = keypoints13(model, kmap, torch.as_tensor(np.asarray(poses)), torch.zeros(1, 10),
+                                 torch.zeros(len(poses), 3))
+    return kp.numpy(), joints.numpy()
+
+
+class TruthLifter:
+    """A stand-in lifter that returns the true keypoints (ray axes, as the real one)."""
+
+    def __init__(self, truth_world):
+        self.truth_cam = truth_world @ CAM.R.T + CAM.t
+
+    def lift(self, keypoints, confidence):
+        out = np.full((len(keypoints), len(KEYPOINT_NAMES), 3), np.nan)
+        for f in range(len(keypoints)):
+            hip = keypoints[f, [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]].mean(0)
+            ray = CAM.ray_rotation(float(hip[0]), float(hip[1]))
+            x = self.truth_cam[f] @ ray  # camera axes -> the ray's (x_cam = x_ray @ ray.T)
+            for k, name in enumerate(POINTS):
+                names = ("left_ear", "right_ear", "nose") if name == "head" else (name,)
+                for n in names:
+                    out[f, KEYPOINT_NAMES.index(n)] = x[k]
+        return out
+
+
+def _setup(tmp_path, fit_pose):
+    truth_kp, _ = _bodies([TRUTH] * T)
+    fit_kp, fit_joints = _bodies([fit_pose] * T)
+    px = np.asarray(CAM.project(truth_kp.reshape(-1, 3))).reshape(T, 13, 2)
+    kp = np.zeros((T, len(KEYPOINT_NAMES), 2))
+    for k, name in enumerate(POINTS):
+        for n in (("left_ear", "right_ear", "nose") if name == "head" else (name,)):
+            kp[:, KEYPOINT_NAMES.index(n)] = px[:, k]
+    found = np.ones(T, bool)
+    found[3] = False  # no person in the last frame: its body stays
+    track = PersonTrack(kp, np.ones((T, len(KEYPOINT_NAMES))), found, [tmp_path / "m.png"] * T, {})
+    motion = {"poses": np.array([fit_pose] * T, np.float32), "trans": np.zeros((T, 3), np.float32),
+              "betas": np.zeros(10, np.float32), "joints3d": fit_joints.astype(np.float32),
+              "joints2d": np.asarray(CAM.project(fit_joints.reshape(-1, 3))).reshape(T, 24, 2).astype(np.float32),
+              "camera": json.dumps(CAM.to_dict()), "frame_index": np.arange(T), "fps": 30.0}
+    return motion, track, truth_kp, fit_kp
+
+
+def test_blend_targets_keep_each_pixel_and_blend_depth():
+    rng = np.random.default_rng(0)
+    fit = rng.normal(0, 0.3, (2, 13, 3)) + (0, 0, 4)
+    lifted = fit * 1.7 + (1, 2, 3)  # the same shape elsewhere and larger: aligned, it is the fit
+    np.testing.assert_allclose(blend_targets(fit, lifted, 0.5), fit, atol=1e-9)
+    other = fit.copy()
+    other[:, 5, 2] += 0.4  # one point deeper in the lifter's shape
+    tg = blend_targets(fit, other, 1.0)
+    np.testing.assert_allclose(tg[..., :2] / tg[..., 2:], fit[..., :2] / fit[..., 2:], atol=1e-12)  # same pixels
+    assert (tg[:, 5, 2] > fit[:, 5, 2] + 0.2).all()
+    half = blend_targets(fit, other, 0.5)
+    np.testing.assert_allclose(half[..., 2], 0.5 * (fit[..., 2] + tg[..., 2]), atol=1e-12)
+
+
+def test_refit_moves_a_wrong_forearm_towards_the_lifted_depth_and_keeps_the_image(tmp_path):
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)  # the forearm reaching away instead
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    model = load_body_model("default")
+    # converged (60 iterations; the default 20 stops earlier: the same direction, a little more image motion)
+    out, info = lifter_refit_motion(motion, track, model, weight=1.0, lifter=TruthLifter(truth_kp), iterations=60)
+    assert info["frames_refit"] == 3
+    kp_after, joints_after = _bodies(out["poses"].astype(np.float64))
+    wrist = POINTS.index("right_wrist")
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    after = np.linalg.norm(kp_after[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    assert (before > 0.2).all() and (after < 0.3 * before).all(), (before, after)
+    # the image barely moves (targets lie on the fit's rays), joints3d/2d are the new body's
+    np.testing.assert_allclose(out["joints3d"], joints_after + out["trans"][:, None], atol=1e-4)
+    assert info["mean_move_px"] < 3.0 and info["mean_move_mm"] > 10
+    # the frame without a person, and everything else, is kept; the tracked poses too
+    np.testing.assert_array_equal(out["poses"][3], motion["poses"][3])
+    np.testing.assert_array_equal(out["poses_tracked"], motion["poses"])
+    assert out["fps"] == motion["fps"] and out["camera"] == motion["camera"]
+
+
+def test_weight_zero_and_bad_input(tmp_path):
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
+    model = load_body_model("default")
+    same, info = lifter_refit_motion(motion, track, model, weight=0.0)
+    assert info["frames_refit"] == 0 and same["poses"] is motion["poses"] and "poses_tracked" not in same
+    with pytest.raises(InputError, match="weight"):
+        lifter_refit_motion(motion, track, model, weight=1.5)
+    short = PersonTrack(track.keypoints[:2], track.confidence[:2], track.found[:2], track.mask_paths[:2], {})
+    with pytest.raises(InputError, match="detections have 2 frames"):
+        lifter_refit_motion(motion, short, model, weight=0.5, lifter=TruthLifter(truth_kp))
+    # the truth refitted towards itself stays where it is
+    out, _ = lifter_refit_motion(motion, track, model, weight=1.0, lifter=TruthLifter(truth_kp))
+    np.testing.assert_allclose(out["joints3d"], motion["joints3d"], atol=2e-3)
+
+
+def test_refit_energy_gradient_matches_finite_differences():
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    rng = np.random.default_rng(1)
+    poses0 = torch.as_tensor(np.stack([TRUTH, TRUTH]) + rng.normal(0, 0.05, (2, 72)))
+    targets = torch.as_tensor(rng.normal(0, 0.5, (2, 13, 3)))
+    use = torch.tensor([1.0, 0.0])
+
+    def energy(pose, trans):
+        return refit_energy(model, kmap, pose, trans, torch.zeros(1, 10), targets, use, poses0, 0.02, 0.3)
+
+    pose = (poses0 + torch.as_tensor(rng.normal(0, 0.1, (2, 72)))).requires_grad_(True)
+    trans = torch.as_tensor(rng.normal(0, 0.1, (2, 3))).requires_grad_(True)
+    e = energy(pose, trans)
+    gp, gt = torch.autograd.grad(e, (pose, trans))
+    h = 1e-6
+    for (which, i, j) in [("pose", 0, 3 * JOINT_INDEX["right_elbow"] + 1), ("pose", 0, 1), ("pose", 1, 10),
+                          ("trans", 0, 2), ("trans", 1, 0)]:
+        p, t = pose.detach().clone(), trans.detach().clone()
+        x = p if which == "pose" else t
+        x[i, j] += h
+        up = energy(p, t).item()
+        x[i, j] -= 2 * h
+        down = energy(p, t).item()
+        fd = (up - down) / (2 * h)
+        an = (gp if which == "pose" else gt)[i, j].item()
+        assert an == pytest.approx(fd, rel=1e-5, abs=1e-4), (which, i, j)
+    # frame 1 has no target: only the pose term pulls it
+    assert float(gt[1].abs().max()) == 0.0
