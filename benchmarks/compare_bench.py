@@ -76,17 +76,24 @@ def paired(table: list[dict], chance_cm: float = CHANCE_CM) -> dict:
     return out
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def read_pair(description: str, chance: float, chance_help: str):
+    """The command line of a two-run comparison (``A B [--names a,b] [--json F] [--chance X]``):
+    ``(args, run A, run B, name A, name B)``, the runs read from their JSON files."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("a")
     ap.add_argument("b")
     ap.add_argument("--names", default="A,B")
     ap.add_argument("--json", default=None)
-    ap.add_argument("--chance", type=float, default=CHANCE_CM,
-                    help="cm: per-sequence differences counted as a change only beyond this")
+    ap.add_argument("--chance", type=float, default=chance, help=chance_help)
     args = ap.parse_args()
     a, b = (json.loads(Path(p).read_text()) for p in (args.a, args.b))
     na, nb = args.names.split(",")
+    return args, a, b, na, nb
+
+
+def main() -> int:
+    args, a, b, na, nb = read_pair(__doc__.splitlines()[0], CHANCE_CM,
+                                   "cm: per-sequence differences counted as a change only beyond this")
     table = rows(a, b)
     if not table:
         raise SystemExit("no sequence is finished in both runs")

@@ -18,12 +18,15 @@ Usage: python benchmarks/compare_real3d.py A/real3d.json B/real3d.json [--names 
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import wilcoxon
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare_bench import read_pair  # noqa: E402  (benchmarks/, the script's own folder)
 
 #: mm: per-person-view moves below this are counted as no change (see the module docstring)
 CHANCE_MM = 10.0
@@ -83,16 +86,8 @@ def summary(table: list[dict]) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("a")
-    ap.add_argument("b")
-    ap.add_argument("--names", default="A,B")
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--chance", type=float, default=CHANCE_MM,
-                    help="mm: per-person-view differences counted as a change only beyond this")
-    args = ap.parse_args()
-    a, b = (json.loads(Path(p).read_text()) for p in (args.a, args.b))
-    na, nb = args.names.split(",")
+    args, a, b, na, nb = read_pair(__doc__.splitlines()[0], CHANCE_MM,
+                                   "mm: per-person-view differences counted as a change only beyond this")
     table = rows(a, b)
     if not table:
         raise SystemExit("no person-view is scored in both runs")
