@@ -117,9 +117,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
 
     world = lifter.lift(track.keypoints[idx], track.confidence[idx])
     world[~np.asarray(track.found, bool)[idx]] = np.nan
-    from flowmocap.eval.real3d import eval_points
-
-    lifted = eval_points(world)
+    lifted, _ = eval_points_2d(world, np.ones(world.shape[:2]))  # the 13 points (any last dimension)
     ok = np.isfinite(lifted).all((1, 2))
     pts2, _ = eval_points_2d(track.keypoints[idx], track.confidence[idx])
     poses_new, trans_new = poses0.clone(), trans0.clone()

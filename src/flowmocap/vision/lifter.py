@@ -86,9 +86,9 @@ def normalise_2d(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor
 
 
 def eval_points_2d(keypoints: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(T, 13, 2)`` points and ``(T, 13)`` confidences from ``keypoints (T, K, 2)`` and
-    ``confidence (T, K)`` of :data:`~flowmocap.vision.detect.KEYPOINT_NAMES` (the head: the
-    middle of the ears, with the lower of their confidences)."""
+    """``(T, 13, d)`` points and ``(T, 13)`` confidences from ``keypoints (T, K, d)`` (2D
+    pixels, or 3D) and ``confidence (T, K)`` of :data:`~flowmocap.vision.detect.KEYPOINT_NAMES`
+    (the head: the middle of the ears, with the lower of their confidences)."""
     from flowmocap.vision.detect import KEYPOINT_NAMES
 
     kp, cf = np.asarray(keypoints, np.float64), np.asarray(confidence, np.float64)
