@@ -157,3 +157,23 @@ def test_refit_energy_gradient_matches_finite_differences():
         assert an == pytest.approx(fd, rel=1e-5, abs=1e-4), (which, i, j)
     # frame 1 has no target: only the pose term pulls it
     assert float(gt[1].abs().max()) == 0.0
+
+
+def test_pipeline_keeps_the_tracked_motion_when_the_refit_cannot_run(tmp_path):
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    motion, track, _, _ = _setup(tmp_path, TRUTH)
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    write_run(out, {"status": "finished", "events": []})
+    short = PersonTrack(track.keypoints[:2], track.confidence[:2], track.found[:2], track.mask_paths[:2], {})
+    said = []
+    run = pipeline._lifter_refit(out, short, load_body_model("default"), TrackerConfig(), {"status": "finished"},
+                                 said.append)
+    assert "skipped" in run["lifter_refit"] and "skipped" in said[0]
+    kept, info = read_result(out)
+    np.testing.assert_array_equal(kept["poses"], motion["poses"])
+    assert "poses_tracked" not in kept and "skipped" in info["lifter_refit"]

@@ -795,7 +795,13 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     if "poses_tracked" in motion:  # already refitted (a resumed run that had finished)
         return run
     t0 = time.perf_counter()
-    refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight)
+    try:
+        refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight)
+    except InputError as e:  # the tracked motion is written and stays the result
+        say(f"the refit towards the lifter's depths was skipped: {e}")
+        run = {**run, "lifter_refit": {"skipped": str(e)}}
+        write_run(out, run)
+        return run
     write_motion(out, refit)
     info["seconds"] = round(time.perf_counter() - t0, 2)
     run = {**run, "lifter_refit": info}
