@@ -13,7 +13,7 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+       [--weight 0.5] [--pixel-sigma PX] [--out PREFIX]   (PREFIX.json and PREFIX.md)
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ from flowmocap.vision.auto import load_detections
 
 E = list(EVAL_JOINTS)
 _MODELS: dict = {}
+#: Further keyword arguments of lifter_refit_motion (``--pixel-sigma``).
+OPTIONS: dict = {}
 
 
 def _refit(res: Path, weight: float, track=None):
@@ -42,7 +44,7 @@ def _refit(res: Path, weight: float, track=None):
     track = load_detections(res) if track is None else track
     if track is None:
         raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
-    refit, info = lifter_refit_motion(motion, track, model, weight=weight)
+    refit, info = lifter_refit_motion(motion, track, model, weight=weight, **OPTIONS)
     return motion, refit, info
 
 
@@ -115,11 +117,16 @@ def main() -> int:
     ap.add_argument("--diverse", type=Path)
     ap.add_argument("--seeds", type=Path, help="a benchmarks/track_seeds.py --work folder")
     ap.add_argument("--weight", type=float, default=0.5)
+    ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
     ap.add_argument("--out")
     a = ap.parse_args()
     if not (a.real3d or a.diverse or a.seeds):
         ap.error("give at least one of --real3d, --diverse, --seeds")
-    result, md = {"weight": a.weight}, [f"# The lifter refit at weight {a.weight:g} on finished runs\n"]
+    if a.pixel_sigma:
+        OPTIONS["pixel_sigma"] = a.pixel_sigma
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma}
+    md = [f"# The lifter refit at weight {a.weight:g}"
+          f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",
                 "mean_move_px"]
     if a.real3d:

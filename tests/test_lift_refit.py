@@ -114,6 +114,26 @@ def test_refit_moves_a_wrong_forearm_towards_the_lifted_depth_and_keeps_the_imag
     assert out["fps"] == motion["fps"] and out["camera"] == motion["camera"]
 
 
+def test_the_image_term_holds_the_tracked_image(tmp_path):
+    """With ``pixel_sigma`` the refit still turns the wrong forearm towards the truth, and
+    the 24 joints' image moves less than without it."""
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    wrong[3 * JOINT_INDEX["spine2"]] = np.radians(15)  # and a bent spine the lifter disagrees with
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    model, lifter = load_body_model("default"), TruthLifter(truth_kp)
+    # converged (60 iterations); a tighter hold (2 px) keeps the forearm from turning at all
+    free, info_free = lifter_refit_motion(motion, track, model, weight=1.0, lifter=lifter, iterations=60)
+    held, info_held = lifter_refit_motion(motion, track, model, weight=1.0, lifter=lifter, iterations=60,
+                                          pixel_sigma=5.0)
+    assert info_held["mean_move_px"] < 0.7 * info_free["mean_move_px"], (info_held, info_free)
+    wrist = POINTS.index("right_wrist")
+    kp_held, _ = _bodies(held["poses"][:3].astype(np.float64))
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    after = np.linalg.norm(kp_held[:, wrist] - truth_kp[:3, wrist], axis=-1)
+    assert (after < 0.5 * before).all(), (before, after)
+
+
 def test_weight_zero_and_bad_input(tmp_path):
     motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
     model = load_body_model("default")
@@ -129,15 +149,20 @@ def test_weight_zero_and_bad_input(tmp_path):
     np.testing.assert_allclose(out["joints3d"], motion["joints3d"], atol=2e-3)
 
 
-def test_refit_energy_gradient_matches_finite_differences():
+@pytest.mark.parametrize("pixel_sigma", [None, 3.0], ids=["3d-only", "with-image-term"])
+def test_refit_energy_gradient_matches_finite_differences(pixel_sigma):
     model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
     rng = np.random.default_rng(1)
     poses0 = torch.as_tensor(np.stack([TRUTH, TRUTH]) + rng.normal(0, 0.05, (2, 72)))
     targets = torch.as_tensor(rng.normal(0, 0.5, (2, 13, 3)))
     use = torch.tensor([1.0, 0.0])
+    with torch.no_grad():
+        pixels = CAM.project(keypoints13(model, kmap, poses0, torch.zeros(1, 10), torch.zeros(2, 3))[1])
+    pixels = pixels + torch.as_tensor(rng.normal(0, 5.0, (2, 24, 2)))
 
     def energy(pose, trans):
-        return refit_energy(model, kmap, pose, trans, torch.zeros(1, 10), targets, use, poses0, 0.02, 0.3)
+        return refit_energy(model, kmap, pose, trans, torch.zeros(1, 10), targets, use, poses0, 0.02, 0.3,
+                            CAM, pixels, pixel_sigma)
 
     pose = (poses0 + torch.as_tensor(rng.normal(0, 0.1, (2, 72)))).requires_grad_(True)
     trans = torch.as_tensor(rng.normal(0, 0.1, (2, 3))).requires_grad_(True)

@@ -796,7 +796,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         return run
     t0 = time.perf_counter()
     try:
-        refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight)
+        refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight,
+                                          pixel_sigma=cfg.lifter_refit_pixel_sigma or None)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's depths was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

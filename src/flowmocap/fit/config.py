@@ -88,6 +88,7 @@ _RANGES: dict[str, str] = {
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
+    "lifter_refit_pixel_sigma": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
@@ -171,6 +172,8 @@ class TrackerConfig:
     lifter_refit_weight: float = 0.5   # after tracking (and the depth smoothing): each frame's body refitted
     #                                    towards its keypoints' depths blended with this share of the lifter's
     #                                    (fit.lift_refit; the image kept); 0: off
+    lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
+    #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

@@ -66,16 +66,22 @@ def blend_targets(fit_cam: np.ndarray, lifted_cam: np.ndarray, weight: float) ->
     return fit_cam * (z / fit_cam[..., 2])[..., None]
 
 
-def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, sigma: float, reg: float):
+def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, sigma: float, reg: float,
+                 camera=None, pixels=None, pixel_sigma: float | None = None):
     """The refit's energy (step 3 of the module docstring), a scalar: ``targets (B, 13, 3)``
-    in world axes, ``use (B,)`` the frames that have one (0 / 1)."""
-    kp, _ = keypoints13(model, kmap, poses, betas, trans)
+    in world axes, ``use (B,)`` the frames that have one (0 / 1). With ``pixel_sigma``
+    (pixels) it adds ``sum_j |camera.project(J_j) - pixels_j|^2 / pixel_sigma^2`` over the
+    24 joints of the frames used, ``pixels (B, 24, 2)``: the tracked body's image held."""
+    kp, joints = keypoints13(model, kmap, poses, betas, trans)
     fit = (((kp - targets) ** 2).sum(-1).sum(-1) * use).sum() / sigma ** 2
+    if pixel_sigma:
+        fit = fit + (((camera.project(joints) - pixels) ** 2).sum(-1).sum(-1) * use).sum() / pixel_sigma ** 2
     return fit + ((poses[:, 3:] - poses_tracked[:, 3:]) ** 2).sum() / reg ** 2
 
 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
-                        iterations: int = 20, chunk: int = 256, lifter=None, progress=None) -> tuple[dict, dict]:
+                        iterations: int = 20, chunk: int = 256, lifter=None, progress=None,
+                        pixel_sigma: float | None = None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -88,6 +94,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         weight: the lifter's share of each keypoint's depth, in [0, 1]; 0 returns the
             arrays unchanged.
         sigma: metres, reg: radians: the energy's scales.
+        pixel_sigma: pixels, or None: the scale of a term that holds the 24 joints' image
+            where the tracker put it (:func:`refit_energy`); None leaves it out.
         lifter: a :class:`~flowmocap.vision.lifter.Lifter` (default the packaged one).
         progress: optional callable ``(done_frames, total)``.
 
@@ -131,6 +139,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     if ok.any():
         targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight)
     targets = torch.as_tensor((targets_cam - t) @ R)
+    with torch.no_grad():
+        pixels0 = camera.project(joints_before) if pixel_sigma else None
     use = torch.as_tensor(ok, dtype=torch.float64)
     for a in range(0, len(idx), chunk):
         b = min(a + chunk, len(idx))
@@ -142,7 +152,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
 
         def closure(pose=pose, tr=tr, a=a, b=b):
             opt.zero_grad()
-            e = refit_energy(body, kmap, pose, tr, betas, targets[a:b], use[a:b], poses0[a:b], sigma, reg)
+            e = refit_energy(body, kmap, pose, tr, betas, targets[a:b], use[a:b], poses0[a:b], sigma, reg,
+                             camera, None if pixels0 is None else pixels0[a:b], pixel_sigma)
             e.backward()
             return e
 
