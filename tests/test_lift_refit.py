@@ -141,6 +141,8 @@ def test_weight_zero_and_bad_input(tmp_path):
     assert info["frames_refit"] == 0 and same["poses"] is motion["poses"] and "poses_tracked" not in same
     with pytest.raises(InputError, match="weight"):
         lifter_refit_motion(motion, track, model, weight=1.5)
+    with pytest.raises(InputError, match="pixel_sigma"):
+        lifter_refit_motion(motion, track, model, weight=0.5, pixel_sigma=-2.0)
     short = PersonTrack(track.keypoints[:2], track.confidence[:2], track.found[:2], track.mask_paths[:2], {})
     with pytest.raises(InputError, match="detections have 2 frames"):
         lifter_refit_motion(motion, short, model, weight=0.5, lifter=TruthLifter(truth_kp))
