@@ -27,8 +27,10 @@ of the detector's 2D keypoints (:func:`flowmocap.vision.lifter.lifted_track`; ``
 its mean with MediaPipe's), as the tracker's ``detector3d_source`` setting does; ``w = 1``
 is then that source's own score.
 
+``--lifter FILE`` takes another lifter file (``tools/train_lifter.py --out``).
+
 Usage: python benchmarks/fusion_bound.py [--real3d DIR] [--diverse DIR] [--source mediapipe|lifter|both]
-       [--weights 0,0.25,0.5,0.75,1] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+       [--lifter FILE] [--weights 0,0.25,0.5,0.75,1] [--out PREFIX]   (PREFIX.json and PREFIX.md)
 """
 
 from __future__ import annotations
@@ -66,13 +68,19 @@ def blend(fit: np.ndarray, det: np.ndarray, w: float, mode: str) -> np.ndarray:
     return out
 
 
-def _source(track, source: str):
-    """The track with its 3D keypoints from ``source`` (see the module docstring)."""
+#: a lifter file instead of the packaged one (``--lifter``)
+LIFTER: dict = {}
+
+
+def _source(track, source: str, res: Path):
+    """The track with its 3D keypoints from ``source`` (see the module docstring); ``res``:
+    the result folder (its frame rate, for a temporal lifter)."""
     if source == "mediapipe":
         return track
     from flowmocap.vision.lifter import lifted_track
 
-    return lifted_track(track, mix=source == "both")
+    fps = float(np.load(res / "motion.npz")["fps"])
+    return lifted_track(track, LIFTER.get("lifter"), mix=source == "both", fps=fps)
 
 
 def real3d_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe") -> list[dict]:
@@ -89,7 +97,7 @@ def real3d_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe"
             continue
         det = d["detector"]
         if source != "mediapipe":  # the suite's frames, the other source's 3D (NaN where it has none)
-            det = R.eval_points(_source(d["detections"], source).world[d["used"]])
+            det = R.eval_points(_source(d["detections"], source, res).world[d["used"]])
         ok = np.isfinite(det).all((1, 2))
         row = {"name": res.name, "frames": int(ok.sum())}
         if not ok.any():
@@ -120,7 +128,7 @@ def diverse_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe
         track = load_detections(res)
         if track is None:
             continue
-        det = detector_joints3d(_source(track, source))[idx][:, E]
+        det = detector_joints3d(_source(track, source, res))[idx][:, E]
         ok = np.isfinite(det).all((1, 2))
         row = {"name": seq.name, "frames": int(ok.sum())}
         if not ok.any():
@@ -171,10 +179,15 @@ def main() -> int:
     ap.add_argument("--weights", default="0,0.25,0.5,0.75,1", help="the detector's shares, comma-separated")
     ap.add_argument("--source", default="mediapipe", choices=("mediapipe", "lifter", "both"),
                     help="the second 3D source: MediaPipe's own, flowmocap's lifter, or their mean")
+    ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one (--source lifter|both)")
     ap.add_argument("--out", help="write PREFIX.json and PREFIX.md")
     a = ap.parse_args()
     if a.real3d is None and a.diverse is None:
         ap.error("give --real3d and/or --diverse")
+    if a.lifter:
+        from flowmocap.vision.lifter import Lifter
+
+        LIFTER["lifter"] = Lifter.load(a.lifter)
     weights = [float(x) for x in a.weights.split(",")]
     if any(not 0 <= w <= 1 for w in weights):
         ap.error("weights must lie in [0, 1]")

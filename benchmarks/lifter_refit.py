@@ -13,7 +13,9 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+
+``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from flowmocap.vision.auto import load_detections
 
 E = list(EVAL_JOINTS)
 _MODELS: dict = {}
-#: Further keyword arguments of lifter_refit_motion (``--pixel-sigma``).
+#: Further keyword arguments of lifter_refit_motion (``--pixel-sigma``, ``--lifter``).
 OPTIONS: dict = {}
 
 
@@ -118,13 +120,18 @@ def main() -> int:
     ap.add_argument("--seeds", type=Path, help="a benchmarks/track_seeds.py --work folder")
     ap.add_argument("--weight", type=float, default=0.5)
     ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
+    ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
     ap.add_argument("--out")
     a = ap.parse_args()
     if not (a.real3d or a.diverse or a.seeds):
         ap.error("give at least one of --real3d, --diverse, --seeds")
     if a.pixel_sigma:
         OPTIONS["pixel_sigma"] = a.pixel_sigma
-    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma}
+    if a.lifter:
+        from flowmocap.vision.lifter import Lifter
+
+        OPTIONS["lifter"] = Lifter.load(a.lifter)
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "lifter": str(a.lifter) if a.lifter else "packaged"}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",

@@ -47,7 +47,8 @@ class TruthLifter:
     def __init__(self, truth_world):
         self.truth_cam = truth_world @ CAM.R.T + CAM.t
 
-    def lift(self, keypoints, confidence):
+    def lift(self, keypoints, confidence, fps=None):
+        assert fps is not None and fps > 0  # the refit passes the result's frame rate (a temporal lifter needs it)
         out = np.full((len(keypoints), len(KEYPOINT_NAMES), 3), np.nan)
         for f in range(len(keypoints)):
             hip = keypoints[f, [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]].mean(0)

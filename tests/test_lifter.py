@@ -1,5 +1,7 @@
 """flowmocap.vision.lifter: the packaged 2D-to-3D keypoint lifter."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,7 @@ from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.vision.auto import PersonTrack
 from flowmocap.vision.detect import KEYPOINT_NAMES
 from flowmocap.vision.keypoint_map import load_keypoint_map
-from flowmocap.vision.lifter import POINTS, Lifter, lifted_track, load_lifter
+from flowmocap.vision.lifter import HIPS, POINTS, Lifter, LifterNet, lifted_track, load_lifter, normalise_2d, window_indices
 
 
 def _pose(**joints_deg):
@@ -188,3 +190,128 @@ def test_both_sources_average_the_lifter_and_the_detector(tmp_path):
     # in the detector's frame (its scale and origin); the lifter's alone where the detector has nothing
     np.testing.assert_allclose(both[0, limbs].mean(0), truth.mean(0), atol=1e-9)
     np.testing.assert_allclose(both[2], alone[2])
+
+
+def _tiny_temporal(offsets=(-1, 0, 1)):
+    torch.manual_seed(0)
+    net = LifterNet(hidden=16, blocks=1, frames=len(offsets))
+    return Lifter(net, {}, 1.0, offsets)
+
+
+def _walk_keypoints(n=6):
+    """``(n, 15, 2)`` keypoints of one pose drifting across the image, all confident."""
+    _, px = _view(_points3d(POSES[:1])[0], 40)
+    return np.stack([_keypoints(px + (7.0 * t, 2.0 * t)) + np.sin(t + np.arange(15))[:, None] for t in range(n)])
+
+
+def test_window_indices_count_offsets_at_30_fps():
+    idx, inside = window_indices(5, (-2, 0, 2), fps=60.0)  # 2 frames at 30 fps = 4 at 60
+    np.testing.assert_array_equal(idx[2], [0, 2, 4])
+    np.testing.assert_array_equal(inside[0], [False, True, True])
+    np.testing.assert_array_equal(idx[0], [0, 0, 4])  # outside: clipped, and marked
+    idx, inside = window_indices(5, (-3, 0, 3), fps=15.0)  # 3 frames at 30 fps = 1.5 at 15, rounded to 2
+    np.testing.assert_array_equal(idx[2], [0, 2, 4])
+    assert inside[2].all() and not inside[1, 0]
+
+
+def test_a_temporal_lifter_reads_exactly_its_window():
+    lifter = _tiny_temporal((-1, 0, 1))
+    assert lifter.temporal
+    kp = _walk_keypoints(6)
+    conf = np.ones(kp.shape[:2])
+    base = lifter.lift(kp, conf, fps=30.0)
+    moved = kp.copy()
+    moved[3] += np.random.default_rng(0).normal(0, 15, moved[3].shape)
+    changed = ~np.isclose(lifter.lift(moved, conf, fps=30.0), base).all((1, 2))
+    np.testing.assert_array_equal(np.flatnonzero(changed), [2, 3, 4])  # frame 3 is read by frames 2, 3 and 4
+    base60 = lifter.lift(kp, conf, fps=60.0)
+    changed = ~np.isclose(lifter.lift(moved, conf, fps=60.0), base60).all((1, 2))
+    np.testing.assert_array_equal(np.flatnonzero(changed), [1, 3, 5])  # at 60 fps one step of the window is 2 frames
+    # a neighbour without the person counts as one outside the sequence
+    gone = conf.copy()
+    gone[0] = 0.0
+    np.testing.assert_allclose(lifter.lift(kp, gone, fps=30.0)[1], lifter.lift(kp[1:], conf[1:], fps=30.0)[0])
+    assert np.isnan(lifter.lift(kp, gone, fps=30.0)[0]).all()
+    with pytest.raises(InputError, match="frame rate"):
+        lifter.lift(kp, conf)
+    with pytest.raises(InputError, match="frame rate"):
+        lifter.lift(kp, conf, fps=0.0)
+
+
+def test_lifter_files_of_format_1_and_window_round_trip(tmp_path):
+    import json
+
+    lifter = _tiny_temporal((-2, 0, 3))
+    lifter.save(tmp_path / "t.npz")
+    again = Lifter.load(tmp_path / "t.npz")
+    assert again.offsets == (-2, 0, 3)
+    kp, conf = _walk_keypoints(7), np.ones((7, 15))
+    np.testing.assert_allclose(again.lift(kp, conf, fps=25.0), lifter.lift(kp, conf, fps=25.0), atol=1e-2)
+    # a one-frame file of the first format (no window in its metadata) still loads
+    single = Lifter(LifterNet(hidden=16, blocks=1), {}, 1.0)
+    single.save(tmp_path / "s.npz")
+    with np.load(tmp_path / "s.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["format"] = 1
+    del meta["offsets"], meta["window_fps"]
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "v1.npz", **arrays)
+    old = Lifter.load(tmp_path / "v1.npz")
+    assert old.offsets == (0,) and not old.temporal
+    assert np.isfinite(old.lift(kp, conf)).all()  # no frame rate needed for one frame
+    with pytest.raises(ModelFileError, match="window"):
+        Lifter(LifterNet(hidden=16, blocks=1, frames=2), {}, 1.0, (0, 1, 2))
+
+
+PRIOR_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap" / "prior"
+
+
+def _train_tool():
+    import importlib.util
+    import sys
+
+    tools = Path(__file__).resolve().parents[1] / "tools"
+    sys.path.insert(0, str(tools))  # it imports train_pose_prior beside it
+    spec = importlib.util.spec_from_file_location("train_lifter", tools / "train_lifter.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_training_windows_stay_inside_their_clip_and_target_the_middle_frame():
+    tool = _train_tool()
+    seq = tool.Sequences.__new__(tool.Sequences)  # two clips of 5 and 4 frames, each frame's points distinct
+    seq.X = torch.randn(9, 13, 3) * 0.3
+    seq.start = torch.tensor([0] * 5 + [5] * 4)
+    seq.end = torch.tensor([5] * 5 + [9] * 4)
+    offsets = torch.tensor([-2, -1, 0, 1, 2])
+    g = torch.Generator().manual_seed(0)
+    v, m, target, cam = tool.examples(seq, torch.tensor([0, 4, 5, 6]), offsets, g, 0.0, 0.0)
+    given = m.amax(-1) > 0  # (B, F) which frames of each window are given
+    np.testing.assert_array_equal(given.numpy(), [[0, 0, 1, 1, 1], [1, 1, 1, 0, 0], [0, 0, 1, 1, 1], [0, 1, 1, 1, 1]])
+    assert (v[~given] == 0).all()
+    # the target is the middle frame's 3D, hip-centred, in the units of its own 2D normalisation
+    np.testing.assert_allclose(target[:, list(HIPS)].mean(1).numpy(), 0, atol=1e-6)
+    z0 = cam[:, list(HIPS), 2].mean(1)
+    uv = cam[..., :2] / cam[..., 2:]
+    _, s = normalise_2d(uv, torch.ones(4, 13))
+    np.testing.assert_allclose((target[..., :2] * (z0[:, None, None] * s)).numpy(),
+                               (cam - cam[:, list(HIPS)].mean(1, keepdim=True))[..., :2].numpy(), atol=1e-5)
+    # each frame of a window is seen from the window's one camera: same depth offset for a repeated frame
+    seq.X[:] = seq.X[2]
+    v, m, _, _ = tool.examples(seq, torch.tensor([2]), offsets, g, 0.0, 0.0)
+    np.testing.assert_allclose(v[0].numpy(), v[0, :1].expand(5, -1, -1).numpy(), atol=1e-6)
+
+
+@pytest.mark.skipif(not (PRIOR_DATA / "index.csv").exists(),
+                    reason=f"the mocap prior data is not at {PRIOR_DATA} (shared data absent)")
+def test_the_training_tool_writes_a_loadable_temporal_lifter(tmp_path):
+    tool = _train_tool()
+    out = tmp_path / "l.npz"
+    assert tool.main(["--out", str(out), "--max-clips", "1", "--epochs", "1", "--hidden", "32", "--blocks", "1",
+                      "--offsets=-2,0,2", "--bodies", "1"]) == 0
+    lifter = Lifter.load(out)
+    assert lifter.offsets == (-2, 0, 2) and lifter.temporal
+    assert np.isfinite(lifter.info["check_test_cm"]) and lifter.info["train_subjects"] == [1]
+    assert np.isfinite(lifter.lift(_walk_keypoints(4), np.ones((4, 15)), fps=30.0)).all()

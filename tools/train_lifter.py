@@ -6,25 +6,31 @@ as ``tools/train_pose_prior.py`` does (``--cache`` shares its cache file).
 
 Steps:
 
-1. Every second frame of every train clip and its left/right mirror
-   (:func:`flowmocap.fit.pose_prior.mirror_pose`), posed on a random body (shape
-   coefficients from N(0, 1)); the 13 points where the detector puts its keypoints
-   (:mod:`flowmocap.vision.keypoint_map`'s learned offsets; the head at the middle of the
-   ears), hip-centred, in the mocap's axes (y up).
-2. Each training step draws for every pose a fresh view: azimuth uniform over 360
-   degrees, elevation uniform in +-25 degrees, distance 2.5-8 m, the camera looking at the
-   hips; perspective projection; the 2D points normalised
-   (:func:`flowmocap.vision.lifter.normalise_2d`) with Gaussian noise of a random size
-   (standard deviation up to ``--noise`` of the normalised scale) and each point but the
-   hips dropped with probability ``--drop``. Target: the 3D points in the camera's axes,
-   hip-centred, divided by the hips' depth times the 2D scale (so its x, y match the
-   input's under weak perspective and the network learns mostly the depth).
+1. Every frame of every train clip (30 fps) posed on ``--bodies`` random bodies per clip
+   (shape coefficients from N(0, 1), one body for the whole clip), each also as its
+   left/right mirror (:func:`flowmocap.fit.pose_prior.mirror_pose`); the 13 points where
+   the detector puts its keypoints (:mod:`flowmocap.vision.keypoint_map`'s learned
+   offsets; the head at the middle of the ears), hip-centred, in the mocap's axes (y up).
+2. Each training step draws for every example a frame and a fresh view: azimuth uniform
+   over 360 degrees, elevation uniform in +-25 degrees, distance 2.5-8 m, the camera
+   looking at the hips; perspective projection; each frame's 2D points normalised as at
+   run time (:func:`flowmocap.vision.lifter.normalise_2d` over the points given) with
+   Gaussian noise of a random size (standard deviation up to ``--noise`` of the normalised
+   scale) and each point but the hips dropped with probability ``--drop``. Target: the 3D
+   points in the camera's axes, hip-centred, divided by the hips' depth times the 2D
+   scale (so its x, y match the input's under weak perspective and the network learns
+   mostly the depth). With a window (``--offsets``, frames at 30 fps around the lifted
+   one) the neighbours come from the same clip, body and view, at a tempo drawn from
+   ``1 +- --tempo``; a neighbour outside the clip, or dropped with probability
+   ``--frame-drop``, is left out, as at run time.
 3. Adam with a one-cycle learning rate, ``--epochs`` passes, loss the mean joint distance.
 4. Check (not used to choose anything): the mean per-joint error after a similarity
-   alignment on the train poses seen from random views, and the same on the held-out
+   alignment on the train frames seen from random views, and the same on the held-out
    test clips; written into the file's info.
 
-About 5 minutes on 2 CPU cores at the defaults.
+The packaged file's settings are in its ``info["settings"]`` (``vision/data/README.md``).
+At the defaults (512 wide, two blocks, one frame) about 10 minutes on 2 CPU cores;
+``--device cuda`` trains on a GPU (the same steps; the data is made on the CPU).
 
     python tools/train_lifter.py --cache /tmp/prior_poses.npz     # writes src/flowmocap/vision/data/lifter.npz
 """
@@ -45,19 +51,19 @@ from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.fit.pose_prior import mirror_pose
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.vision.keypoint_map import load_keypoint_map
-from flowmocap.vision.lifter import HIPS, LIFTER_FILE, Lifter, LifterNet, normalise_2d
+from flowmocap.vision.lifter import HIPS, LIFTER_FILE, POINTS, WINDOW_FPS, Lifter, LifterNet, normalise_2d
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_pose_prior import DEFAULT_DATA, TEST_SUBJECTS, read_index, retarget_all  # noqa: E402
 
 
-def keypoint_points(poses: np.ndarray, rng: np.random.Generator, model, kmap, chunk: int = 2048) -> np.ndarray:
-    """``(N, 13, 3)`` the detector's 13 points on ``poses (N, 72)`` posed on random bodies,
-    hip-centred, metres, the mocap's axes."""
+def keypoint_points(poses: np.ndarray, betas: np.ndarray, model, kmap, chunk: int = 2048) -> np.ndarray:
+    """``(N, 13, 3)`` the detector's 13 points on ``poses (N, 72)`` posed on one body
+    (``betas (10,)``), hip-centred, metres, the mocap's axes."""
     out = []
     for i in range(0, len(poses), chunk):
         p = torch.as_tensor(poses[i:i + chunk], dtype=torch.float32)
-        b = torch.as_tensor(rng.normal(0, 1, (len(p), 10)), dtype=torch.float32)
+        b = torch.as_tensor(np.tile(betas, (len(p), 1)), dtype=torch.float32)
         with torch.no_grad():
             o = model(betas=b, pose=p, trans=torch.zeros(len(p), 3))
         j, t = o.joints.double().numpy(), o.transforms.double().numpy()
@@ -67,47 +73,95 @@ def keypoint_points(poses: np.ndarray, rng: np.random.Generator, model, kmap, ch
     return np.concatenate(out)
 
 
+class Sequences:
+    """Clips' 13 points, frame after frame: ``X (N, 13, 3)`` and, for each frame, the
+    first and one-past-last frame of its clip (``start``, ``end``, ``(N,)``)."""
+
+    def __init__(self, clips: list[np.ndarray], rng: np.random.Generator, model, kmap, bodies: int, mirror: bool):
+        xs, starts, ends, n = [], [], [], 0
+        for P in clips:
+            for _ in range(bodies):
+                betas = rng.normal(0, 1, 10)
+                for Q in ((P, mirror_pose(P)) if mirror else (P,)):
+                    x = keypoint_points(Q, betas, model, kmap)
+                    xs.append(x)
+                    starts.append(np.full(len(x), n))
+                    ends.append(np.full(len(x), n + len(x)))
+                    n += len(x)
+        self.X = torch.as_tensor(np.concatenate(xs), dtype=torch.float32)
+        self.start = torch.as_tensor(np.concatenate(starts))
+        self.end = torch.as_tensor(np.concatenate(ends))
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def to(self, device) -> "Sequences":
+        self.X, self.start, self.end = self.X.to(device), self.start.to(device), self.end.to(device)
+        return self
+
+
 def views(points: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random views of hip-centred ``points (B, 13, 3)`` (y up): ``(2D (B, 13, 2) on the
-    image plane at depth 1, 3D (B, 13, 3) in the camera's axes)``."""
-    n = len(points)
-    a = torch.rand(n, generator=g) * 2 * math.pi
-    e = (torch.rand(n, generator=g) * 2 - 1) * math.radians(25)
-    d = 2.5 + torch.rand(n, generator=g) * 5.5
+    """Random views of hip-centred ``points (B, P, 3)`` (y up; one view per row ``B``):
+    ``(2D (B, P, 2) on the image plane at depth 1, 3D (B, P, 3) in the camera's axes)``."""
+    n, dev = len(points), points.device
+    a = torch.rand(n, generator=g, device=dev) * 2 * math.pi
+    e = (torch.rand(n, generator=g, device=dev) * 2 - 1) * math.radians(25)
+    d = 2.5 + torch.rand(n, generator=g, device=dev) * 5.5
     ca, sa, ce, se = a.cos(), a.sin(), e.cos(), e.sin()
-    Ry = torch.zeros(n, 3, 3)
+    Ry = torch.zeros(n, 3, 3, device=dev)
     Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = ca, sa, 1, -sa, ca
-    Rx = torch.zeros(n, 3, 3)
+    Rx = torch.zeros(n, 3, 3, device=dev)
     Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1, ce, -se, se, ce
-    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # y up -> y down (and z turned: a proper rotation)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], device=dev))  # y up -> y down (and z turned: a proper rotation)
     cam = points @ (Rx @ flip @ Ry).transpose(1, 2)
     cam[..., 2] += d[:, None]
     return cam[..., :2] / cam[..., 2:], cam
 
 
-def examples(points: torch.Tensor, g: torch.Generator, noise: float, drop: float):
-    """``(inputs, masks, targets)`` for a batch of poses (step 2 of the module docstring)."""
-    uv, cam = views(points, g)
-    n = len(points)
-    mask = (torch.rand(n, uv.shape[1], generator=g) > drop).float()
-    mask[:, list(HIPS)] = 1
-    v, s = normalise_2d(uv, torch.ones_like(mask))
-    z0 = cam[:, list(HIPS), 2].mean(1)[:, None, None]
-    target = (cam - cam[:, list(HIPS)].mean(1, keepdim=True)) / (z0 * s)
-    v = (v + torch.randn(v.shape, generator=g) * torch.rand(n, 1, 1, generator=g) * noise) * mask[..., None]
-    return v, mask, target
+def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: torch.Generator, noise: float,
+             drop: float, frame_drop: float = 0.0, speed: float = 0.0):
+    """``(inputs (B, F, 13, 2), masks (B, F, 13), targets (B, 13, 3), the middle frames'
+    3D in the camera's axes (B, 13, 3) in metres)`` for the windows
+    around the frames ``centres (B,)`` of ``seq`` (step 2 of the module docstring): one view
+    and one tempo (``1 +- speed``) per window; neighbours outside the clip, or dropped with
+    probability ``frame_drop``, are masked out."""
+    B, F, dev = len(centres), len(offsets), seq.X.device
+    mid = int((offsets == 0).nonzero()[0])
+    tempo = 1 + (torch.rand(B, generator=g, device=dev) * 2 - 1) * speed
+    j = centres[:, None] + torch.round(offsets[None].double() * tempo[:, None].double()).long()
+    inside = (j >= seq.start[centres, None]) & (j < seq.end[centres, None])
+    j = torch.where(inside, j, centres[:, None])
+    keep = inside & (torch.rand(B, F, generator=g, device=dev) >= frame_drop)
+    keep[:, mid] = True
+    uv, cam = views(seq.X[j].reshape(B, F * len(POINTS), 3), g)
+    uv, cam = uv.view(B, F, len(POINTS), 2), cam.view(B, F, len(POINTS), 3)
+    mask = (torch.rand(B, F, len(POINTS), generator=g, device=dev) > drop).float()
+    mask[..., list(HIPS)] = 1
+    mask = mask * keep[..., None].float()
+    v, _ = normalise_2d(uv.reshape(B * F, len(POINTS), 2), mask.reshape(B * F, len(POINTS)))
+    v = v.view(B, F, len(POINTS), 2)
+    v = (v + torch.randn(v.shape, generator=g, device=dev) * torch.rand(B, 1, 1, 1, generator=g, device=dev) * noise) * mask[..., None]
+    _, s = normalise_2d(uv[:, mid], torch.ones(B, len(POINTS), device=dev))
+    c = cam[:, mid]
+    z0 = c[:, list(HIPS), 2].mean(1)[:, None, None]
+    target = (c - c[:, list(HIPS)].mean(1, keepdim=True)) / (z0 * s)
+    return v, mask, target, c
 
 
-def check(net: LifterNet, points: np.ndarray, metres: float, seed: int = 1) -> float:
-    """Mean per-point error (cm) after a similarity alignment, random views, no noise."""
-    g = torch.Generator().manual_seed(seed)
-    v, m, _ = examples(torch.as_tensor(points, dtype=torch.float32), g, 0.0, 0.0)
-    _, cam = views(torch.as_tensor(points, dtype=torch.float32), torch.Generator().manual_seed(seed))
-    with torch.no_grad():
-        y = net.eval()(v, m).double().numpy() * metres
-    ref = cam.double().numpy()
-    aligned = similarity_procrustes(y, ref)[0]
-    return 100 * float(np.linalg.norm(aligned - ref, axis=-1).mean())
+def check(net: LifterNet, seq: Sequences, offsets: torch.Tensor, metres: float, step: int = 1,
+          seed: int = 1) -> float:
+    """Mean per-point error (cm) after a similarity alignment over every ``step``-th frame
+    of ``seq``: random views, no noise, nothing dropped, the recorded tempo."""
+    g = torch.Generator(seq.X.device).manual_seed(seed)
+    errs = []
+    for part in torch.arange(0, len(seq), step, device=seq.X.device).split(4096):
+        v, m, _, cam = examples(seq, part, offsets, g, 0.0, 0.0)
+        with torch.no_grad():
+            y = net.eval()(v, m).double().cpu().numpy() * metres
+        ref = cam.double().cpu().numpy()
+        aligned = similarity_procrustes(y, ref)[0]
+        errs.append(np.linalg.norm(aligned - ref, axis=-1).mean(1))
+    return 100 * float(np.concatenate(errs).mean())
 
 
 def main(argv=None) -> int:
@@ -122,43 +176,58 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--noise", type=float, default=0.06, help="largest 2D noise, fraction of the normalised scale")
     ap.add_argument("--drop", type=float, default=0.05, help="probability of leaving a point out")
+    ap.add_argument("--offsets", default="0",
+                    help=f"the window: frames at {WINDOW_FPS:g} fps around the lifted one, comma-separated (0: one frame)")
+    ap.add_argument("--bodies", type=int, default=2, help="random body shapes per train clip (each also mirrored)")
+    ap.add_argument("--frame-drop", type=float, default=0.1, help="probability of leaving a neighbouring frame out")
+    ap.add_argument("--tempo", type=float, default=0.2, help="each window's tempo drawn from 1 +- this")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-clips", type=int, default=None, help="only the first N train and N test clips (a quick try)")
+    ap.add_argument("--device", default="cpu", help="where to train (e.g. cuda; the result is the same file)")
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     t0 = time.perf_counter()
     rows = read_index(args.data)
     model = load_body_model("default", dtype=torch.float64)
-    poses = retarget_all(rows, args.data, model, args.cache)
-    train = [r for r in rows if r["split"] == "train"]
-    test = [r for r in rows if r["split"] == "test"]
+    train = [r for r in rows if r["split"] == "train"][:args.max_clips]
+    test = [r for r in rows if r["split"] == "test"][:args.max_clips]
+    if args.max_clips is None:
+        poses = retarget_all(rows, args.data, model, args.cache)
+    else:  # a subset: retargeted afresh (the cache holds every clip)
+        poses = retarget_all(train + test, args.data, model, None)
     assert not {r["subject"] for r in train} & TEST_SUBJECTS
-    P = np.concatenate([poses[r["file"]][::2] for r in train])
-    P = np.concatenate([P, mirror_pose(P)])
     body = load_body_model("default")
     kmap = load_keypoint_map()
-    X = keypoint_points(P, rng, body, kmap)
-    X_test = keypoint_points(np.concatenate([poses[r["file"]][::4] for r in test]), rng, body, kmap)
+    offsets = torch.as_tensor(sorted({int(k) for k in args.offsets.split(",")}))
+    if 0 not in offsets:
+        ap.error("--offsets must hold 0 (the lifted frame)")
+    seq = Sequences([poses[r["file"]] for r in train], rng, body, kmap, args.bodies, mirror=True)
+    seq_test = Sequences([poses[r["file"]] for r in test], rng, body, kmap, 1, mirror=False)
     # one normalised unit in metres: the 3D target's RMS size per unit of the 2D scale, on average
     g = torch.Generator().manual_seed(args.seed)
-    _, _, tgt = examples(torch.as_tensor(X[:4096], dtype=torch.float32), g, 0.0, 0.0)
-    rms_m = np.sqrt((X[:4096] ** 2).sum(-1).mean(1))
+    some = torch.randperm(len(seq), generator=g)[:4096]
+    _, _, tgt, cam = examples(seq, some, offsets, g, 0.0, 0.0)
+    rms_m = (cam - cam[:, list(HIPS)].mean(1, keepdim=True)).double().pow(2).sum(-1).mean(1).sqrt().numpy()
     rms_u = tgt.double().pow(2).sum(-1).mean(1).sqrt().numpy()
     metres = float(np.mean(rms_m / rms_u))
-    print(f"{len(train)} train clips, {len(X)} poses with mirrors; {len(X_test)} held-out test poses (a check only)")
+    print(f"{len(train)} train clips: {len(seq)} frames ({args.bodies} bodies each, with mirrors); "
+          f"{len(seq_test)} held-out test frames (a check only); window {offsets.tolist()} at {WINDOW_FPS:g} fps")
 
-    net = LifterNet(args.hidden, args.blocks)
+    dev = torch.device(args.device)
+    seq, seq_test, offsets = seq.to(dev), seq_test.to(dev), offsets.to(dev)
+    net = LifterNet(args.hidden, args.blocks, frames=len(offsets)).to(dev)
     opt = torch.optim.Adam(net.parameters(), args.lr)
-    steps_per_epoch = len(X) // args.batch
+    steps_per_epoch = len(seq) // args.batch
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, args.lr, total_steps=args.epochs * steps_per_epoch)
-    Xt = torch.as_tensor(X, dtype=torch.float32)
-    g = torch.Generator().manual_seed(args.seed + 1)
+    g = torch.Generator(dev).manual_seed(args.seed + 1)
     for epoch in range(args.epochs):
         net.train()
-        perm = torch.randperm(len(Xt), generator=g)
+        perm = torch.randperm(len(seq), generator=g, device=dev)
         total = 0.0
         for k in range(steps_per_epoch):
-            v, m, y = examples(Xt[perm[k * args.batch:(k + 1) * args.batch]], g, args.noise, args.drop)
+            v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch], offsets, g, args.noise, args.drop,
+                                  args.frame_drop, args.tempo)
             loss = (net(v, m) - y).norm(dim=-1).mean()
             opt.zero_grad()
             loss.backward()
@@ -167,8 +236,8 @@ def main(argv=None) -> int:
             total += loss.item()
         print(f"epoch {epoch + 1}/{args.epochs}: loss {total / steps_per_epoch:.4f} ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-    train_cm = check(net, X[::10], metres)
-    test_cm = check(net, X_test, metres)
+    train_cm = check(net, seq, offsets, metres, step=20)
+    test_cm = check(net, seq_test, offsets, metres, step=2)
     print(f"check, aligned mean point error from random views without noise: train {train_cm:.2f} cm, "
           f"held-out test clips {test_cm:.2f} cm")
     info = {
@@ -176,11 +245,11 @@ def main(argv=None) -> int:
                   "../shared/data/mocap/prior, split 'train' only",
         "acknowledgement": "The data used in this project was obtained from mocap.cs.cmu.edu. "
                            "The database was created with funding from NSF EIA-0196217.",
-        "train_subjects": sorted({r["subject"] for r in train}), "poses_with_mirrors": len(X),
+        "train_subjects": sorted({r["subject"] for r in train}), "frames_with_mirrors": len(seq),
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "check_train_cm": train_cm, "check_test_cm": test_cm,
     }
-    Lifter(net, info, metres).save(args.out)
+    Lifter(net.cpu(), info, metres, offsets.tolist()).save(args.out)
     print(f"wrote {args.out} ({args.out.stat().st_size // 1024} KiB) in {time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -412,14 +412,14 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         if lift:
-            watch = lifted_track(detections, mix=mix)
+            watch = lifted_track(detections, mix=mix, fps=seq.meta.get("fps", 30.0))
         j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
         watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
         if watch is not None:
             if lift:
-                watch = lifted_track(watch, mix=mix)
+                watch = lifted_track(watch, mix=mix, fps=seq.meta.get("fps", 30.0))
             keypoints = lambda i: watch.smpl_joints(i) if i < len(watch) and watch.found[i] else None
             j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.uses_detector3d:

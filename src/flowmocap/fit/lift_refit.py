@@ -129,7 +129,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
     betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)
 
-    world = lifter.lift(track.keypoints[idx], track.confidence[idx])
+    world = lifter.lift(track.keypoints, track.confidence, fps=float(motion.get("fps", 30.0)))[idx]
     world[~np.asarray(track.found, bool)[idx]] = np.nan
     lifted, _ = eval_points_2d(world, np.ones(world.shape[:2]))  # the 13 points (any last dimension)
     ok = np.isfinite(lifted).all((1, 2))

@@ -832,7 +832,7 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
     if lift:
         from flowmocap.vision.lifter import lifted_track
 
-        track = lifted_track(track, mix=mix)
+        track = lifted_track(track, mix=mix, fps=seq.meta.get("fps", 30.0))
     return (lambda i: track.smpl_joints3d(i, camera)), (f"3D joints for E_d: {track.info['detector']}, "
                                                         f"{track.info['frames_with_person']} frames")
 

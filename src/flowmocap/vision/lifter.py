@@ -37,11 +37,14 @@ import torch
 
 from flowmocap.errors import InputError, ModelFileError
 
-__all__ = ["LIFTER_FILE", "LIFTER_KIND", "Lifter", "LifterNet", "eval_points_2d", "lifted_track", "load_lifter",
-           "normalise_2d"]
+__all__ = ["LIFTER_FILE", "LIFTER_KIND", "WINDOW_FPS", "Lifter", "LifterNet", "eval_points_2d", "lifted_track",
+           "load_lifter", "normalise_2d", "window_indices"]
 
 LIFTER_KIND = "flowmocap-keypoint-lifter"
-LIFTER_FORMAT = 1
+#: 2 added ``offsets`` (a window of frames); format 1 files (one frame) still load
+LIFTER_FORMAT = 2
+#: the frame rate a window's offsets count in
+WINDOW_FPS = 30.0
 LIFTER_FILE = Path(__file__).resolve().parent / "data" / "lifter.npz"
 #: the 13 points, in the order of :data:`flowmocap.eval.real3d.EVAL_NAMES`
 POINTS = ("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
@@ -52,14 +55,17 @@ MIN_POINTS = 8
 
 
 class LifterNet(torch.nn.Module):
-    """``(B, 13, 2)`` normalised 2D points and ``(B, 13)`` masks (1 = given) to ``(B, 13,
-    3)`` normalised 3D: a linear layer to ``hidden``, ``blocks`` residual blocks (two
-    linear layers with layer norm, ReLU and dropout each), a linear layer out."""
+    """``(B, F, 13, 2)`` normalised 2D points of a window of ``F`` frames and ``(B, F,
+    13)`` masks (1 = given) to ``(B, 13, 3)``, the normalised 3D of the window's middle
+    frame (``F = 1``: ``(B, 13, 2)`` and ``(B, 13)`` are taken too): a linear layer to
+    ``hidden``, ``blocks`` residual blocks (two linear layers with layer norm, ReLU and
+    dropout each), a linear layer out."""
 
-    def __init__(self, hidden: int = 512, blocks: int = 2, dropout: float = 0.1):
+    def __init__(self, hidden: int = 512, blocks: int = 2, dropout: float = 0.1, frames: int = 1):
         super().__init__()
         n = len(POINTS)
-        self.inp = torch.nn.Linear(3 * n, hidden)
+        self.frames = int(frames)
+        self.inp = torch.nn.Linear(3 * n * self.frames, hidden)
 
         def half():
             return [torch.nn.Linear(hidden, hidden), torch.nn.LayerNorm(hidden), torch.nn.ReLU(),
@@ -69,7 +75,7 @@ class LifterNet(torch.nn.Module):
         self.out = torch.nn.Linear(hidden, 3 * n)
 
     def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([(points * mask[..., None]).flatten(1), mask], 1)
+        x = torch.cat([(points * mask[..., None]).flatten(1), mask.flatten(1)], 1)
         x = torch.relu(self.inp(x))
         for b in self.blocks:
             x = x + b(x)
@@ -99,28 +105,57 @@ def eval_points_2d(keypoints: np.ndarray, confidence: np.ndarray) -> tuple[np.nd
     return pts, conf
 
 
+def window_indices(frames: int, offsets, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(index (T, F), inside (T, F))``: for each of ``frames`` frames at ``fps`` the
+    frame nearest in time to each window offset (``offsets``, frames at
+    :data:`WINDOW_FPS`), and whether it lies inside the sequence (``index`` clipped)."""
+    t = np.arange(frames)[:, None] + np.rint(np.asarray(offsets, np.float64) * (fps / WINDOW_FPS)).astype(int)[None]
+    inside = (t >= 0) & (t < frames)
+    return np.clip(t, 0, max(frames - 1, 0)), inside
+
+
 class Lifter:
     """The trained network with its metadata (``info``: training data, settings, the
-    held-out check) and ``metres``, the size of one normalised unit in metres."""
+    held-out check), ``metres``, the size of one normalised unit in metres, and
+    ``offsets``, the window of frames it reads (frames at :data:`WINDOW_FPS` around the
+    lifted one; ``(0,)``: one frame alone)."""
 
-    def __init__(self, net: LifterNet, info: dict, metres: float):
+    def __init__(self, net: LifterNet, info: dict, metres: float, offsets=(0,)):
         self.net = net.eval()
         self.info = info
         self.metres = float(metres)
+        self.offsets = tuple(int(k) for k in offsets)
+        if len(self.offsets) != net.frames or 0 not in self.offsets:
+            raise ModelFileError(f"a lifter's window {self.offsets} must hold 0 and match its network's "
+                                 f"{net.frames} frames.")
 
-    def lift(self, keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5) -> np.ndarray:
+    @property
+    def temporal(self) -> bool:
+        """Whether it reads neighbouring frames (then :meth:`lift` needs ``fps``)."""
+        return self.offsets != (0,)
+
+    def lift(self, keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5,
+             fps: float | None = None) -> np.ndarray:
         """The detector's keypoints in 3D.
 
         Args:
-            keypoints: ``(T, K, 2)`` pixels, :data:`~flowmocap.vision.detect.KEYPOINT_NAMES`.
+            keypoints: ``(T, K, 2)`` pixels, :data:`~flowmocap.vision.detect.KEYPOINT_NAMES`,
+                ``T`` consecutive frames of one video.
             confidence: ``(T, K)``; a point below ``min_confidence`` is left out of the
                 input (the network was trained with dropped points).
+            fps: the frames' rate (Hz); needed by a temporal lifter, which reads for each
+                frame the frames nearest its window's offsets (frames outside the sequence
+                or without the person are left out, as in training).
 
         Returns:
             ``(T, K, 3)`` metres in the ray's axes, hip-centred (see the module
             docstring), in the order of ``KEYPOINT_NAMES``: the 12 limb keypoints, both
             ears and the nose at the head point; NaN for frames with fewer than
             :data:`MIN_POINTS` confident points or without both hips.
+
+        Raises:
+            InputError: wrong shapes, or no ``fps`` (or not a positive number) for a
+                temporal lifter.
         """
         from flowmocap.vision.detect import KEYPOINT_NAMES
 
@@ -130,16 +165,23 @@ class Lifter:
         cf = np.asarray(confidence, np.float64)
         if cf.shape != kp.shape[:2]:
             raise InputError(f"confidence must be (T, {len(KEYPOINT_NAMES)}); got {cf.shape}.")
+        if self.temporal and not (fps is not None and np.isfinite(fps) and fps > 0):
+            raise InputError(f"this lifter reads a window of frames {self.offsets} at {WINDOW_FPS:g} fps; pass the "
+                             f"video's frame rate (fps > 0), got {fps!r}.")
         pts, conf = eval_points_2d(kp, cf)
         mask = (conf >= min_confidence) & np.isfinite(pts).all(-1)
         ok = mask[:, list(HIPS)].all(1) & (mask.sum(1) >= MIN_POINTS)
         out = np.full((len(kp), len(KEYPOINT_NAMES), 3), np.nan)
         if not ok.any():
             return out
-        m = torch.as_tensor(mask[ok], dtype=torch.float32)
-        v, _ = normalise_2d(torch.as_tensor(np.nan_to_num(pts[ok]), dtype=torch.float32), m)
+        mask &= ok[:, None]
+        m_all = torch.as_tensor(mask, dtype=torch.float32)
+        v_all, _ = normalise_2d(torch.as_tensor(np.nan_to_num(pts), dtype=torch.float32), m_all)
+        index, inside = window_indices(len(kp), self.offsets, fps if self.temporal else WINDOW_FPS)
+        index, inside = index[ok], torch.as_tensor(inside[ok], dtype=torch.float32)
+        v, m = v_all[index], m_all[index] * inside[..., None]  # (n, F, 13, 2), (n, F, 13)
         with torch.no_grad():
-            y = self.net(v, m).double().numpy() * self.metres
+            y = self.net(v * m[..., None], m).double().numpy() * self.metres
         y -= y[:, list(HIPS)].mean(1, keepdims=True)
         for k, name in enumerate(POINTS[1:], start=1):
             out[ok, KEYPOINT_NAMES.index(name)] = y[:, k]
@@ -151,7 +193,8 @@ class Lifter:
         """Write the ``.npz`` (weights as float16, ``info`` and the architecture as JSON)."""
         arrays = {f"w/{k}": v.detach().numpy().astype(np.float16) for k, v in self.net.state_dict().items()}
         meta = {"kind": LIFTER_KIND, "format": LIFTER_FORMAT, "metres": self.metres,
-                "hidden": self.net.inp.out_features, "blocks": len(self.net.blocks), "info": self.info}
+                "hidden": self.net.inp.out_features, "blocks": len(self.net.blocks), "offsets": list(self.offsets),
+                "window_fps": WINDOW_FPS, "info": self.info}
         np.savez_compressed(path, meta=np.array(json.dumps(meta)), **arrays)
 
     @classmethod
@@ -169,15 +212,19 @@ class Lifter:
         except (OSError, KeyError, ValueError) as e:
             raise ModelFileError(f"{p} is not a readable lifter file ({e}); reinstall flowmocap or retrain it with "
                                  "tools/train_lifter.py.") from e
-        if meta.get("kind") != LIFTER_KIND or meta.get("format") != LIFTER_FORMAT:
+        if meta.get("kind") != LIFTER_KIND or meta.get("format") not in (1, LIFTER_FORMAT):
             raise ModelFileError(f"{p} is not a flowmocap keypoint lifter (kind {meta.get('kind')!r}, format "
-                                 f"{meta.get('format')!r}; expected {LIFTER_KIND!r}, {LIFTER_FORMAT}).")
-        net = LifterNet(hidden=int(meta["hidden"]), blocks=int(meta["blocks"]))
+                                 f"{meta.get('format')!r}; expected {LIFTER_KIND!r}, 1 or {LIFTER_FORMAT}).")
+        offsets = meta.get("offsets", [0])
+        if float(meta.get("window_fps", WINDOW_FPS)) != WINDOW_FPS:
+            raise ModelFileError(f"{p}: its window counts frames at {meta['window_fps']} fps; this flowmocap reads "
+                                 f"{WINDOW_FPS:g}.")
+        net = LifterNet(hidden=int(meta["hidden"]), blocks=int(meta["blocks"]), frames=len(offsets))
         try:
             net.load_state_dict(weights)
         except RuntimeError as e:
             raise ModelFileError(f"{p}: the weights do not fit the stated architecture ({e}).") from e
-        return cls(net, meta.get("info", {}), meta["metres"])
+        return cls(net, meta.get("info", {}), meta["metres"], offsets)
 
 
 @lru_cache(maxsize=2)
@@ -186,10 +233,11 @@ def load_lifter(path: str | None = None) -> Lifter:
     return Lifter.load(path)
 
 
-def lifted_track(track, lifter: Lifter | None = None, mix: bool = False):
+def lifted_track(track, lifter: Lifter | None = None, mix: bool = False, fps: float | None = None):
     """A copy of a :class:`~flowmocap.vision.auto.PersonTrack` whose ``world`` (the 3D
     keypoints every depth cue reads) is the lifter's 3D of its 2D keypoints; frames
     without the person, or with too few confident points, get NaN (no 3D cue there).
+    ``fps``: the video's frame rate (a temporal lifter needs it; :meth:`Lifter.lift`).
 
     ``mix``: where the track has the detector's own 3D keypoints too, the mean of the two
     instead (the lifter's aligned onto the detector's by a similarity per frame, fitted on
@@ -200,7 +248,8 @@ def lifted_track(track, lifter: Lifter | None = None, mix: bool = False):
     from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS
 
     lifter = load_lifter() if lifter is None else lifter
-    world = lifter.lift(track.keypoints, track.confidence)
+    conf = np.where(np.asarray(track.found, bool)[:, None], track.confidence, 0.0)
+    world = lifter.lift(track.keypoints, conf, fps=fps)
     world[~np.asarray(track.found, bool)] = np.nan
     if mix and track.world is not None:
         own = np.asarray(track.world, np.float64)
