@@ -13,7 +13,10 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--out PREFIX]   (PREFIX.json and PREFIX.md)
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--smooth-after S] [--out PREFIX]
+
+``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
+(``lifter_refit_smooth_depth``); without it the table is the refit alone.
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
 """
@@ -30,6 +33,7 @@ from flowmocap.body import load_body_model
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.eval import metrics as M
 from flowmocap.fit.lift_refit import lifter_refit_motion
+from flowmocap.fit.smooth import depth_smoothed_motion
 from flowmocap.io.results import read_result
 from flowmocap.vision.auto import load_detections
 
@@ -37,6 +41,8 @@ E = list(EVAL_JOINTS)
 _MODELS: dict = {}
 #: Further keyword arguments of lifter_refit_motion (``--pixel-sigma``, ``--lifter``).
 OPTIONS: dict = {}
+#: The window (s) of the depth smoothing after the refit, 0: none (``--smooth-after``).
+SMOOTH_S = 0.0
 
 
 def _refit(res: Path, weight: float, track=None):
@@ -47,6 +53,10 @@ def _refit(res: Path, weight: float, track=None):
     if track is None:
         raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
     refit, info = lifter_refit_motion(motion, track, model, weight=weight, **OPTIONS)
+    if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
+        run = json.loads((res / "run.json").read_text())
+        reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
+        refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)
     return motion, refit, info
 
 
@@ -121,6 +131,9 @@ def main() -> int:
     ap.add_argument("--weight", type=float, default=0.5)
     ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
     ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
+    ap.add_argument("--smooth-after", type=float, default=0.0,
+                    help="smooth the refitted root depth over this window (s), as the pipeline does with "
+                         "lifter_refit_smooth_depth (its window: depth_smoothing_s, 0.5); 0: not")
     ap.add_argument("--out")
     a = ap.parse_args()
     if not (a.real3d or a.diverse or a.seeds):
@@ -131,7 +144,10 @@ def main() -> int:
         from flowmocap.vision.lifter import Lifter
 
         OPTIONS["lifter"] = Lifter.load(a.lifter)
-    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "lifter": str(a.lifter) if a.lifter else "packaged"}
+    global SMOOTH_S
+    SMOOTH_S = a.smooth_after
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "lifter": str(a.lifter) if a.lifter else "packaged",
+              "smooth_after_s": a.smooth_after}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",

@@ -205,3 +205,34 @@ def test_pipeline_keeps_the_tracked_motion_when_the_refit_cannot_run(tmp_path):
     kept, info = read_result(out)
     np.testing.assert_array_equal(kept["poses"], motion["poses"])
     assert "poses_tracked" not in kept and "skipped" in info["lifter_refit"]
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(tmp_path, smooth):
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.smooth import depth_smoothed_motion
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    motion, track, _, _ = _setup(tmp_path, wrong)
+    motion["trans"] = motion["trans"] + np.array([[0, 0, 0], [0, 0, 0.2], [0, 0, -0.1], [0, 0, 0.1]], np.float32)
+    motion["joints3d"] = motion["joints3d"] + (motion["trans"])[:, None]
+    motion["trans_tracked"] = motion["trans"] - 0.01
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    write_run(out, {"status": "finished", "events": []})
+    model = load_body_model("default")
+    cfg = TrackerConfig(lifter_refit_smooth_depth=smooth)
+    run = pipeline._lifter_refit(out, track, model, cfg, {"status": "finished", "events": []}, lambda s: None)
+    got, _ = read_result(out)
+    refit, _ = lifter_refit_motion(motion, track, model, weight=cfg.lifter_refit_weight,
+                                   pixel_sigma=cfg.lifter_refit_pixel_sigma)
+    want = depth_smoothed_motion(refit, cfg.depth_smoothing_s) if smooth else refit
+    np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-5)
+    np.testing.assert_allclose(got["joints3d"], want["joints3d"], atol=1e-5)
+    assert smooth == (np.abs(got["trans"] - refit["trans"]).max() > 1e-3)  # the smoothing moved the frames
+    np.testing.assert_array_equal(got["trans_tracked"], motion["trans_tracked"])  # the tracker's own, kept
+    assert ("depth_smoothed_s" in run["lifter_refit"]) == smooth

@@ -785,10 +785,18 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
     return run
 
 
+def _reinit_frames(run: dict) -> list[int]:
+    """The input frame numbers where the tracker re-initialised (``run["events"]``): the
+    depth smoothing starts again there."""
+    return [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
+
+
 def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
     """The finished ``motion.npz`` refitted towards the lifter's depths
     (:func:`~flowmocap.fit.lift_refit.lifter_refit_motion`, ``cfg.lifter_refit_weight``),
-    written atomically; ``run.json`` records it under ``lifter_refit``. Returns the run info."""
+    its root depth smoothed again (``cfg.lifter_refit_smooth_depth``, the window of
+    ``cfg.depth_smoothing_s``; ``trans_tracked`` stays the tracker's), written atomically;
+    ``run.json`` records it under ``lifter_refit``. Returns the run info."""
     from flowmocap.fit.lift_refit import lifter_refit_motion
 
     motion, _ = read_result(out)
@@ -803,6 +811,12 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         run = {**run, "lifter_refit": {"skipped": str(e)}}
         write_run(out, run)
         return run
+    if cfg.lifter_refit_smooth_depth and cfg.depth_smoothing_s > 0:  # the refit moved each frame's depth again
+        tracked = refit.get("trans_tracked")
+        refit = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=_reinit_frames(run))
+        if tracked is not None:
+            refit["trans_tracked"] = tracked  # the tracker's own translation, as before the refit
+        info["depth_smoothed_s"] = cfg.depth_smoothing_s
     write_motion(out, refit)
     info["seconds"] = round(time.perf_counter() - t0, 2)
     run = {**run, "lifter_refit": info}
@@ -835,8 +849,7 @@ def _record_end(out: Path, run: dict, log: FrameLog | None, timings: dict, statu
             if log.rows:
                 motion = log.motion()
                 if cfg is not None and cfg.depth_smoothing_s > 0:
-                    refits = [e["frame"] for e in run["events"] if e.get("event") == "re-initialised" and "frame" in e]
-                    motion = depth_smoothed_motion(motion, cfg.depth_smoothing_s, breaks=refits)
+                    motion = depth_smoothed_motion(motion, cfg.depth_smoothing_s, breaks=_reinit_frames(run))
                 write_motion(out, motion)
         else:
             run.setdefault("events", [])

@@ -174,6 +174,8 @@ class TrackerConfig:
     #                                    (fit.lift_refit; the image kept); 0: off
     lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
+    lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
+    #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height
