@@ -9,14 +9,18 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   (:func:`flowmocap.eval.real3d.scored_frames`), before and after;
 - ``--diverse DIR`` (a diverse bench or ``tracker_only.py`` folder) and ``--seeds DIR``
   (a ``benchmarks/track_seeds.py --work`` folder, CMU 35_01): per clip the local and
-  global error (cm) and the 2D error of the 24 joints against the truth (px), before and
-  after.
+  global error (cm), the 2D error of the 24 joints against the truth (px) and the
+  acceleration error (mm/frame^2, :func:`flowmocap.eval.metrics.acceleration_error`), before
+  and after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--smooth-after S] [--out PREFIX]
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--smooth-after S] [--smooth-poses S] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
-(``lifter_refit_smooth_depth``); without it the table is the refit alone.
+(``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
+0.3`` then smooths the poses and translation (``pose_smoothing_s``,
+:func:`flowmocap.fit.smooth.pose_smoothed_motion`), the pipeline's last step; with both, the
+"after" columns are what the defaults write.
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
 """
@@ -33,7 +37,7 @@ from flowmocap.body import load_body_model
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.eval import metrics as M
 from flowmocap.fit.lift_refit import lifter_refit_motion
-from flowmocap.fit.smooth import depth_smoothed_motion
+from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion
 from flowmocap.io.results import read_result
 from flowmocap.vision.auto import load_detections
 
@@ -43,6 +47,8 @@ _MODELS: dict = {}
 OPTIONS: dict = {}
 #: The window (s) of the depth smoothing after the refit, 0: none (``--smooth-after``).
 SMOOTH_S = 0.0
+#: The window (s) of the pose smoothing last, 0: none (``--smooth-poses``).
+POSES_S = 0.0
 
 
 def _refit(res: Path, weight: float, track=None):
@@ -53,10 +59,12 @@ def _refit(res: Path, weight: float, track=None):
     if track is None:
         raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
     refit, info = lifter_refit_motion(motion, track, model, weight=weight, **OPTIONS)
+    run = json.loads((res / "run.json").read_text())
+    reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
     if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
-        run = json.loads((res / "run.json").read_text())
-        reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
         refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)
+    if POSES_S:  # as the pipeline does last (pose_smoothing_s)
+        refit, _ = pose_smoothed_motion(refit, model, POSES_S, breaks=reinits)
     return motion, refit, info
 
 
@@ -98,6 +106,7 @@ def synthetic_rows(pairs: list[tuple[str, Path, Path]], weight: float) -> list[d
             row[f"{when}_local_cm"] = 100 * float(M.local_procrustes_error(p3, g3).mean())
             row[f"{when}_global_cm"] = 100 * float(M.global_procrustes_error(p3, g3).mean())
             row[f"{when}_px"] = float(np.linalg.norm(np.asarray(m["joints2d"], np.float64) - g2, axis=-1).mean())
+            row[f"{when}_accel_mm"] = 1000 * float(M.acceleration_error(p3, g3).mean()) if len(p3) >= 3 else float("nan")
         rows.append(row)
     return rows
 
@@ -134,6 +143,9 @@ def main() -> int:
     ap.add_argument("--smooth-after", type=float, default=0.0,
                     help="smooth the refitted root depth over this window (s), as the pipeline does with "
                          "lifter_refit_smooth_depth (its window: depth_smoothing_s, 0.5); 0: not")
+    ap.add_argument("--smooth-poses", type=float, default=0.0,
+                    help="then smooth the poses and translation over this window (s), as the pipeline does last "
+                         "with pose_smoothing_s (0.3); 0: not")
     ap.add_argument("--out")
     a = ap.parse_args()
     if not (a.real3d or a.diverse or a.seeds):
@@ -144,14 +156,15 @@ def main() -> int:
         from flowmocap.vision.lifter import Lifter
 
         OPTIONS["lifter"] = Lifter.load(a.lifter)
-    global SMOOTH_S
+    global SMOOTH_S, POSES_S
     SMOOTH_S = a.smooth_after
+    POSES_S = a.smooth_poses
     result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "lifter": str(a.lifter) if a.lifter else "packaged",
-              "smooth_after_s": a.smooth_after}
+              "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",
-                "mean_move_px"]
+                "before_accel_mm", "after_accel_mm", "mean_move_px"]
     if a.real3d:
         rows = real3d_rows(a.real3d, a.weight)
         keys = ["before_per_frame_mm", "after_per_frame_mm", "before_per_sequence_mm", "after_per_sequence_mm",

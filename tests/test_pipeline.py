@@ -66,8 +66,9 @@ def test_the_finished_motion_has_its_root_depth_smoothed_and_keeps_the_tracked_t
     from flowmocap.fit.smooth import depth_smoothed_motion
 
     kw = dict(init=seq_dir.parent / "init.json", progress=False, joints3d="off", log=None)
-    smoothed = flowmocap.track(seq_dir, tmp_path / "s", config=QUICK, **kw)
-    raw = flowmocap.track(seq_dir, tmp_path / "r", config={**QUICK, "depth_smoothing_s": 0.0}, **kw)
+    quick = {**QUICK, "pose_smoothing_s": 0.0}  # the depth alone (the pose smoothing: the next test)
+    smoothed = flowmocap.track(seq_dir, tmp_path / "s", config=quick, **kw)
+    raw = flowmocap.track(seq_dir, tmp_path / "r", config={**quick, "depth_smoothing_s": 0.0}, **kw)
     assert smoothed.run["config"]["depth_smoothing_s"] == 0.5 and "trans_tracked" not in raw.motion
     assert raw.run["config"]["depth_smoothing_s"] == 0.0
     np.testing.assert_array_equal(smoothed.poses, raw.poses)
@@ -76,6 +77,44 @@ def test_the_finished_motion_has_its_root_depth_smoothed_and_keeps_the_tracked_t
     for k in ("trans", "joints3d", "joints2d"):
         np.testing.assert_allclose(getattr(smoothed, k), want[k], atol=1e-5, err_msg=k)
     assert np.abs(smoothed.trans - raw.trans).max() > 1e-4  # 5 noisy frames: the depth moved
+
+
+def test_the_finished_motion_is_smoothed_last_and_keeps_the_motion_before(seq_dir, tmp_path):
+    """With pose_smoothing_s (0.3 s by default) motion.npz is the motion of a run without it
+    passed through fit.smooth.pose_smoothed_motion; run.json records it."""
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.smooth import pose_smoothed_motion
+
+    kw = dict(init=seq_dir.parent / "init.json", progress=False, joints3d="off", log=None)
+    smoothed = flowmocap.track(seq_dir, tmp_path / "s", config=QUICK, **kw)
+    raw = flowmocap.track(seq_dir, tmp_path / "r", config={**QUICK, "pose_smoothing_s": 0.0}, **kw)
+    assert smoothed.run["config"]["pose_smoothing_s"] == 0.3 and "pose_smoothing" not in raw.run
+    assert "poses_unsmoothed" not in raw.motion and smoothed.run["pose_smoothing"]["window_s"] == 0.3
+    np.testing.assert_array_equal(smoothed.motion["poses_unsmoothed"], raw.poses)
+    want, _ = pose_smoothed_motion(dict(raw.motion), load_body_model("default"), 0.3)
+    for k in ("poses", "trans", "joints3d", "joints2d"):
+        np.testing.assert_allclose(getattr(smoothed, k), want[k], atol=1e-4, err_msg=k)
+    assert np.abs(smoothed.poses - raw.poses).max() > 1e-4
+
+
+def test_a_run_stopped_before_its_smoothing_is_smoothed_on_resume(seq_dir, tmp_path):
+    """A kill between the end of tracking (motion.npz written, status finished) and the
+    steps after it: --resume does the steps instead of calling the run finished."""
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    kw = dict(init=seq_dir.parent / "init.json", progress=False, joints3d="off", log=None)
+    done = flowmocap.track(seq_dir, tmp_path / "r", config=QUICK, **kw)
+    motion, run = read_result(tmp_path / "r")
+    before = {k: v for k, v in motion.items() if k not in ("poses_unsmoothed", "trans_unsmoothed")}
+    before["poses"], before["trans"] = motion["poses_unsmoothed"], motion["trans_unsmoothed"]
+    write_motion(tmp_path / "r", before)  # joints3d stay the smoothed ones: only the poses are compared
+    write_run(tmp_path / "r", {k: v for k, v in run.items() if k != "pose_smoothing"})
+    again = flowmocap.track(seq_dir, tmp_path / "r", config=QUICK, resume=True, **kw)
+    np.testing.assert_allclose(again.poses, done.poses, atol=1e-6)
+    np.testing.assert_allclose(again.trans, done.trans, atol=1e-6)
+    assert "pose_smoothing" in again.run
+    third = flowmocap.track(seq_dir, tmp_path / "r", config=QUICK, resume=True, **kw)  # now nothing to do
+    np.testing.assert_array_equal(third.poses, again.poses)
 
 
 def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):

@@ -106,6 +106,118 @@ def test_runs_of_consecutive_frames_are_smoothed_apart():
         smooth_motion(poses, trans, 30.0, frame_index=index[:5])
 
 
+def test_breaks_start_a_new_run():
+    rng = np.random.default_rng(8)
+    poses = rng.normal(0, 0.3, (30, 72))
+    trans = rng.normal(0, 0.1, (30, 3))
+    index = np.arange(100, 130)
+    p, t = smooth_motion(poses, trans, 30.0, frame_index=index, breaks=[112])  # row 12 starts a run
+    for a, b in ((0, 12), (12, 30)):
+        pa, ta = smooth_motion(poses[a:b], trans[a:b], 30.0)
+        np.testing.assert_allclose(p[a:b], pa, atol=1e-12)
+        np.testing.assert_allclose(t[a:b], ta, atol=1e-12)
+    same, _ = smooth_motion(poses, trans, 30.0, frame_index=index, breaks=[5, 500])  # frames not in the motion
+    np.testing.assert_allclose(same, smooth_motion(poses, trans, 30.0)[0], atol=1e-12)
+    with pytest.raises(InputError, match="NaN"):
+        smooth_motion(np.where(np.arange(30)[:, None] == 3, np.nan, poses), trans, 30.0)
+
+
+def _body_motion(body, cam, poses, trans):
+    """A result's motion arrays for ``poses (T, 72)`` and ``trans (T, 3)`` at 30 fps."""
+    import json
+
+    import torch
+
+    T = len(poses)
+    dt = body.v_template.dtype
+    with torch.no_grad():
+        j = body(betas=torch.zeros(1, 10, dtype=dt), pose=torch.as_tensor(poses, dtype=dt),
+                 trans=torch.as_tensor(trans, dtype=dt)).joints.double().numpy()
+    return {"poses": poses.astype(np.float32), "trans": trans.astype(np.float32), "betas": np.zeros(10, np.float32),
+            "joints3d": j.astype(np.float32), "joints2d": cam.project(j.reshape(-1, 3)).reshape(T, 24, 2).astype(np.float32),
+            "fps": np.array(30.0), "camera": np.array(json.dumps(cam.to_dict())), "frame_index": np.arange(T),
+            "energies": np.zeros((T, 2))}
+
+
+def test_pipeline_smooths_the_finished_motion_once_restarting_at_reinitialisations(tmp_path):
+    from flowmocap import pipeline
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.smooth import pose_smoothed_motion
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    body = load_body_model("default")
+    rng = np.random.default_rng(10)
+    T = 20
+    motion = _body_motion(body, _camera(), rng.normal(0, 0.1, (T, 72)), rng.normal(0, 0.05, (T, 3)) + (0, 0, 1))
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    run = {"status": "finished", "events": [{"event": "re-initialised", "frame": 8}]}
+    write_run(out, run)
+    said = []
+    cfg = TrackerConfig()
+    run = pipeline._smooth_poses(out, body, cfg, run, said.append)
+    got, info = read_result(out)
+    want, _ = pose_smoothed_motion(motion, body, cfg.pose_smoothing_s, breaks=[8])
+    np.testing.assert_allclose(got["poses"], want["poses"], atol=1e-6)
+    np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-6)
+    whole, _ = pose_smoothed_motion(motion, body, cfg.pose_smoothing_s)
+    assert np.abs(got["trans"] - whole["trans"]).max() > 1e-4  # the re-initialisation was read from run.json
+    np.testing.assert_allclose(got["joints3d"], want["joints3d"], atol=1e-5)
+    np.testing.assert_array_equal(got["poses_unsmoothed"], motion["poses"])
+    assert info["pose_smoothing"]["window_s"] == cfg.pose_smoothing_s and run["pose_smoothing"]["mean_move_mm"] > 0
+    assert "smoothed the motion" in said[0]
+    again = pipeline._smooth_poses(out, body, cfg, run, said.append)  # a resumed, finished run: not twice
+    np.testing.assert_array_equal(read_result(out)[0]["poses"], got["poses"])
+    assert again is run and len(said) == 1
+
+
+def test_pose_smoothed_motion_recomputes_joints_and_keeps_the_motion_before():
+    """The poses and translation are :func:`smooth_motion`'s, the joints the body model's
+    of them and their projections; a motion that is a quadratic in time on SO(3) about one
+    axis per joint (which degree 2 keeps) barely moves, jitter on it is taken out."""
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.smooth import pose_smoothed_motion
+
+    body = load_body_model("default")
+    cam = _camera()
+    rng = np.random.default_rng(9)
+    T = 24
+    axes = rng.normal(0, 1, (24, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    s = np.arange(T) / 30.0
+    angle = 0.2 + 0.8 * s[:, None] - 0.5 * s[:, None] ** 2  # (T, 1) radians, the same curve for each joint
+    clean = (angle[:, :, None] * axes[None]).reshape(T, 72)
+    trans = np.stack([0.3 * s, 0.1 + 0 * s, 0.2 * s ** 2], 1)
+
+    def motion_of(poses, tr=trans):
+        return _body_motion(body, cam, poses, tr)
+
+    kept, info = pose_smoothed_motion(motion_of(clean), body)
+    np.testing.assert_allclose(kept["poses"], clean, atol=1e-4)
+    assert info["mean_move_mm"] < 0.1 and info["window_s"] == 0.3 and info["order"] == 2
+
+    noisy = motion_of(clean + rng.normal(0, 0.05, clean.shape), trans + rng.normal(0, 0.01, trans.shape))
+    out, info = pose_smoothed_motion(noisy, body)
+    p, t = smooth_motion(noisy["poses"], noisy["trans"], 30.0)
+    np.testing.assert_allclose(out["poses"], p, atol=1e-6)
+    np.testing.assert_allclose(out["trans"], t, atol=1e-6)
+    np.testing.assert_array_equal(out["poses_unsmoothed"], noisy["poses"])
+    np.testing.assert_array_equal(out["trans_unsmoothed"], noisy["trans"])
+    want = motion_of(p, t)
+    np.testing.assert_allclose(out["joints3d"], want["joints3d"], atol=1e-5)
+    np.testing.assert_allclose(out["joints2d"], cam.project(out["joints3d"].reshape(-1, 3)).reshape(T, 24, 2),
+                               atol=1e-3)
+    assert np.abs(out["poses"] - clean).mean() < 0.6 * np.abs(noisy["poses"] - clean).mean()
+    assert info["mean_move_mm"] > 1 and info["mean_move_px"] > 0.1
+    assert out["poses"].dtype == np.float32 and out["energies"] is noisy["energies"]
+    split, _ = pose_smoothed_motion(noisy, body, breaks=[10])  # a re-initialisation: both start again
+    before = smooth_motion(noisy["poses"][:10], noisy["trans"][:10], 30.0)
+    np.testing.assert_allclose(split["poses"][:10], before[0], atol=1e-6)
+    np.testing.assert_allclose(split["trans"][:10], before[1], atol=1e-6)
+
+
 def _camera():
     R = Rotation.from_euler("xyz", [0.2, -0.7, 0.1]).as_matrix()
     return PinholeCamera(fx=500.0, fy=500.0, cx=160.0, cy=120.0, width=320, height=240, R=R, t=[0.1, -0.2, 4.0])

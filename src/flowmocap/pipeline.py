@@ -37,7 +37,7 @@ from flowmocap.fit.objective import (
     keypoint_observation,
 )
 from flowmocap.fit.reinit import ReinitMonitor
-from flowmocap.fit.smooth import depth_smoothed_motion
+from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion
 from flowmocap.fit.tracker import FrameResult, KnownStart, SequenceTracker, track_frames
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.fingerprint import (
@@ -71,6 +71,7 @@ from flowmocap.vision.auto import (
     detect_sequence,
     first_person_frame,
     frame_runs,
+    load_detections,
 )
 from flowmocap.vision.lifter import lifted_track
 from flowmocap.vision.person import describe_person, parse_person
@@ -346,6 +347,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if resume and has_result(out):
         done = _resumable(out, fingerprint)
         if done is not None:
+            if _post_pending(out, cfg, joints3d, done.run):  # stopped after tracking, before the steps after it
+                _post_steps(out, load_detections(out), body, cfg, done.run, joints3d, say)
+                return load_result(out)
             say(f"{out} holds the finished run of this input and set-up; nothing to do")
             return done
     elif has_result(out) or (out / "run.json").exists():  # force, or a run that failed before its first frame
@@ -433,8 +437,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     monitor = watch if (watch is not None and reinit) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
                {"fingerprint": fingerprint, **notes}, keep_flow)
-    if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off" and has_result(out):
-        run = _lifter_refit(out, watch, body, cfg, run, say)
+    run = _post_steps(out, watch, body, cfg, run, joints3d, say)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
     say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
@@ -785,6 +788,28 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
     return run
 
 
+def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: TrackerConfig, run: dict, joints3d: str,
+                say) -> dict:
+    """The steps after tracking, each on the finished ``motion.npz`` and each done once:
+    the lifter refit (with the detections ``watch``) and the pose smoothing. Returns the
+    run info."""
+    if not has_result(out):
+        return run
+    if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
+        run = _lifter_refit(out, watch, body, cfg, run, say)
+    if cfg.pose_smoothing_s > 0:
+        run = _smooth_poses(out, body, cfg, run, say)
+    return run
+
+
+def _post_pending(out: Path, cfg: TrackerConfig, joints3d: str, run: dict) -> bool:
+    """Whether a finished run was stopped before one of :func:`_post_steps` was done."""
+    motion, _ = read_result(out)
+    refit = (cfg.lifter_refit_weight > 0 and joints3d != "off" and "poses_tracked" not in motion
+             and "lifter_refit" not in run and (out / "detections" / "keypoints.npz").exists())
+    return refit or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion)
+
+
 def _reinit_frames(run: dict) -> list[int]:
     """The input frame numbers where the tracker re-initialised (``run["events"]``): the
     depth smoothing starts again there."""
@@ -823,6 +848,26 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     write_run(out, run)
     say(f"refitted {info['frames_refit']} frames towards the lifter's depths (share {cfg.lifter_refit_weight:g}): "
         f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average")
+    return run
+
+
+def _smooth_poses(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
+    """The finished ``motion.npz`` with its poses and translation smoothed over
+    ``cfg.pose_smoothing_s`` (:func:`~flowmocap.fit.smooth.pose_smoothed_motion`, starting
+    again at every re-initialisation), written atomically; the motion before is kept as
+    ``poses_unsmoothed`` / ``trans_unsmoothed`` and ``run.json`` records it under
+    ``pose_smoothing``. A motion smoothed already (a resumed run that had finished) is left."""
+    motion, _ = read_result(out)
+    if "poses_unsmoothed" in motion:
+        return run
+    t0 = time.perf_counter()
+    smoothed, info = pose_smoothed_motion(motion, body, cfg.pose_smoothing_s, breaks=_reinit_frames(run))
+    write_motion(out, smoothed)
+    info["seconds"] = round(time.perf_counter() - t0, 2)
+    run = {**run, "pose_smoothing": info}
+    write_run(out, run)
+    say(f"smoothed the motion over {cfg.pose_smoothing_s:g} s: joints moved {info['mean_move_mm']:.0f} mm, "
+        f"{info['mean_move_px']:.1f} px in the image on average")
     return run
 
 

@@ -88,7 +88,7 @@ _RANGES: dict[str, str] = {
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
-    "lifter_refit_pixel_sigma": _AT_LEAST_0,
+    "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
@@ -176,6 +176,10 @@ class TrackerConfig:
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
+    pose_smoothing_s: float = 0.3      # s: last, the finished motion's joint rotations (on SO(3)) and translation
+    #                                    smoothed over this window (Savitzky-Golay, degree 2: fit.smooth.
+    #                                    pose_smoothed_motion; the export's --smooth filter) between
+    #                                    re-initialisations; 0: off
     # --- re-initialisation (real video with detections; flowmocap.fit.reinit) -----------
     reinit_min_iou: float = 0.5        # a frame is bad below this silhouette IoU with the mask
     reinit_max_joint_error: float = 0.15  # ... or above this median 2D joint distance / height

@@ -26,7 +26,7 @@ import numpy as np
 from flowmocap.errors import InputError
 
 __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
-           "smooth_root_depth", "depth_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
+           "smooth_root_depth", "depth_smoothed_motion", "pose_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
            "DEPTH_ORDER"]
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
@@ -151,7 +151,7 @@ def smooth_rotations(rotvecs: np.ndarray, window: int, order: int = DEFAULT_ORDE
 
 
 def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: float = DEFAULT_WINDOW_S,
-                  order: int = DEFAULT_ORDER, frame_index=None) -> tuple[np.ndarray, np.ndarray]:
+                  order: int = DEFAULT_ORDER, frame_index=None, breaks=()) -> tuple[np.ndarray, np.ndarray]:
     """Smooth a fitted SMPL motion offline: every joint's rotation on SO(3), and the translation.
 
     Args:
@@ -164,6 +164,9 @@ def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: fl
         frame_index: ``(T,)`` the input's frame numbers, or None (consecutive). Runs of
             consecutive frames are smoothed separately: the filter never reaches across a
             gap in time.
+        breaks: input frame numbers that start a new run (e.g. the tracker's
+            re-initialisations, where the pose may jump); needs ``frame_index`` or counts
+            frames from 0.
 
     Returns:
         ``poses (T, 72)``, ``trans (T, 3)``, float64.
@@ -178,17 +181,13 @@ def smooth_motion(poses: np.ndarray, trans: np.ndarray, fps: float, window_s: fl
         raise InputError(f"the smoothing order must be a whole number >= 0, got {order!r}.")
     window = window_frames(window_s, fps, order)
     T = poses.shape[0]
-    if frame_index is not None:
-        idx = np.asarray(frame_index).reshape(-1)
-        if idx.shape != (T,):
-            raise InputError(f"frame_index must have {T} entries, one per frame; got {idx.shape}.")
-        cuts = np.flatnonzero(np.diff(idx) != 1) + 1
-        if cuts.size:
-            parts = [smooth_motion(poses[a:b], trans[a:b], fps, window_s, order)
-                     for a, b in zip(np.r_[0, cuts], np.r_[cuts, T])]
-            return np.concatenate([q for q, _ in parts]), np.concatenate([t for _, t in parts])
-    p = smooth_rotations(poses.reshape(T, 24, 3), window, order).reshape(T, 72)
-    return p, smooth_translations(trans, window, order)
+    if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(trans))):
+        raise InputError("the motion to smooth contains NaN or infinite values.")
+    p, t = poses.copy(), trans.copy()
+    for a, b in _runs(frame_index, T, np.ones(T, bool), breaks):
+        p[a:b] = smooth_rotations(poses[a:b].reshape(b - a, 24, 3), window, order).reshape(b - a, 72)
+        t[a:b] = smooth_translations(trans[a:b], window, order)
+    return p, t
 
 
 def _runs(frame_index, T: int, ok: np.ndarray, breaks=()) -> list[tuple[int, int]]:
@@ -293,3 +292,65 @@ def depth_smoothed_motion(motion: dict, window_s: float = DEPTH_WINDOW_S, order:
     j2d = np.asarray(camera.project(moved.reshape(-1, 3)), np.float64).reshape(joints.shape[0], -1, 2)
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     return out
+
+
+def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S, order: int = DEFAULT_ORDER,
+                         breaks=(), chunk: int = 256) -> tuple[dict, dict]:
+    """A result's ``motion.npz`` arrays with the poses and translation smoothed over time
+    (:func:`smooth_motion`: every joint's rotation on SO(3), the translation alike).
+
+    ``joints3d`` are recomputed with ``body`` and ``joints2d`` projected with the result's
+    camera; the motion before is kept as ``poses_unsmoothed`` and ``trans_unsmoothed``.
+    Runs of consecutive input frames are smoothed apart, and a frame number in ``breaks`` (a
+    re-initialisation, where the pose and the depth may jump) starts a new run. (Smoothing
+    the rotations across re-initialisations was tried: better 3D on the real multi-view
+    recording, a worse overlay on the real clips; docs/experiments.md, "The motion
+    smoothed last".)
+
+    Args:
+        motion: ``poses (T, 72)`` radians, ``trans (T, 3)`` metres, ``betas``, ``joints3d
+            (T, 24, 3)``, ``joints2d (T, 24, 2)``, ``fps``, ``camera`` (JSON of
+            ``PinholeCamera.to_dict()``), ``frame_index (T,)`` and anything else (kept).
+        body: the :class:`~flowmocap.body.BodyModel` of the fit.
+        window_s: seconds (:func:`window_frames`); order: polynomial degree.
+
+    Returns:
+        ``(motion, info)``: the new arrays, and ``{"window_s", "order", "mean_move_mm",
+        "mean_move_px"}`` (how far the 24 joints moved on average, in 3D and in the image).
+    """
+    import json
+
+    import torch
+
+    from flowmocap.geometry.camera import PinholeCamera
+
+    poses0 = np.asarray(motion["poses"], np.float64)
+    trans0 = np.asarray(motion["trans"], np.float64)
+    fps = float(np.asarray(motion["fps"]))
+    poses, trans = smooth_motion(poses0, trans0, fps, window_s, order, frame_index=motion.get("frame_index"),
+                                 breaks=breaks)
+    camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+    dt = body.v_template.dtype
+    betas = torch.as_tensor(np.asarray(motion["betas"], np.float64).reshape(1, -1), dtype=dt)
+    T = poses.shape[0]
+    joints = np.empty((T, 24, 3))
+    with torch.no_grad():
+        for a in range(0, T, chunk):
+            b = min(a + chunk, T)
+            out = body(betas=betas.expand(b - a, -1), pose=torch.as_tensor(poses[a:b], dtype=dt),
+                       trans=torch.as_tensor(trans[a:b], dtype=dt))
+            joints[a:b] = out.joints.double().numpy()
+    j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(T, -1, 2)
+    before3d = np.asarray(motion["joints3d"], np.float64)
+    before2d = np.asarray(motion["joints2d"], np.float64)
+    out = dict(motion)
+    out["poses_unsmoothed"] = np.asarray(motion["poses"]).copy()
+    out["trans_unsmoothed"] = np.asarray(motion["trans"]).copy()
+    out["poses"] = poses.astype(np.asarray(motion["poses"]).dtype)
+    out["trans"] = trans.astype(np.asarray(motion["trans"]).dtype)
+    out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
+    out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    info = {"window_s": float(window_s), "order": int(order),
+            "mean_move_mm": float(1000 * np.linalg.norm(joints - before3d, axis=-1).mean()) if T else 0.0,
+            "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean()) if T else 0.0}
+    return out, info
