@@ -313,3 +313,25 @@ def test_depth_smoothed_motion_moves_trans_and_joints_together_and_projects_agai
     assert out["trans"].dtype == np.float32 and out["joints2d"].dtype == np.float32
     same = depth_smoothed_motion(motion, window_s=0)
     assert "trans_tracked" not in same and same["trans"] is motion["trans"]
+
+
+def test_post_pending_says_which_steps_after_tracking_a_finished_run_lacks(tmp_path):
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.io.results import write_motion, write_run
+
+    out = tmp_path / "r"
+    out.mkdir()
+    motion = {"poses": np.zeros((3, 72), np.float32), "trans": np.zeros((3, 3), np.float32)}
+    write_motion(out, motion)
+    write_run(out, {"status": "finished", "events": []})
+    cfg, off = TrackerConfig(), TrackerConfig(pose_smoothing_s=0.0)
+    assert pipeline._post_pending(out, cfg, "auto", {})  # not smoothed
+    assert not pipeline._post_pending(out, off, "auto", {})  # no detections: no refit to do either
+    (out / "detections").mkdir()
+    (out / "detections" / "keypoints.npz").write_bytes(b"")
+    assert pipeline._post_pending(out, off, "auto", {})  # detections and no refit yet
+    assert not pipeline._post_pending(out, off, "off", {})  # the refit needs the 3D cues on
+    assert not pipeline._post_pending(out, off, "auto", {"lifter_refit": {"skipped": "too few frames"}})
+    write_motion(out, {**motion, "poses_tracked": motion["poses"], "poses_unsmoothed": motion["poses"]})
+    assert not pipeline._post_pending(out, cfg, "auto", {})  # both done
