@@ -14,13 +14,15 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   and after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--smooth-after S] [--smooth-poses S] [--out PREFIX]
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full] [--smooth-after S]
+       [--smooth-poses S] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
 0.3`` then smooths the poses and translation (``pose_smoothing_s``,
 :func:`flowmocap.fit.smooth.pose_smoothed_motion`), the pipeline's last step; with both, the
-"after" columns are what the defaults write.
+"after" columns are what the defaults write. ``--blend full`` blends all three coordinates
+(``lifter_refit_blend`` "full"; the default, as the pipeline's, is ``depth``).
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
 """
@@ -140,6 +142,8 @@ def main() -> int:
     ap.add_argument("--weight", type=float, default=0.5)
     ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
     ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
+    ap.add_argument("--blend", choices=("full", "depth"), default="depth",
+                    help="the refit's targets: the depth only blended (the pipeline's default) or all three coordinates")
     ap.add_argument("--smooth-after", type=float, default=0.0,
                     help="smooth the refitted root depth over this window (s), as the pipeline does with "
                          "lifter_refit_smooth_depth (its window: depth_smoothing_s, 0.5); 0: not")
@@ -152,6 +156,7 @@ def main() -> int:
         ap.error("give at least one of --real3d, --diverse, --seeds")
     if a.pixel_sigma:
         OPTIONS["pixel_sigma"] = a.pixel_sigma
+    OPTIONS["blend"] = a.blend
     if a.lifter:
         from flowmocap.vision.lifter import Lifter
 
@@ -159,7 +164,8 @@ def main() -> int:
     global SMOOTH_S, POSES_S
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
-    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "lifter": str(a.lifter) if a.lifter else "packaged",
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend,
+              "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]

@@ -93,13 +93,37 @@ def test_blend_targets_keep_each_pixel_and_blend_depth():
     np.testing.assert_allclose(half[..., 2], 0.5 * (fit[..., 2] + tg[..., 2]), atol=1e-12)
 
 
-def test_refit_moves_a_wrong_forearm_towards_the_lifted_depth_and_keeps_the_image(tmp_path):
+def test_full_blend_targets_are_the_fit_and_the_aligned_lifter_mixed_point_by_point():
+    rng = np.random.default_rng(1)
+    fit = rng.normal(0, 0.3, (3, 13, 3)) + (0, 0, 4)
+    shape = fit + rng.normal(0, 0.05, fit.shape)  # another shape ...
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    lifted = 1.3 * shape @ R.T + (0.5, -1, 2)  # ... elsewhere, turned and larger
+    from flowmocap.geometry.procrustes import similarity_procrustes
+
+    aligned = similarity_procrustes(lifted, fit)[0]
+    np.testing.assert_allclose(blend_targets(fit, lifted, 0.0, "full"), fit, atol=1e-12)
+    np.testing.assert_allclose(blend_targets(fit, lifted, 1.0, "full"), aligned, atol=1e-12)
+    np.testing.assert_allclose(blend_targets(fit, lifted, 0.25, "full"), 0.75 * fit + 0.25 * aligned, atol=1e-12)
+    # the depth blend is the full one's depth, on the fit's rays
+    d, f = blend_targets(fit, lifted, 0.25, "depth"), blend_targets(fit, lifted, 0.25, "full")
+    np.testing.assert_allclose(d[..., 2], f[..., 2], atol=1e-12)
+    np.testing.assert_allclose(d[..., :2] / d[..., 2:], fit[..., :2] / fit[..., 2:], atol=1e-12)
+    with pytest.raises(InputError, match="blend"):
+        blend_targets(fit, lifted, 0.5, "both")
+
+
+@pytest.mark.parametrize("blend", ["depth", "full"])
+def test_refit_moves_a_wrong_forearm_towards_the_lifted_depth_and_keeps_the_image(tmp_path, blend):
     wrong = TRUTH.copy()
     wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)  # the forearm reaching away instead
     motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
     model = load_body_model("default")
     # converged (60 iterations; the default 20 stops earlier: the same direction, a little more image motion)
-    out, info = lifter_refit_motion(motion, track, model, weight=1.0, lifter=TruthLifter(truth_kp), iterations=60)
+    out, info = lifter_refit_motion(motion, track, model, weight=1.0, lifter=TruthLifter(truth_kp), iterations=60,
+                                    blend=blend)
+    assert info["blend"] == blend
     assert info["frames_refit"] == 3
     kp_after, joints_after = _bodies(out["poses"].astype(np.float64))
     wrist = POINTS.index("right_wrist")
@@ -229,7 +253,7 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     run = pipeline._lifter_refit(out, track, model, cfg, {"status": "finished", "events": []}, lambda s: None)
     got, _ = read_result(out)
     refit, _ = lifter_refit_motion(motion, track, model, weight=cfg.lifter_refit_weight,
-                                   pixel_sigma=cfg.lifter_refit_pixel_sigma)
+                                   pixel_sigma=cfg.lifter_refit_pixel_sigma, blend=cfg.lifter_refit_blend)
     want = depth_smoothed_motion(refit, cfg.depth_smoothing_s) if smooth else refit
     np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-5)
     np.testing.assert_allclose(got["joints3d"], want["joints3d"], atol=1e-5)

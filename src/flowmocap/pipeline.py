@@ -817,7 +817,7 @@ def _reinit_frames(run: dict) -> list[int]:
 
 
 def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
-    """The finished ``motion.npz`` refitted towards the lifter's depths
+    """The finished ``motion.npz`` refitted towards the lifter's 3D
     (:func:`~flowmocap.fit.lift_refit.lifter_refit_motion`, ``cfg.lifter_refit_weight``),
     its root depth smoothed again (``cfg.lifter_refit_smooth_depth``, the window of
     ``cfg.depth_smoothing_s``; ``trans_tracked`` stays the tracker's), written atomically;
@@ -830,9 +830,10 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     t0 = time.perf_counter()
     try:
         refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight,
-                                          pixel_sigma=cfg.lifter_refit_pixel_sigma or None)
+                                          pixel_sigma=cfg.lifter_refit_pixel_sigma or None,
+                                          blend=cfg.lifter_refit_blend)
     except InputError as e:  # the tracked motion is written and stays the result
-        say(f"the refit towards the lifter's depths was skipped: {e}")
+        say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}
         write_run(out, run)
         return run
@@ -846,7 +847,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     info["seconds"] = round(time.perf_counter() - t0, 2)
     run = {**run, "lifter_refit": info}
     write_run(out, run)
-    say(f"refitted {info['frames_refit']} frames towards the lifter's depths (share {cfg.lifter_refit_weight:g}): "
+    say(f"refitted {info['frames_refit']} frames towards the lifter's 3D (share {cfg.lifter_refit_weight:g}, "
+        f"{cfg.lifter_refit_blend} blend): "
         f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average")
     return run
 

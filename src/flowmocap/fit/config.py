@@ -102,6 +102,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "flow_method": tuple(FLOW_METHODS),
     "depth_temporal_reference": ("previous", "prediction"),
     "detector3d_source": ("mediapipe", "lifter", "both"),
+    "lifter_refit_blend": ("full", "depth"),
 }
 
 
@@ -170,8 +171,11 @@ class TrackerConfig:
     #                                    this window (Savitzky-Golay, degree 1; fit.smooth.smooth_root_depth)
     #                                    between re-initialisations; 0: off (the tracker's own frames)
     lifter_refit_weight: float = 0.5   # after tracking (and the depth smoothing): each frame's body refitted
-    #                                    towards its keypoints' depths blended with this share of the lifter's
-    #                                    (fit.lift_refit; the image kept); 0: off
+    #                                    towards its keypoints blended with this share of the lifter's
+    #                                    (fit.lift_refit; lifter_refit_blend says how); 0: off
+    lifter_refit_blend: str = "depth"  # the refit's targets: the fit's keypoints blended with the lifter's only
+    #                                    in depth along each ray ("depth") or in all three coordinates ("full":
+    #                                    better on the renders, a worse overlay on real clips; docs/experiments.md)
     lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of

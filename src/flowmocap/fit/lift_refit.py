@@ -13,8 +13,12 @@ after tracking it can be applied to every frame alike. For each frame with a lif
    axes of the ray through the detected hips into the camera's
    (:meth:`~flowmocap.geometry.camera.PinholeCamera.ray_rotation`) and aligned onto
    ``F`` by a similarity (so only its shape counts, at the fit's place and size).
-2. The target of keypoint ``j``: ``F_j`` moved along its own camera ray to the depth
-   ``(1 - w) z(F_j) + w z(A_j)`` (``w`` = ``weight``): the same pixel, a blended depth.
+2. The target of keypoint ``j``, with ``blend="depth"`` (the pipeline's default,
+   ``TrackerConfig.lifter_refit_blend``): ``F_j`` moved along its own camera ray to the
+   depth ``(1 - w) z(F_j) + w z(A_j)`` (``w`` = ``weight``), the same pixel with a blended
+   depth; with ``blend="full"``: ``(1 - w) F_j + w A_j``, all three coordinates blended
+   (better 3D on the renders, a worse overlay on real clips: docs/experiments.md). Either
+   way the image is also held by the third term of step 3 when ``pixel_sigma`` is given.
 3. The body's pose and translation are refitted to those targets by L-BFGS: ``sum_j |k_j -
    target_j|^2 / sigma^2 + sum |theta - theta_tracked|^2 / reg^2`` over the 23 joint
    rotations (m^2 / m^2 and rad^2 / rad^2); the shape stays. With ``pixel_sigma`` a third
@@ -40,7 +44,7 @@ import torch
 from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
 from flowmocap.errors import InputError
 
-__all__ = ["blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
+__all__ = ["BLENDS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
 
 
 def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: torch.Tensor):
@@ -55,17 +59,29 @@ def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: to
     return torch.cat([head[:, None], kp[:, 1:]], 1), out.joints
 
 
-def blend_targets(fit_cam: np.ndarray, lifted_cam: np.ndarray, weight: float) -> np.ndarray:
+#: How the targets blend the fit with the lifter (:func:`blend_targets`).
+BLENDS = ("full", "depth")
+
+
+def blend_targets(fit_cam: np.ndarray, lifted_cam: np.ndarray, weight: float, blend: str = "depth") -> np.ndarray:
     """``(T, 13, 3)`` targets in the camera's axes (step 2 of the module docstring).
 
     Args:
         fit_cam: ``(T, 13, 3)`` the fit's keypoints, camera axes, metres (z > 0).
         lifted_cam: ``(T, 13, 3)`` the lifter's, camera axes (any origin and scale).
-        weight: the lifter's share of the depth, in [0, 1].
+        weight: the lifter's share, in [0, 1].
+        blend: ``"full"``: the three coordinates of each keypoint blended with the
+            lifter's (aligned onto the fit by a similarity per frame); ``"depth"``: only
+            the depth, each keypoint kept on its camera ray (its pixel unchanged).
     """
     from flowmocap.geometry.procrustes import similarity_procrustes
 
-    aligned = similarity_procrustes(np.asarray(lifted_cam, np.float64), np.asarray(fit_cam, np.float64))[0]
+    if blend not in BLENDS:
+        raise InputError(f"blend must be one of {BLENDS}; got {blend!r}.")
+    fit_cam = np.asarray(fit_cam, np.float64)
+    aligned = similarity_procrustes(np.asarray(lifted_cam, np.float64), fit_cam)[0]
+    if blend == "full":
+        return (1.0 - weight) * fit_cam + weight * aligned
     z = (1.0 - weight) * fit_cam[..., 2] + weight * aligned[..., 2]
     return fit_cam * (z / fit_cam[..., 2])[..., None]
 
@@ -85,7 +101,7 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
                         iterations: int = 20, chunk: int = 256, lifter=None, progress=None,
-                        pixel_sigma: float | None = None) -> tuple[dict, dict]:
+                        pixel_sigma: float | None = None, blend: str = "depth") -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -95,8 +111,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         track: the :class:`~flowmocap.vision.auto.PersonTrack` of the run (its 2D
             keypoints and confidences, by input frame number).
         model: the run's :class:`~flowmocap.body.model.BodyModel` (copied in float64).
-        weight: the lifter's share of each keypoint's depth, in [0, 1]; 0 returns the
+        weight: the lifter's share of each keypoint's target, in [0, 1]; 0 returns the
             arrays unchanged.
+        blend: ``"depth"`` or ``"full"`` (:func:`blend_targets`).
         sigma: metres, reg: radians: the energy's scales.
         pixel_sigma: pixels, or None: the scale of a term that holds the 24 joints' image
             where the tracker put it (:func:`refit_energy`); None leaves it out.
@@ -115,6 +132,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"weight must lie in [0, 1]; got {weight!r}.")
     if pixel_sigma is not None and not pixel_sigma > 0:
         raise InputError(f"pixel_sigma must be a positive number of pixels or None; got {pixel_sigma!r}.")
+    if blend not in BLENDS:
+        raise InputError(f"blend must be one of {BLENDS}; got {blend!r}.")
     if weight == 0:
         return dict(motion), {"frames_refit": 0, "mean_move_mm": 0.0, "mean_move_px": 0.0}
     lifter = load_lifter() if lifter is None else lifter
@@ -143,7 +162,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
     targets_cam = fit_cam.copy()
     if ok.any():
-        targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight)
+        targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight, blend)
     targets = torch.as_tensor((targets_cam - t) @ R)
     with torch.no_grad():
         pixels0 = camera.project(joints_before) if pixel_sigma else None
@@ -183,7 +202,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
-    info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma,
+    info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
     return out, info
