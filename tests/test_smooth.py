@@ -106,6 +106,19 @@ def test_runs_of_consecutive_frames_are_smoothed_apart():
         smooth_motion(poses, trans, 30.0, frame_index=index[:5])
 
 
+def test_rotations_of_a_long_motion_are_smoothed_a_few_joints_at_a_time_alike(monkeypatch):
+    import flowmocap.fit.smooth as S
+
+    rng = np.random.default_rng(11)
+    r = rng.normal(0, 0.4, (40, 24, 3))
+    whole = smooth_rotations(r, 9)
+    monkeypatch.setattr(S, "MAX_ROTATIONS", 40 * 9 * 5)  # blocks of 5 joints (the last of 4)
+    np.testing.assert_allclose(smooth_rotations(r, 9), whole, atol=1e-12)
+    monkeypatch.setattr(S, "MAX_ROTATIONS", 1)  # one joint at a time
+    np.testing.assert_allclose(smooth_rotations(r, 9), whole, atol=1e-12)
+    np.testing.assert_allclose(smooth_rotations(r[:, 0], 9), whole[:, 0], atol=1e-12)
+
+
 def test_breaks_start_a_new_run():
     rng = np.random.default_rng(8)
     poses = rng.normal(0, 0.3, (30, 72))

@@ -43,6 +43,11 @@ DEFAULT_ORDER = 2
 DEPTH_WINDOW_S = 0.5
 DEPTH_ORDER = 1
 
+#: :func:`smooth_rotations` handles at most about this many rotations at once (frames x
+#: joints x window; a few hundred bytes each in its intermediates), taking the joints a
+#: few at a time beyond it (an 18000-frame motion: 60 MB, not 700).
+MAX_ROTATIONS = 200_000
+
 
 def window_frames(window_s: float, fps: float, order: int = DEFAULT_ORDER) -> int:
     """The odd number of frames closest to ``window_s`` seconds at ``fps``, at least ``order + 2``."""
@@ -137,6 +142,11 @@ def smooth_rotations(rotvecs: np.ndarray, window: int, order: int = DEFAULT_ORDE
         return np.asarray(rotvecs, np.float64).copy()
     index, w = savgol_weights(T, *used)
     n = index.shape[1]
+    block = max(1, MAX_ROTATIONS // (T * n))
+    if block < J:  # the joints are independent: a few at a time bounds the memory on long motions
+        out = np.concatenate([smooth_rotations(r[:, a:a + block], window, order, iterations)
+                              for a in range(0, J, block)], axis=1)
+        return out[:, 0] if single else out
     R = Rotation.from_rotvec(r.reshape(-1, 3))  # (T*J)
     # neighbours of (t, j): frame index[t, k], joint j -> flat (index * J + j)
     nb = (index[:, None, :] * J + np.arange(J)[None, :, None]).reshape(-1)  # (T*J*n)
@@ -295,7 +305,7 @@ def depth_smoothed_motion(motion: dict, window_s: float = DEPTH_WINDOW_S, order:
 
 
 def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S, order: int = DEFAULT_ORDER,
-                         breaks=(), chunk: int = 256) -> tuple[dict, dict]:
+                         breaks=(), chunk: int = 64) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with the poses and translation smoothed over time
     (:func:`smooth_motion`: every joint's rotation on SO(3), the translation alike).
 
