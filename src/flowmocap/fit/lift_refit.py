@@ -51,7 +51,7 @@ def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: to
     """``(keypoints (B, 13, 3), joints (B, 24, 3))`` of posed bodies, world axes, metres:
     the 13 points in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS` where the
     detector puts them (the head at the middle of the ears)."""
-    out = model(betas=betas.expand(len(poses), -1), pose=poses, trans=trans)
+    out = model(betas=betas.expand(len(poses), -1), pose=poses, trans=trans, with_vertices=False)  # joints only
     kp = kmap.apply(out.joints, out.transforms)[:, list(EVAL_JOINTS)]
     rot = out.transforms[:, kmap.ears_part, :3, :3]
     ears = torch.as_tensor(np.asarray(kmap.ears_offset), dtype=out.joints.dtype)
@@ -192,7 +192,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError("the refit towards the lifter gave non-finite values; run without it "
                          "(\"lifter_refit_weight\": 0) and report the input.")
     with torch.no_grad():
-        out_b = body(betas=betas.expand(len(idx), -1), pose=poses_new, trans=trans_new)
+        out_b = body(betas=betas.expand(len(idx), -1), pose=poses_new, trans=trans_new, with_vertices=False)
     joints = out_b.joints.numpy()
     j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)  # world points
     out = dict(motion)

@@ -348,7 +348,7 @@ def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S,
         for a in range(0, T, chunk):
             b = min(a + chunk, T)
             out = body(betas=betas.expand(b - a, -1), pose=torch.as_tensor(poses[a:b], dtype=dt),
-                       trans=torch.as_tensor(trans[a:b], dtype=dt))
+                       trans=torch.as_tensor(trans[a:b], dtype=dt), with_vertices=False)
             joints[a:b] = out.joints.double().numpy()
     j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(T, -1, 2)
     before3d = np.asarray(motion["joints3d"], np.float64)
