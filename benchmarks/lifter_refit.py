@@ -14,7 +14,7 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   and after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full] [--smooth-after S]
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full] [--iterations 60] [--smooth-after S]
        [--smooth-poses S] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
@@ -142,6 +142,8 @@ def main() -> int:
     ap.add_argument("--weight", type=float, default=0.5)
     ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
     ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
+    ap.add_argument("--iterations", type=int, default=60,
+                    help="L-BFGS iterations of the refit (lifter_refit_iterations; 20 before 2026-11-27's eleventh session)")
     ap.add_argument("--blend", choices=("full", "depth"), default="depth",
                     help="the refit's targets: the depth only blended (the pipeline's default) or all three coordinates")
     ap.add_argument("--smooth-after", type=float, default=0.0,
@@ -157,6 +159,7 @@ def main() -> int:
     if a.pixel_sigma:
         OPTIONS["pixel_sigma"] = a.pixel_sigma
     OPTIONS["blend"] = a.blend
+    OPTIONS["iterations"] = a.iterations
     if a.lifter:
         from flowmocap.vision.lifter import Lifter
 
@@ -164,7 +167,7 @@ def main() -> int:
     global SMOOTH_S, POSES_S
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
-    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend,
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "iterations": a.iterations,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses}
     md = [f"# The lifter refit at weight {a.weight:g}"

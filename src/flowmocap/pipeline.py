@@ -831,7 +831,7 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     try:
         refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight,
                                           pixel_sigma=cfg.lifter_refit_pixel_sigma or None,
-                                          blend=cfg.lifter_refit_blend)
+                                          blend=cfg.lifter_refit_blend, iterations=cfg.lifter_refit_iterations)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

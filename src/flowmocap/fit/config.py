@@ -88,7 +88,7 @@ _RANGES: dict[str, str] = {
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
-    "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0,
+    "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
@@ -176,6 +176,7 @@ class TrackerConfig:
     lifter_refit_blend: str = "depth"  # the refit's targets: the fit's keypoints blended with the lifter's only
     #                                    in depth along each ray ("depth") or in all three coordinates ("full":
     #                                    better on the renders, a worse overlay on real clips; docs/experiments.md)
+    lifter_refit_iterations: int = 60  # L-BFGS iterations of the lifter refit (each chunk of frames)
     lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of

@@ -100,7 +100,7 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
 
 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
-                        iterations: int = 20, chunk: int = 256, lifter=None, progress=None,
+                        iterations: int = 60, chunk: int = 256, lifter=None, progress=None,
                         pixel_sigma: float | None = None, blend: str = "depth") -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
@@ -115,6 +115,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             arrays unchanged.
         blend: ``"depth"`` or ``"full"`` (:func:`blend_targets`).
         sigma: metres, reg: radians: the energy's scales.
+        iterations: L-BFGS iterations per chunk of ``chunk`` frames (60: about converged;
+            ``TrackerConfig.lifter_refit_iterations``).
         pixel_sigma: pixels, or None: the scale of a term that holds the 24 joints' image
             where the tracker put it (:func:`refit_energy`); None leaves it out.
         lifter: a :class:`~flowmocap.vision.lifter.Lifter` (default the packaged one).
