@@ -31,7 +31,7 @@ __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
 #: CMU 35_01 protocol runs (8 seeds, 60 fps), the same on the held-out diverse suite;
-#: numbers in the README's "Smoothing" section (benchmarks/smooth_cmu.py).
+#: numbers in docs/experiments.md, "The smoothing filter chosen" (benchmarks/smooth_cmu.py).
 DEFAULT_WINDOW_S = 0.3
 DEFAULT_ORDER = 2
 
