@@ -14,7 +14,8 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   and after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full] [--iterations 60] [--smooth-after S]
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
+       [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
        [--smooth-poses S] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
@@ -146,6 +147,8 @@ def main() -> int:
                     help="L-BFGS iterations of the refit (lifter_refit_iterations; 20 before 2026-11-27's eleventh session)")
     ap.add_argument("--blend", choices=("full", "depth"), default="depth",
                     help="the refit's targets: the depth only blended (the pipeline's default) or all three coordinates")
+    ap.add_argument("--lifter-input", choices=("detector", "fit", "agree", "unswap"), default="detector",
+                    help="the 2D the lifter reads: the detection's keypoints or the fit's own, projected")
     ap.add_argument("--smooth-after", type=float, default=0.0,
                     help="smooth the refitted root depth over this window (s), as the pipeline does with "
                          "lifter_refit_smooth_depth (its window: depth_smoothing_s, 0.5); 0: not")
@@ -159,6 +162,7 @@ def main() -> int:
     if a.pixel_sigma:
         OPTIONS["pixel_sigma"] = a.pixel_sigma
     OPTIONS["blend"] = a.blend
+    OPTIONS["lifter_input"] = a.lifter_input
     OPTIONS["iterations"] = a.iterations
     if a.lifter:
         from flowmocap.vision.lifter import Lifter
@@ -167,7 +171,8 @@ def main() -> int:
     global SMOOTH_S, POSES_S
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
-    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "iterations": a.iterations,
+    result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "lifter_input": a.lifter_input,
+              "iterations": a.iterations,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses}
     md = [f"# The lifter refit at weight {a.weight:g}"

@@ -47,17 +47,15 @@ class TruthLifter:
     def __init__(self, truth_world):
         self.truth_cam = truth_world @ CAM.R.T + CAM.t
 
-    def lift(self, keypoints, confidence, fps=None):
+    def lift_points(self, points, mask, fps=None):
         assert fps is not None and fps > 0  # the refit passes the result's frame rate (a temporal lifter needs it)
-        out = np.full((len(keypoints), len(KEYPOINT_NAMES), 3), np.nan)
-        for f in range(len(keypoints)):
-            hip = keypoints[f, [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]].mean(0)
+        assert points.shape == (len(self.truth_cam), len(POINTS), 2) and mask.shape == points.shape[:2]
+        self.seen = np.asarray(points, np.float64).copy()
+        out = np.full((len(points), len(POINTS), 3), np.nan)
+        for f in range(len(points)):
+            hip = points[f, list(HIPS)].mean(0)
             ray = CAM.ray_rotation(float(hip[0]), float(hip[1]))
-            x = self.truth_cam[f] @ ray  # camera axes -> the ray's (x_cam = x_ray @ ray.T)
-            for k, name in enumerate(POINTS):
-                names = ("left_ear", "right_ear", "nose") if name == "head" else (name,)
-                for n in names:
-                    out[f, KEYPOINT_NAMES.index(n)] = x[k]
+            out[f] = self.truth_cam[f] @ ray  # camera axes -> the ray's (x_cam = x_ray @ ray.T)
         return out
 
 
@@ -260,3 +258,53 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     assert smooth == (np.abs(got["trans"] - refit["trans"]).max() > 1e-3)  # the smoothing moved the frames
     np.testing.assert_array_equal(got["trans_tracked"], motion["trans_tracked"])  # the tracker's own, kept
     assert ("depth_smoothed_s" in run["lifter_refit"]) == smooth
+
+
+def test_the_lifter_can_read_the_fits_own_keypoints(tmp_path):
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    model = load_body_model("default")
+    lifter = TruthLifter(truth_kp)
+    out, info = lifter_refit_motion(motion, track, model, weight=1.0, lifter=lifter, iterations=60,
+                                    lifter_input="fit")
+    assert info["lifter_input"] == "fit" and info["frames_refit"] == 3  # still only where the person was found
+    # it read the fit's 13 keypoints projected, not the detection (which is the truth's image here)
+    fit_px = np.asarray(CAM.project(fit_kp.reshape(-1, 3))).reshape(T, 13, 2)
+    np.testing.assert_allclose(lifter.seen, fit_px, atol=1e-6)
+    kp_after, _ = _bodies(out["poses"].astype(np.float64))
+    wrist = POINTS.index("right_wrist")
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    after = np.linalg.norm(kp_after[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    assert (after < 0.3 * before).all(), (before, after)
+    with pytest.raises(InputError, match="lifter_input"):
+        lifter_refit_motion(motion, track, model, lifter=lifter, lifter_input="mediapipe")
+
+
+def test_agree_and_unswap_inputs_correct_the_detection_against_the_fit(tmp_path):
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, TRUTH)  # the fit is the truth; the detection its image
+    model = load_body_model("default")
+    px = np.asarray(CAM.project(truth_kp.reshape(-1, 3))).reshape(T, 13, 2)
+    # a whole-body left/right exchange in frames 0 and 2: "unswap" reads them exchanged back
+    mirror = [0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11]
+    assert all(POINTS[m].replace("left", "x").replace("right", "left").replace("x", "right") == POINTS[k]
+               for k, m in enumerate(mirror) if k)
+    swapped = track.keypoints.copy()
+    for k, name in enumerate(POINTS[1:], start=1):
+        swapped[[0, 2], KEYPOINT_NAMES.index(name)] = px[[0, 2], mirror[k]]
+    track_sw = PersonTrack(swapped, track.confidence, track.found, track.mask_paths, {})
+    for mode, expect_frames_0_2 in (("detector", px[[0, 2]][:, mirror]), ("unswap", px[[0, 2]])):
+        lifter = TruthLifter(truth_kp)
+        lifter_refit_motion(motion, track_sw, model, weight=0.5, lifter=lifter, iterations=2, lifter_input=mode)
+        np.testing.assert_allclose(lifter.seen[[0, 2]], expect_frames_0_2, atol=1e-4)
+        np.testing.assert_allclose(lifter.seen[1], px[1], atol=1e-4)
+    # one point 100 px off: "agree" reads the fit's own there and the detection elsewhere
+    off = track.keypoints.copy()
+    off[:, KEYPOINT_NAMES.index("left_wrist")] += (100.0, 0.0)
+    off[:, KEYPOINT_NAMES.index("left_knee")] += (5.0, 0.0)
+    lifter = TruthLifter(truth_kp)
+    lifter_refit_motion(motion, PersonTrack(off, track.confidence, track.found, track.mask_paths, {}), model,
+                        weight=0.5, lifter=lifter, iterations=2, lifter_input="agree")
+    wrist, knee = POINTS.index("left_wrist"), POINTS.index("left_knee")
+    np.testing.assert_allclose(lifter.seen[:, wrist], px[:, wrist], atol=1e-3)  # the fit's (= the truth's) point
+    np.testing.assert_allclose(lifter.seen[:, knee], px[:, knee] + (5.0, 0.0), atol=1e-3)  # the detection's

@@ -12,7 +12,11 @@ after tracking it can be applied to every frame alike. For each frame with a lif
    the camera's axes; ``A``: the lifter's 3D of the frame's detection, turned from the
    axes of the ray through the detected hips into the camera's
    (:meth:`~flowmocap.geometry.camera.PinholeCamera.ray_rotation`) and aligned onto
-   ``F`` by a similarity (so only its shape counts, at the fit's place and size).
+   ``F`` by a similarity (so only its shape counts, at the fit's place and size). The
+   lifter reads the detection's 2D keypoints by default; ``lifter_input="fit"`` gives it
+   the fit's own keypoints projected instead, ``"agree"`` the detected ones within
+   :data:`AGREE_PX` of the fit's and the fit's elsewhere (both measured against the
+   default in docs/experiments.md, "Where the real3d error comes from"; not the default).
 2. The target of keypoint ``j``, with ``blend="depth"`` (the pipeline's default,
    ``TrackerConfig.lifter_refit_blend``): ``F_j`` moved along its own camera ray to the
    depth ``(1 - w) z(F_j) + w z(A_j)`` (``w`` = ``weight``), the same pixel with a blended
@@ -44,7 +48,15 @@ import torch
 from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
 from flowmocap.errors import InputError
 
-__all__ = ["BLENDS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
+__all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
+
+
+#: the 2D the refit's lifter reads (:func:`lifter_refit_motion`'s ``lifter_input``)
+LIFTER_INPUTS = ("detector", "fit", "agree", "unswap")
+#: the 13 points' left/right mirror images (the head is its own)
+MIRROR13 = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11)
+#: ``"agree"``: a detected point farther than this from the fit's (pixels) is replaced by the fit's
+AGREE_PX = 20.0
 
 
 def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: torch.Tensor):
@@ -101,7 +113,8 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
                         iterations: int = 60, chunk: int = 256, lifter=None, progress=None,
-                        pixel_sigma: float | None = None, blend: str = "depth") -> tuple[dict, dict]:
+                        pixel_sigma: float | None = None, blend: str = "depth",
+                        lifter_input: str = "detector") -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -114,6 +127,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         weight: the lifter's share of each keypoint's target, in [0, 1]; 0 returns the
             arrays unchanged.
         blend: ``"depth"`` or ``"full"`` (:func:`blend_targets`).
+        lifter_input: the 2D the lifter reads: ``"detector"``, the detection's keypoints
+            (confidence at least 0.5); ``"fit"``, the tracked body's own 13 keypoints
+            projected (frames where the detector found the person either way).
         sigma: metres, reg: radians: the energy's scales.
         iterations: L-BFGS iterations per chunk of ``chunk`` frames (60: about converged;
             ``TrackerConfig.lifter_refit_iterations``).
@@ -136,6 +152,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"pixel_sigma must be a positive number of pixels or None; got {pixel_sigma!r}.")
     if blend not in BLENDS:
         raise InputError(f"blend must be one of {BLENDS}; got {blend!r}.")
+    if lifter_input not in LIFTER_INPUTS:
+        raise InputError(f"lifter_input must be one of {LIFTER_INPUTS}; got {lifter_input!r}.")
     if weight == 0:
         return dict(motion), {"frames_refit": 0, "mean_move_mm": 0.0, "mean_move_px": 0.0}
     lifter = load_lifter() if lifter is None else lifter
@@ -150,15 +168,35 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
     betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)
 
-    world = lifter.lift(track.keypoints, track.confidence, fps=float(motion.get("fps", 30.0)))[idx]
-    world[~np.asarray(track.found, bool)[idx]] = np.nan
-    lifted, _ = eval_points_2d(world, np.ones(world.shape[:2]))  # the 13 points (any last dimension)
-    ok = np.isfinite(lifted).all((1, 2))
-    pts2, _ = eval_points_2d(track.keypoints[idx], track.confidence[idx])
     poses_new, trans_new = poses0.clone(), trans0.clone()
     with torch.no_grad():
         fit_world, joints_before = keypoints13(body, kmap, poses0, betas, trans0)
     fit_cam = fit_world.numpy() @ R.T + t
+    fps = float(motion.get("fps", 30.0))
+    if lifter_input in ("detector", "unswap"):  # every frame of the track (a temporal lifter reads neighbours)
+        pts_all, conf_all = eval_points_2d(track.keypoints, track.confidence)
+        given_all = conf_all >= 0.5
+        if lifter_input == "unswap":  # frames whose detection fits the fit's keypoints better left/right swapped
+            fit2 = np.asarray(camera.project(fit_world.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)
+            both = given_all[idx] & given_all[idx][:, list(MIRROR13)]
+            det2 = np.nan_to_num(pts_all[idx])
+            d0 = np.where(both, np.linalg.norm(det2 - fit2, axis=-1), 0).sum(1)
+            d1 = np.where(both, np.linalg.norm(det2[:, list(MIRROR13)] - fit2, axis=-1), 0).sum(1)
+            swap = np.zeros(len(pts_all), bool)
+            swap[idx[d1 < 0.5 * d0]] = True
+            pts_all[swap] = pts_all[swap][:, list(MIRROR13)]
+            given_all[swap] = given_all[swap][:, list(MIRROR13)]
+        lifted = lifter.lift_points(pts_all, given_all, fps=fps)[idx]
+        pts2 = pts_all[idx]
+    else:  # the fit's own keypoints in the image (or where the detection is far from them)
+        pts2 = np.asarray(camera.project(fit_world.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)
+        if lifter_input == "agree":
+            det2, conf2 = eval_points_2d(track.keypoints[idx], track.confidence[idx])
+            near = (conf2 >= 0.5) & (np.linalg.norm(np.nan_to_num(det2, nan=1e9) - pts2, axis=-1) <= AGREE_PX)
+            pts2 = np.where(near[..., None], det2, pts2)
+        lifted = lifter.lift_points(pts2, np.ones(pts2.shape[:2], bool), fps=fps)
+    lifted[~np.asarray(track.found, bool)[idx]] = np.nan
+    ok = np.isfinite(lifted).all((1, 2))
     for k in np.flatnonzero(ok):
         u, v = pts2[k, list(HIPS)].mean(0)
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
@@ -205,6 +243,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
     info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
+            "lifter_input": lifter_input,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
     return out, info

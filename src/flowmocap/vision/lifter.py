@@ -134,6 +134,47 @@ class Lifter:
         """Whether it reads neighbouring frames (then :meth:`lift` needs ``fps``)."""
         return self.offsets != (0,)
 
+    def lift_points(self, points: np.ndarray, mask: np.ndarray, fps: float | None = None) -> np.ndarray:
+        """The 13 points of :data:`POINTS` in 3D, from their 2D.
+
+        Args:
+            points: ``(T, 13, 2)`` pixels in the order of :data:`POINTS` (the head at the
+                middle of the ears), ``T`` consecutive frames of one video.
+            mask: ``(T, 13)`` bool, the points given (others are left out of the input).
+            fps: as in :meth:`lift`.
+
+        Returns:
+            ``(T, 13, 3)`` metres in the ray's axes, hip-centred; NaN for frames with fewer
+            than :data:`MIN_POINTS` points given or without both hips.
+
+        Raises:
+            InputError: wrong shapes, or no usable ``fps`` for a temporal lifter.
+        """
+        pts = np.asarray(points, np.float64)
+        if pts.ndim != 3 or pts.shape[1:] != (len(POINTS), 2):
+            raise InputError(f"points must be (T, {len(POINTS)}, 2) pixels; got {pts.shape}.")
+        mask = np.asarray(mask, bool)
+        if mask.shape != pts.shape[:2]:
+            raise InputError(f"mask must be (T, {len(POINTS)}); got {mask.shape}.")
+        if self.temporal and not (fps is not None and np.isfinite(fps) and fps > 0):
+            raise InputError(f"this lifter reads a window of frames {self.offsets} at {WINDOW_FPS:g} fps; pass the "
+                             f"video's frame rate (fps > 0), got {fps!r}.")
+        mask = mask & np.isfinite(pts).all(-1)
+        ok = mask[:, list(HIPS)].all(1) & (mask.sum(1) >= MIN_POINTS)
+        out = np.full((len(pts), len(POINTS), 3), np.nan)
+        if not ok.any():
+            return out
+        mask &= ok[:, None]
+        m_all = torch.as_tensor(mask, dtype=torch.float32)
+        v_all, _ = normalise_2d(torch.as_tensor(np.nan_to_num(pts), dtype=torch.float32), m_all)
+        index, inside = window_indices(len(pts), self.offsets, fps if self.temporal else WINDOW_FPS)
+        index, inside = index[ok], torch.as_tensor(inside[ok], dtype=torch.float32)
+        v, m = v_all[index], m_all[index] * inside[..., None]  # (n, F, 13, 2), (n, F, 13)
+        with torch.no_grad():
+            y = self.net(v * m[..., None], m).double().numpy() * self.metres
+        out[ok] = y - y[:, list(HIPS)].mean(1, keepdims=True)
+        return out
+
     def lift(self, keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5,
              fps: float | None = None) -> np.ndarray:
         """The detector's keypoints in 3D.
@@ -169,20 +210,10 @@ class Lifter:
             raise InputError(f"this lifter reads a window of frames {self.offsets} at {WINDOW_FPS:g} fps; pass the "
                              f"video's frame rate (fps > 0), got {fps!r}.")
         pts, conf = eval_points_2d(kp, cf)
-        mask = (conf >= min_confidence) & np.isfinite(pts).all(-1)
-        ok = mask[:, list(HIPS)].all(1) & (mask.sum(1) >= MIN_POINTS)
+        y = self.lift_points(pts, (conf >= min_confidence) & np.isfinite(pts).all(-1), fps=fps)
+        ok = np.isfinite(y).all((1, 2))
         out = np.full((len(kp), len(KEYPOINT_NAMES), 3), np.nan)
-        if not ok.any():
-            return out
-        mask &= ok[:, None]
-        m_all = torch.as_tensor(mask, dtype=torch.float32)
-        v_all, _ = normalise_2d(torch.as_tensor(np.nan_to_num(pts), dtype=torch.float32), m_all)
-        index, inside = window_indices(len(kp), self.offsets, fps if self.temporal else WINDOW_FPS)
-        index, inside = index[ok], torch.as_tensor(inside[ok], dtype=torch.float32)
-        v, m = v_all[index], m_all[index] * inside[..., None]  # (n, F, 13, 2), (n, F, 13)
-        with torch.no_grad():
-            y = self.net(v * m[..., None], m).double().numpy() * self.metres
-        y -= y[:, list(HIPS)].mean(1, keepdims=True)
+        y = y[ok]
         for k, name in enumerate(POINTS[1:], start=1):
             out[ok, KEYPOINT_NAMES.index(name)] = y[:, k]
         for name in ("left_ear", "right_ear", "nose"):
