@@ -130,6 +130,26 @@ def test_frames_without_hips_or_with_few_points_are_not_lifted():
         lifter.lift(kp, conf[:, :3])
 
 
+def test_lift_points_is_lift_on_the_13_points():
+    lifter = load_lifter()
+    pts = _points3d(POSES[:2])
+    px = np.stack([_view(p, a)[1] for p, a in zip(pts, (20, 200))])
+    mask = np.ones(px.shape[:2], bool)
+    mask[1, POINTS.index("left_wrist")] = False
+    y = lifter.lift_points(px, mask)
+    conf = np.ones((2, len(KEYPOINT_NAMES)))
+    conf[1, KEYPOINT_NAMES.index("left_wrist")] = 0.0
+    world = lifter.lift(np.stack([_keypoints(p) for p in px]), conf)
+    idx = [KEYPOINT_NAMES.index("left_ear")] + [KEYPOINT_NAMES.index(n) for n in POINTS[1:]]
+    np.testing.assert_allclose(y, world[:, idx], atol=1e-12)
+    mask[0, list(HIPS)] = False  # no hips: not lifted
+    assert np.isnan(lifter.lift_points(px, mask)[0]).all()
+    with pytest.raises(InputError, match="points must be"):
+        lifter.lift_points(px[:, :12], mask[:, :12])
+    with pytest.raises(InputError, match="mask must be"):
+        lifter.lift_points(px, mask[:1])
+
+
 def test_save_load_round_trip_and_wrong_files(tmp_path):
     lifter = load_lifter()
     path = tmp_path / "l.npz"
@@ -302,6 +322,24 @@ def test_training_windows_stay_inside_their_clip_and_target_the_middle_frame():
     seq.X[:] = seq.X[2]
     v, m, _, _ = tool.examples(seq, torch.tensor([2]), offsets, g, 0.0, 0.0)
     np.testing.assert_allclose(v[0].numpy(), v[0, :1].expand(5, -1, -1).numpy(), atol=1e-6)
+
+
+def test_training_outliers_move_a_few_points_onto_other_points():
+    tool = _train_tool()
+    g = torch.Generator().manual_seed(0)
+    uv = torch.randn(4000, 13, 2)
+    assert torch.equal(tool.outlying(uv, g, 0.0), uv)  # off: untouched
+    out = tool.outlying(uv, g, 0.25)
+    moved = (out != uv).any(-1)
+    hit = moved.any(1)
+    assert abs(hit.float().mean().item() - 0.25) < 0.03  # the share of frames
+    assert not moved[:, list(HIPS)].any()  # the hips stay (they place the frame)
+    assert moved[hit].sum(1).min() >= 1 and moved[hit].sum(1).max() <= 3
+    # a moved point lies near some point of its frame (scatter a fifth of the frame's size)
+    size = (uv - uv[:, list(HIPS)].mean(1, keepdim=True)).pow(2).sum(-1).mean(1).sqrt()
+    r, j = moved.nonzero(as_tuple=True)
+    near = (out[r, j][:, None] - uv[r]).norm(dim=-1).min(1).values / size[r]
+    assert near.median() < 0.3
 
 
 @pytest.mark.skipif(not (PRIOR_DATA / "index.csv").exists(),

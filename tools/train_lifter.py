@@ -16,7 +16,11 @@ Steps:
    looking at the hips; perspective projection; each frame's 2D points normalised as at
    run time (:func:`flowmocap.vision.lifter.normalise_2d` over the points given) with
    Gaussian noise of a random size (standard deviation up to ``--noise`` of the normalised
-   scale) and each point but the hips dropped with probability ``--drop``. Target: the 3D
+   scale) and each point but the hips dropped with probability ``--drop``; with
+   ``--outliers P`` a share P of the frames also get 1-3 gross errors (a point but the
+   hips moved onto another point of the frame, as a detector does under occlusion;
+   ``--elevation`` widens the views' elevation; both tried, not used by the packaged
+   file: docs/experiments.md, "Where the real3d error comes from"). Target: the 3D
    points in the camera's axes, hip-centred, divided by the hips' depth times the 2D
    scale (so its x, y match the input's under weak perspective and the network learns
    mostly the depth). With a window (``--offsets``, frames at 30 fps around the lifted
@@ -100,12 +104,13 @@ class Sequences:
         return self
 
 
-def views(points: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random views of hip-centred ``points (B, P, 3)`` (y up; one view per row ``B``):
+def views(points: torch.Tensor, g: torch.Generator, elevation: float = 25.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random views of hip-centred ``points (B, P, 3)`` (y up; one view per row ``B``;
+    elevation uniform in +-``elevation`` degrees):
     ``(2D (B, P, 2) on the image plane at depth 1, 3D (B, P, 3) in the camera's axes)``."""
     n, dev = len(points), points.device
     a = torch.rand(n, generator=g, device=dev) * 2 * math.pi
-    e = (torch.rand(n, generator=g, device=dev) * 2 - 1) * math.radians(25)
+    e = (torch.rand(n, generator=g, device=dev) * 2 - 1) * math.radians(elevation)
     d = 2.5 + torch.rand(n, generator=g, device=dev) * 5.5
     ca, sa, ce, se = a.cos(), a.sin(), e.cos(), e.sin()
     Ry = torch.zeros(n, 3, 3, device=dev)
@@ -118,8 +123,31 @@ def views(points: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch
     return cam[..., :2] / cam[..., 2:], cam
 
 
+def outlying(uv: torch.Tensor, g: torch.Generator, rate: float, most: int = 3) -> torch.Tensor:
+    """``uv (N, 13, 2)`` with gross detector errors: in a share ``rate`` of the rows, 1 to
+    ``most`` points other than the hips are moved onto another point of the same row, plus
+    Gaussian scatter of a fifth of the row's size (its RMS distance from the hips) -- a
+    joint put on another body part, as the detector does under occlusion."""
+    if rate <= 0:
+        return uv
+    N, P, dev = uv.shape[0], uv.shape[1], uv.device
+    c = uv[:, list(HIPS)].mean(1, keepdim=True)
+    size = (uv - c).pow(2).sum(-1).mean(1).sqrt()[:, None, None]
+    hit = torch.rand(N, generator=g, device=dev) < rate
+    count = torch.randint(1, most + 1, (N,), generator=g, device=dev)
+    rank = torch.rand(N, P, generator=g, device=dev)
+    rank[:, list(HIPS)] = 2.0  # never chosen
+    order = rank.argsort(1).argsort(1)
+    moved = hit[:, None] & (order < count[:, None])
+    onto = torch.randint(0, P, (N, P), generator=g, device=dev)
+    target = torch.gather(uv, 1, onto[..., None].expand(N, P, 2))
+    target = target + torch.randn(uv.shape, generator=g, device=dev) * 0.2 * size
+    return torch.where(moved[..., None], target, uv)
+
+
 def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: torch.Generator, noise: float,
-             drop: float, frame_drop: float = 0.0, speed: float = 0.0):
+             drop: float, frame_drop: float = 0.0, speed: float = 0.0, outliers: float = 0.0,
+             elevation: float = 25.0):
     """``(inputs (B, F, 13, 2), masks (B, F, 13), targets (B, 13, 3), the middle frames'
     3D in the camera's axes (B, 13, 3) in metres)`` for the windows
     around the frames ``centres (B,)`` of ``seq`` (step 2 of the module docstring): one view
@@ -133,15 +161,17 @@ def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: to
     j = torch.where(inside, j, centres[:, None])
     keep = inside & (torch.rand(B, F, generator=g, device=dev) >= frame_drop)
     keep[:, mid] = True
-    uv, cam = views(seq.X[j].reshape(B, F * len(POINTS), 3), g)
+    uv, cam = views(seq.X[j].reshape(B, F * len(POINTS), 3), g, elevation)
     uv, cam = uv.view(B, F, len(POINTS), 2), cam.view(B, F, len(POINTS), 3)
+    clean = uv
+    uv = outlying(uv.reshape(B * F, len(POINTS), 2), g, outliers).view(B, F, len(POINTS), 2)
     mask = (torch.rand(B, F, len(POINTS), generator=g, device=dev) > drop).float()
     mask[..., list(HIPS)] = 1
     mask = mask * keep[..., None].float()
     v, _ = normalise_2d(uv.reshape(B * F, len(POINTS), 2), mask.reshape(B * F, len(POINTS)))
     v = v.view(B, F, len(POINTS), 2)
     v = (v + torch.randn(v.shape, generator=g, device=dev) * torch.rand(B, 1, 1, 1, generator=g, device=dev) * noise) * mask[..., None]
-    _, s = normalise_2d(uv[:, mid], torch.ones(B, len(POINTS), device=dev))
+    _, s = normalise_2d(clean[:, mid], torch.ones(B, len(POINTS), device=dev))
     c = cam[:, mid]
     z0 = c[:, list(HIPS), 2].mean(1)[:, None, None]
     target = (c - c[:, list(HIPS)].mean(1, keepdim=True)) / (z0 * s)
@@ -181,6 +211,9 @@ def main(argv=None) -> int:
     ap.add_argument("--bodies", type=int, default=2, help="random body shapes per train clip (each also mirrored)")
     ap.add_argument("--frame-drop", type=float, default=0.1, help="probability of leaving a neighbouring frame out")
     ap.add_argument("--tempo", type=float, default=0.2, help="each window's tempo drawn from 1 +- this")
+    ap.add_argument("--outliers", type=float, default=0.0,
+                    help="share of frames with 1-3 gross 2D errors (a point put on another body part)")
+    ap.add_argument("--elevation", type=float, default=25.0, help="views' elevation drawn from +- this (degrees)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-clips", type=int, default=None, help="only the first N train and N test clips (a quick try)")
     ap.add_argument("--device", default="cpu", help="where to train (e.g. cuda; the result is the same file)")
@@ -227,7 +260,7 @@ def main(argv=None) -> int:
         total = 0.0
         for k in range(steps_per_epoch):
             v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch], offsets, g, args.noise, args.drop,
-                                  args.frame_drop, args.tempo)
+                                  args.frame_drop, args.tempo, args.outliers, args.elevation)
             loss = (net(v, m) - y).norm(dim=-1).mean()
             opt.zero_grad()
             loss.backward()
