@@ -86,15 +86,8 @@ def _source(track, source: str, res: Path):
 def real3d_rows(bench_dir: Path, weights: list[float], source: str = "mediapipe") -> list[dict]:
     from flowmocap.eval import real3d as R
 
-    reference = R.build_reference(bench_dir, progress=False, log=None)
     rows = []
-    for res in sorted((bench_dir / "runs").iterdir()):
-        if not (res / "motion.npz").exists():
-            continue
-        person, view = res.name.split("-", 1)
-        d = R.scored_frames(res, reference, person, view)
-        if not d["used"]:
-            continue
+    for res, _, _, d in R.scored_runs(bench_dir):
         det = d["detector"]
         if source != "mediapipe":  # the suite's frames, the other source's 3D (NaN where it has none)
             det = R.eval_points(_source(d["detections"], source, res).world[d["used"]])

@@ -74,15 +74,8 @@ def _refit(res: Path, weight: float, track=None):
 def real3d_rows(bench: Path, weight: float) -> list[dict]:
     from flowmocap.eval import real3d as R
 
-    reference = R.build_reference(bench, progress=False, log=None)
     rows = []
-    for res in sorted((bench / "runs").iterdir()):
-        if not (res / "motion.npz").exists():
-            continue
-        person, view = res.name.split("-", 1)
-        d = R.scored_frames(res, reference, person, view)
-        if not d["used"]:
-            continue
+    for res, _, _, d in R.scored_runs(bench):
         motion, refit, info = _refit(res, weight, d["detections"])
         at = {int(f): k for k, f in enumerate(motion["frame_index"])}
         after = np.stack([np.asarray(refit["joints3d"][at[f]], np.float64)[E] for f in d["used"]])

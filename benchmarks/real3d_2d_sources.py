@@ -45,15 +45,10 @@ def rows_for(bench_dir: Path, lifter, data: Path | None = None) -> list[dict]:
     from flowmocap.vision.lifter import eval_points_2d
 
     data = Path(R.DATA if data is None else data)
-    reference = R.build_reference(bench_dir, data, progress=False, log=None)
     cams = read_qualisys_calibration(data / "Calib.qca.txt")
     rows = []
-    for res in sorted((bench_dir / "runs").iterdir()):
-        if not (res / "motion.npz").exists():
-            continue
-        person, view = res.name.split("-", 1)
-        d = R.scored_frames(res, reference, person, view)
-        if not d["used"] or d["ours_kp"] is None:
+    for res, _, view, d in R.scored_runs(bench_dir, data_dir=data):
+        if d["ours_kp"] is None:
             continue
         ref, valid, det = d["ref"], d["valid"], d["detections"]
         run_cam = d["result"].camera

@@ -14,7 +14,7 @@ from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.errors import DataError, InputError
 from flowmocap.eval.real3d import (DATA, EVAL_NAMES, VIEWS, associate_people, bone_lengths, consistent_joints,
                                    eval_points, pa_mpjpe, person_pixel, run_real3d, score_run, scored_frames,
-                                   triangulate_person)
+                                   scored_runs, triangulate_person)
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
 from test_triangulate import moving_person, ring_cameras
@@ -210,6 +210,27 @@ def test_score_run_matches_frames_by_the_offset(tmp_path):
     # scored with the wrong offset the same run is off
     reference["offsets"]["cam02"] = 0
     assert score_run(res, reference, "p", "cam02")["flowmocap"]["per_frame_mm"] > 5
+
+
+def test_scored_runs_yields_the_finished_person_views_with_scored_frames(tmp_path):
+    cams = ring_cameras()
+    j13 = skeleton13(40)
+    X = np.zeros((40, len(KEYPOINT_NAMES), 3))
+    for k, n in enumerate(KEYPOINT_NAMES):
+        X[:, k] = j13[:, EVAL_NAMES.index(n)] if n in EVAL_NAMES else j13[:, 0]
+    X[:, KEYPOINT_NAMES.index("left_ear")] = j13[:, 0] + (0.07, 0, 0)
+    X[:, KEYPOINT_NAMES.index("right_ear")] = j13[:, 0] - (0.07, 0, 0)
+    tri = {"times": np.arange(40), "points": X}
+    reference = {"people": {"p": {"without": {"cam02": tri, "cam03": tri}, "all": tri}},
+                 "offsets": {"cam02": 0, "cam03": 45}, "cameras": {"cam02": cams[1], "cam03": cams[2]}}
+    runs = tmp_path / "bench" / "runs"
+    runs.mkdir(parents=True)
+    fake_run(tmp_path, X, offset=0, T=20).rename(runs / "p-cam02")
+    fake_run(tmp_path, X, offset=0, T=20).rename(runs / "p-cam03")  # its offset puts every frame past the reference
+    (runs / "p-cam04").mkdir()  # not run
+    got = list(scored_runs(tmp_path / "bench", reference))
+    assert [(r.name, p, v) for r, p, v, _ in got] == [("p-cam02", "p", "cam02")]
+    assert got[0][3]["used"] == list(range(20))
 
 
 def test_runner_checks_its_input(tmp_path):

@@ -68,7 +68,7 @@ from flowmocap.vision.detect import KEYPOINT_NAMES
 
 __all__ = ["run_real3d", "build_reference", "detect_view_people", "associate_people", "triangulate_person",
            "score_run", "format_real3d_table", "eval_points", "pa_mpjpe", "person_pixel", "bone_lengths",
-           "consistent_joints", "BONES", "DATA", "VIEWS", "EVAL_NAMES"]
+           "consistent_joints", "scored_frames", "scored_runs", "BONES", "DATA", "VIEWS", "EVAL_NAMES"]
 
 ROOT = Path(__file__).resolve().parents[3]
 #: The Pose2Sim multi-person recording.
@@ -677,6 +677,24 @@ def scored_frames(res_dir: str | Path, reference: dict, person: str, view: str, 
             "ours_kp": arr(ours_kp) if kp13 is not None else None, "detector": arr(mp), "ref": arr(ref),
             "valid": flags(ok_wo), "ref_all": arr(ref_all), "valid_all": flags(ok_all), "result": res,
             "detections": det}
+
+
+def scored_runs(bench_dir: str | Path, reference: dict | None = None, data_dir: str | Path = DATA):
+    """The person-views of a ``flowmocap bench --suite real3d`` folder with a result and
+    scored frames, in name order: yields ``(res_dir, person, view, d)`` with ``d`` the
+    :func:`scored_frames` of the run (runs without a ``motion.npz`` or without a scored
+    frame are left out). ``reference``: the folder's, built (or read back) from
+    ``data_dir`` when not given."""
+    bench_dir = Path(bench_dir)
+    if reference is None:
+        reference = build_reference(bench_dir, data_dir, progress=False, log=None)
+    for res in sorted((bench_dir / "runs").iterdir()):
+        if not (res / "motion.npz").exists():
+            continue
+        person, view = res.name.split("-", 1)
+        d = scored_frames(res, reference, person, view)
+        if d["used"]:
+            yield res, person, view, d
 
 
 def score_run(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
