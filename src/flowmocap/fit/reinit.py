@@ -52,11 +52,16 @@ from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
 from flowmocap.fit.init import InitSpec, fit_to_joints, guess_translation
 from flowmocap.fit.objective import FrameState, Scene
+from flowmocap.fit.swap import exchanged_2d, exchanged_3d, exchanged_keypoints
 from flowmocap.geometry.procrustes import similarity_procrustes
 from flowmocap.render import body_mask
 from flowmocap.vision.auto import CONFIDENT, MIN_INIT_JOINTS, PersonTrack, facing_rotvec
+from flowmocap.vision.detect import KEYPOINT_NAMES
 from flowmocap.vision.keypoint_map import detector_points
 from flowmocap.vision.masks import mask_iou
+
+#: the hips among the track's keypoints (the ray an exchanged detection's 3D is turned about)
+_HIP_KEYPOINTS = (KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip"))
 
 __all__ = ["body_silhouette", "joint_disagreement", "joint3d_disagreement", "fit_to_detection", "ReinitMonitor"]
 
@@ -169,6 +174,24 @@ class ReinitMonitor:
         self._last_attempt = -(10 ** 9)
         self._wait = 0  # frames the next attempt waits after the last one (grows while refits are turned down)
         self.max_wait = max(int(cfg.reinit_max_wait), 1)
+        #: frames whose detection the tracker exchanged left for right (``detector_swap_check``):
+        #: judged and refitted against the exchanged detection
+        self.exchanged: set[int] = set()
+
+    def _joints(self, i: int):
+        """Frame ``i``'s detected ``(j2d (24, 2), conf (24,))``, exchanged where the tracker did."""
+        j2d, conf = self.track.smpl_joints(i)
+        return exchanged_2d(j2d, conf) if i in self.exchanged else (j2d, conf)
+
+    def _joints3d(self, i: int, camera):
+        """Frame ``i``'s detected 3D joints (``PersonTrack.smpl_joints3d``), turned back where the
+        tracker exchanged the frame (about the ray through the detected hips)."""
+        det = self.track.smpl_joints3d(i, camera)
+        if det is None or i not in self.exchanged:
+            return det
+        hips = [self.track.keypoints[i][k] for k in _HIP_KEYPOINTS]
+        u, v = np.mean(hips, axis=0)
+        return exchanged_3d(*det, camera.ray_rotation(float(u), float(v))[:, 2])
 
     def state_dict(self) -> dict:
         """JSON-serialisable state the next frames' decisions depend on: the verdicts of
@@ -189,7 +212,7 @@ class ReinitMonitor:
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
         """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus
         ``"joint3d_error"`` (metres or None) and ``"bad3d"`` when the 3D criterion is on."""
-        j2d, conf = self.track.smpl_joints(i) if i < len(self.track) else (None, None)
+        j2d, conf = self._joints(i) if i < len(self.track) else (None, None)
         with torch.no_grad():
             out, _, _ = scene.forward(pose, trans)
             dp = detector_points(out, self.cfg)[0]
@@ -202,7 +225,7 @@ class ReinitMonitor:
             bad = bool((iou is not None and iou < self.min_iou) or (err is not None and err > self.max_joint_error))
         s = {"iou": iou, "joint_error": err, "bad": bad}
         if self.max_joint3d_error > 0:
-            det = self.track.smpl_joints3d(i, scene.camera) if i < len(self.track) else None
+            det = self._joints3d(i, scene.camera) if i < len(self.track) else None
             err3 = None
             if det is not None:
                 err3 = joint3d_disagreement(scene.camera.to_camera(dp).numpy(), *det)
@@ -260,10 +283,10 @@ class ReinitMonitor:
         return run >= patience and self._confident(i) and i - self._last_attempt >= max(patience, self._wait)
 
     def _reinitialise(self, i: int, state, scene, mask, before: dict, in3d: bool = False):
-        j2d, conf = self.track.smpl_joints(i)
+        j2d, conf = self._joints(i)
         if collapsed_detection(j2d, conf, scene.camera.height):
             return None  # nothing sound to fit to (a hidden or folded-up person); keep tracking by flow
-        joints3d = self.track.smpl_joints3d(i, scene.camera)
+        joints3d = self._joints3d(i, scene.camera)
         distance = None  # the tracked frame's depth, for cfg.reinit_depth_weight (off by default)
         if self.cfg.reinit_depth_weight > 0:
             with torch.no_grad():
@@ -273,7 +296,8 @@ class ReinitMonitor:
         starts = [(state.pose, state.trans)]
         if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
             fresh = np.zeros(72)
-            fresh[:3] = facing_rotvec(self.track.keypoints[i], self.track.confidence[i])
+            kp, kc = self.track.keypoints[i], self.track.confidence[i]
+            fresh[:3] = facing_rotvec(*(exchanged_keypoints(kp, kc) if i in self.exchanged else (kp, kc)))
             spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
             starts.append((torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec)))
         best = None

@@ -36,6 +36,7 @@ from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
 from flowmocap.fit.pose_prior import MIRROR_JOINTS
+from flowmocap.fit.swap import detection_swapped, exchanged_2d, exchanged_3d
 from flowmocap.render import body_mask
 from flowmocap.vision.keypoint_map import detector_points
 
@@ -220,6 +221,11 @@ class SequenceTracker:
             mask = None
         if mask is None:
             data.person_pixels = max(person_pixels(self.scene, prev), 1.0)
+        swapped = self.cfg.detector_swap_check and self.exchange_if_swapped(pred, data)
+        if swapped:
+            events.append({"frame": i, "event": "detection's left and right exchanged back"})
+        if hasattr(self.monitor, "exchanged"):  # the re-initialisation judges the frame against the same detection
+            self.monitor.exchanged = {i} if swapped else set()
         data.keypoint_hold = self.keypoint_hold(data)
         if data.keypoint_hold is not None:
             held = np.flatnonzero(data.keypoint_hold)
@@ -258,6 +264,25 @@ class SequenceTracker:
             self.lost = np.where(lost_joints(self.scene, state, data.keypoints, self.cfg), self.lost + 1, 0)
         self.prev = state
         return FrameResult(i, state, terms, events, time.perf_counter() - t0)
+
+    def exchange_if_swapped(self, pred: FrameState, data: FrameData) -> bool:
+        """Whether the frame's detection labels the body left for right against the
+        prediction ``pred`` (:func:`~flowmocap.fit.swap.detection_swapped`, at least
+        ``keypoint_sigma`` px off as labelled); if so ``data.keypoints`` and
+        ``data.joints3d`` are exchanged back in place (the 3D turned about the ray
+        through the predicted root)."""
+        if data.keypoints is None:
+            return False
+        with torch.no_grad():
+            out, _, _ = self.scene.forward(pred.pose, pred.trans)
+            p = self.scene.camera.project(detector_points(out, self.cfg)[0])
+            root = self.scene.camera.to_camera(out.joints[0, 0]).double().numpy()
+        if not detection_swapped(p, *data.keypoints, self.cfg.keypoint_sigma):
+            return False
+        data.keypoints = exchanged_2d(*data.keypoints)
+        if data.joints3d is not None:
+            data.joints3d = exchanged_3d(*data.joints3d, root)
+        return True
 
     def keypoint_hold(self, data: FrameData) -> np.ndarray | None:
         """``(24,)`` bool: the joints ``E_j`` holds in the next frame (``FrameData.keypoint_hold``:
