@@ -144,7 +144,7 @@ class TrackerConfig:
     #                                    not swapped) for this many frames in a row gets ...; 0: off
     keypoint_hold_sigma: float = 80.0  # ... this E_j scale, px, and ...
     keypoint_hold_weight: float = 4.0  # ... its weight times this until it is back (fit.tracker.lost_joints)
-    detector_swap_check: bool = False  # per frame, a detection that labels the whole body left for right
+    detector_swap_check: bool = True   # per frame, a detection that labels the whole body left for right
     #                                    against the prediction is exchanged back, 2D and 3D, for the frame's
     #                                    terms and its re-initialisation check (fit.swap); False: as it comes
     detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
