@@ -16,7 +16,7 @@ it: the tracking is the same, only the finished motion changes. For each suite g
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
        [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
-       [--smooth-poses S] [--out PREFIX]
+       [--smooth-poses S] [--raw-detections] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
@@ -42,6 +42,7 @@ from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.eval import metrics as M
 from flowmocap.fit.lift_refit import lifter_refit_motion
 from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion
+from flowmocap.fit.swap import exchanged_frames
 from flowmocap.io.results import read_result
 from flowmocap.vision.auto import load_detections
 
@@ -53,6 +54,9 @@ OPTIONS: dict = {}
 SMOOTH_S = 0.0
 #: The window (s) of the pose smoothing last, 0: none (``--smooth-poses``).
 POSES_S = 0.0
+#: Whether the lifter reads the frames the tracker exchanged left for right exchanged back,
+#: as the pipeline does (``--raw-detections``: as they came, as the pipeline did before).
+EXCHANGED = True
 
 
 def _refit(res: Path, weight: float, track=None):
@@ -62,8 +66,9 @@ def _refit(res: Path, weight: float, track=None):
     track = load_detections(res) if track is None else track
     if track is None:
         raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
-    refit, info = lifter_refit_motion(motion, track, model, weight=weight, **OPTIONS)
     run = json.loads((res / "run.json").read_text())
+    exchanged = exchanged_frames(run.get("events", [])) if EXCHANGED else None
+    refit, info = lifter_refit_motion(motion, track, model, weight=weight, exchanged=exchanged, **OPTIONS)
     reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
     if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
         refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)
@@ -155,6 +160,9 @@ def main() -> int:
     ap.add_argument("--smooth-poses", type=float, default=0.0,
                     help="then smooth the poses and translation over this window (s), as the pipeline does last "
                          "with pose_smoothing_s (0.3); 0: not")
+    ap.add_argument("--raw-detections", action="store_true",
+                    help="the lifter reads every detection as it came, also those the tracker exchanged left for "
+                         "right (the pipeline before 2026-11-27's thirteenth session)")
     ap.add_argument("--out")
     a = ap.parse_args()
     if not (a.real3d or a.diverse or a.seeds):
@@ -168,13 +176,15 @@ def main() -> int:
         from flowmocap.vision.lifter import Lifter
 
         OPTIONS["lifter"] = Lifter.load(a.lifter)
-    global SMOOTH_S, POSES_S
+    global SMOOTH_S, POSES_S, EXCHANGED
+    EXCHANGED = not a.raw_detections
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
     result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "lifter_input": a.lifter_input,
               "iterations": a.iterations,
               "lifter": str(a.lifter) if a.lifter else "packaged",
-              "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses}
+              "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses,
+              "exchanged_as_tracked": not a.raw_detections}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",

@@ -308,3 +308,44 @@ def test_agree_and_unswap_inputs_correct_the_detection_against_the_fit(tmp_path)
     wrist, knee = POINTS.index("left_wrist"), POINTS.index("left_knee")
     np.testing.assert_allclose(lifter.seen[:, wrist], px[:, wrist], atol=1e-3)  # the fit's (= the truth's) point
     np.testing.assert_allclose(lifter.seen[:, knee], px[:, knee] + (5.0, 0.0), atol=1e-3)  # the detection's
+
+
+def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkeypatch):
+    from flowmocap import pipeline
+    from flowmocap.fit import lift_refit
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.swap import EXCHANGED_EVENT
+    from flowmocap.io.results import write_motion, write_run
+
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
+    model = load_body_model("default")
+    px = np.asarray(CAM.project(truth_kp.reshape(-1, 3))).reshape(T, 13, 2)
+    mirror = [0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11]
+    swapped = track.keypoints.copy()  # the detector turned the body about in frames 1 and 2
+    for k, name in enumerate(POINTS[1:], start=1):
+        swapped[[1, 2], KEYPOINT_NAMES.index(name)] = px[[1, 2], mirror[k]]
+    track_sw = PersonTrack(swapped, track.confidence, track.found, track.mask_paths, {})
+    # the tracker exchanged frame 2 back (named twice), not frame 1; frame 99 is not in the track
+    lifter = TruthLifter(truth_kp)
+    _, info = lifter_refit_motion(motion, track_sw, model, weight=0.5, lifter=lifter, iterations=2,
+                                  exchanged=[2, 99, 2])
+    np.testing.assert_allclose(lifter.seen[[0, 2]], px[[0, 2]], atol=1e-4)  # as the tracker used them
+    np.testing.assert_allclose(lifter.seen[1], px[1][mirror], atol=1e-4)  # as the detector gave it
+    assert info["frames_exchanged"] == 2
+    # the pipeline passes the run's exchange events on
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    events = [{"frame": 2, "event": EXCHANGED_EVENT}, {"frame": 1, "event": "re-initialised"}]
+    write_run(out, {"status": "finished", "events": events})
+    seen = {}
+    real = lift_refit.lifter_refit_motion
+
+    def spy(*a, **k):
+        seen["exchanged"] = k.get("exchanged")
+        return real(*a, **{**k, "lifter": TruthLifter(truth_kp), "iterations": 2})
+
+    monkeypatch.setattr(lift_refit, "lifter_refit_motion", spy)
+    pipeline._lifter_refit(out, track_sw, model, TrackerConfig(), {"status": "finished", "events": events},
+                           lambda s: None)
+    assert seen["exchanged"] == [2]

@@ -180,3 +180,12 @@ def test_a_tracked_run_records_the_exchanges_and_the_reinit_check_sees_them(fron
     mon.exchanged = {3}
     exchanged = mon.judge(3, scene, _state(seq, 3).pose, _state(seq, 3).trans, None)["joint_error"]
     assert exchanged < 0.05 < as_given, (exchanged, as_given)
+
+
+def test_exchanged_frames_reads_the_trackers_events():
+    from flowmocap.fit.swap import EXCHANGED_EVENT, exchanged_frames
+
+    events = [{"frame": 7, "event": EXCHANGED_EVENT}, {"frame": 3, "event": "re-initialised"},
+              {"frame": 2, "event": EXCHANGED_EVENT}, {"frame": 7, "event": EXCHANGED_EVENT}, {"event": EXCHANGED_EVENT}]
+    assert exchanged_frames(events) == [2, 7]
+    assert exchanged_frames([]) == []

@@ -818,11 +818,13 @@ def _reinit_frames(run: dict) -> list[int]:
 
 def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
     """The finished ``motion.npz`` refitted towards the lifter's 3D
-    (:func:`~flowmocap.fit.lift_refit.lifter_refit_motion`, ``cfg.lifter_refit_weight``),
+    (:func:`~flowmocap.fit.lift_refit.lifter_refit_motion`, ``cfg.lifter_refit_weight``; the
+    lifter reads the detections the tracker exchanged left for right as it used them),
     its root depth smoothed again (``cfg.lifter_refit_smooth_depth``, the window of
     ``cfg.depth_smoothing_s``; ``trans_tracked`` stays the tracker's), written atomically;
     ``run.json`` records it under ``lifter_refit``. Returns the run info."""
     from flowmocap.fit.lift_refit import lifter_refit_motion
+    from flowmocap.fit.swap import exchanged_frames
 
     motion, _ = read_result(out)
     if "poses_tracked" in motion:  # already refitted (a resumed run that had finished)
@@ -831,7 +833,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     try:
         refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight,
                                           pixel_sigma=cfg.lifter_refit_pixel_sigma or None,
-                                          blend=cfg.lifter_refit_blend, iterations=cfg.lifter_refit_iterations)
+                                          blend=cfg.lifter_refit_blend, iterations=cfg.lifter_refit_iterations,
+                                          exchanged=exchanged_frames(run.get("events", [])))
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

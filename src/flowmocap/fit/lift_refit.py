@@ -114,7 +114,7 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
                         iterations: int = 60, chunk: int = 256, lifter=None, progress=None,
                         pixel_sigma: float | None = None, blend: str = "depth",
-                        lifter_input: str = "detector") -> tuple[dict, dict]:
+                        lifter_input: str = "detector", exchanged=None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -130,6 +130,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         lifter_input: the 2D the lifter reads: ``"detector"``, the detection's keypoints
             (confidence at least 0.5); ``"fit"``, the tracked body's own 13 keypoints
             projected (frames where the detector found the person either way).
+        exchanged: input frame numbers whose detection the tracker exchanged left for
+            right (``TrackerConfig.detector_swap_check``; :func:`~flowmocap.fit.swap.exchanged_frames`):
+            the lifter reads those frames' keypoints exchanged back, as the tracker used
+            them. None or empty: the detection as it came.
         sigma: metres, reg: radians: the energy's scales.
         iterations: L-BFGS iterations per chunk of ``chunk`` frames (60: about converged;
             ``TrackerConfig.lifter_refit_iterations``).
@@ -176,6 +180,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     if lifter_input in ("detector", "unswap"):  # every frame of the track (a temporal lifter reads neighbours)
         pts_all, conf_all = eval_points_2d(track.keypoints, track.confidence)
         given_all = conf_all >= 0.5
+        back = np.asarray(sorted(int(f) for f in (exchanged or ()) if 0 <= int(f) < len(pts_all)), int)
+        if back.size:  # the tracker's own decision, frame by frame
+            pts_all[back] = pts_all[back][:, list(MIRROR13)]
+            given_all[back] = given_all[back][:, list(MIRROR13)]
         if lifter_input == "unswap":  # frames whose detection fits the fit's keypoints better left/right swapped
             fit2 = np.asarray(camera.project(fit_world.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)
             both = given_all[idx] & given_all[idx][:, list(MIRROR13)]
@@ -243,7 +251,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
     info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
-            "lifter_input": lifter_input,
+            "lifter_input": lifter_input, "frames_exchanged": int(len(set(exchanged or ()))),
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
     return out, info

@@ -23,12 +23,15 @@ import numpy as np
 
 from flowmocap.fit.pose_prior import MIRROR_JOINTS
 
-__all__ = ["SWAP_RATIO", "MIN_SIDED", "detection_swapped", "exchanged_2d", "exchanged_3d", "exchanged_keypoints"]
+__all__ = ["EXCHANGED_EVENT", "SWAP_RATIO", "MIN_SIDED", "detection_swapped", "exchanged_2d", "exchanged_3d",
+           "exchanged_frames", "exchanged_keypoints"]
 
 #: the exchanged detection's mean distance from the body, as a share of the unexchanged one, below which it is swapped
 SWAP_RATIO = 0.5
 #: fewer left/right joints detected on both sides than this and nothing is decided
 MIN_SIDED = 6
+#: the tracker's event for a frame whose detection it exchanged back (``run.json``'s events)
+EXCHANGED_EVENT = "detection's left and right exchanged back"
 
 
 def _np(x) -> np.ndarray:
@@ -99,3 +102,9 @@ def exchanged_keypoints(keypoints, confidence) -> tuple:
 
     m = [KEYPOINT_NAMES.index(other(n)) for n in KEYPOINT_NAMES]
     return keypoints[m], confidence[m]
+
+
+def exchanged_frames(events: list[dict]) -> list[int]:
+    """The input frame numbers whose detection the tracker exchanged back, from a run's
+    ``events`` (``run.json``; :data:`EXCHANGED_EVENT`), sorted and without repeats."""
+    return sorted({int(e["frame"]) for e in events if e.get("event") == EXCHANGED_EVENT and "frame" in e})

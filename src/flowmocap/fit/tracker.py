@@ -36,7 +36,7 @@ from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
 from flowmocap.fit.pose_prior import MIRROR_JOINTS
-from flowmocap.fit.swap import detection_swapped, exchanged_2d, exchanged_3d
+from flowmocap.fit.swap import EXCHANGED_EVENT, detection_swapped, exchanged_2d, exchanged_3d
 from flowmocap.render import body_mask
 from flowmocap.vision.keypoint_map import detector_points
 
@@ -223,7 +223,7 @@ class SequenceTracker:
             data.person_pixels = max(person_pixels(self.scene, prev), 1.0)
         swapped = self.cfg.detector_swap_check and self.exchange_if_swapped(pred, data)
         if swapped:
-            events.append({"frame": i, "event": "detection's left and right exchanged back"})
+            events.append({"frame": i, "event": EXCHANGED_EVENT})
         if hasattr(self.monitor, "exchanged"):  # the re-initialisation judges the frame against the same detection
             self.monitor.exchanged = {i} if swapped else set()
         data.keypoint_hold = self.keypoint_hold(data)
