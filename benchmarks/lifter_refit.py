@@ -16,7 +16,7 @@ it: the tracking is the same, only the finished motion changes. For each suite g
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
        [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
-       [--smooth-poses S] [--raw-detections] [--out PREFIX]
+       [--smooth-poses S] [--raw-detections] [--lifter-flip] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
@@ -160,6 +160,8 @@ def main() -> int:
     ap.add_argument("--smooth-poses", type=float, default=0.0,
                     help="then smooth the poses and translation over this window (s), as the pipeline does last "
                          "with pose_smoothing_s (0.3); 0: not")
+    ap.add_argument("--lifter-flip", action="store_true",
+                    help="the lifter averages each input with its mirror image (Lifter.flip_average)")
     ap.add_argument("--raw-detections", action="store_true",
                     help="the lifter reads every detection as it came, also those the tracker exchanged left for "
                          "right (the pipeline before 2026-11-27's thirteenth session)")
@@ -172,10 +174,11 @@ def main() -> int:
     OPTIONS["blend"] = a.blend
     OPTIONS["lifter_input"] = a.lifter_input
     OPTIONS["iterations"] = a.iterations
-    if a.lifter:
+    if a.lifter or a.lifter_flip:
         from flowmocap.vision.lifter import Lifter
 
-        OPTIONS["lifter"] = Lifter.load(a.lifter)
+        OPTIONS["lifter"] = Lifter.load(a.lifter)  # the packaged one without --lifter
+        OPTIONS["lifter"].flip_average = a.lifter_flip
     global SMOOTH_S, POSES_S, EXCHANGED
     EXCHANGED = not a.raw_detections
     SMOOTH_S = a.smooth_after
@@ -184,7 +187,7 @@ def main() -> int:
               "iterations": a.iterations,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses,
-              "exchanged_as_tracked": not a.raw_detections}
+              "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",

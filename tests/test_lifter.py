@@ -353,3 +353,24 @@ def test_the_training_tool_writes_a_loadable_temporal_lifter(tmp_path):
     assert lifter.offsets == (-2, 0, 2) and lifter.temporal
     assert np.isfinite(lifter.info["check_test_cm"]) and lifter.info["train_subjects"] == [1]
     assert np.isfinite(lifter.lift(_walk_keypoints(4), np.ones((4, 15)), fps=30.0)).all()
+
+
+def test_flip_average_lifts_a_pose_and_its_mirror_image_alike():
+    from flowmocap.vision.lifter import MIRROR
+
+    assert all(POINTS[m] == POINTS[k].replace("left", "@").replace("right", "left").replace("@", "right")
+               for k, m in enumerate(MIRROR))
+    plain = load_lifter()
+    lifter = Lifter(plain.net, plain.info, plain.metres, plain.offsets, flip_average=True)
+    rng = np.random.default_rng(3)
+    pts = np.array([320.0, 240.0]) + rng.normal(0, 60, (5, 13, 2))
+    mask = np.ones((5, 13), bool)
+    mask[1, 4] = False
+    mirrored = pts[:, list(MIRROR)] * np.array([-1.0, 1.0]) + np.array([640.0, 0.0])  # image mirrored, relabelled
+    a = lifter.lift_points(pts, mask)
+    b = lifter.lift_points(mirrored, mask[:, list(MIRROR)])
+    np.testing.assert_allclose(b[:, list(MIRROR)] * np.array([-1.0, 1.0, 1.0]), a, atol=1e-5)
+    # and it is the mean of the plain lift of both
+    p_a, p_b = plain.lift_points(pts, mask), plain.lift_points(mirrored, mask[:, list(MIRROR)])
+    np.testing.assert_allclose(a, 0.5 * (p_a + p_b[:, list(MIRROR)] * np.array([-1.0, 1.0, 1.0])), atol=1e-5)
+    assert np.abs(p_a - a).max() > 1e-3  # the plain lifter is not symmetric by itself

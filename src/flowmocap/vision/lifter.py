@@ -37,7 +37,7 @@ import torch
 
 from flowmocap.errors import InputError, ModelFileError
 
-__all__ = ["LIFTER_FILE", "LIFTER_KIND", "WINDOW_FPS", "Lifter", "LifterNet", "eval_points_2d", "lifted_track",
+__all__ = ["LIFTER_FILE", "LIFTER_KIND", "MIRROR", "WINDOW_FPS", "Lifter", "LifterNet", "eval_points_2d", "lifted_track",
            "load_lifter", "normalise_2d", "window_indices"]
 
 LIFTER_KIND = "flowmocap-keypoint-lifter"
@@ -50,6 +50,8 @@ LIFTER_FILE = Path(__file__).resolve().parent / "data" / "lifter.npz"
 POINTS = ("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
           "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle")
 HIPS = (7, 8)
+#: each of the 13 points' left/right counterpart (the head is its own)
+MIRROR = tuple(POINTS.index(n.replace("left", "@").replace("right", "left").replace("@", "right")) for n in POINTS)
 #: fewer confident points than this (both hips among them) and a frame is not lifted
 MIN_POINTS = 8
 
@@ -118,9 +120,13 @@ class Lifter:
     """The trained network with its metadata (``info``: training data, settings, the
     held-out check), ``metres``, the size of one normalised unit in metres, and
     ``offsets``, the window of frames it reads (frames at :data:`WINDOW_FPS` around the
-    lifted one; ``(0,)``: one frame alone)."""
+    lifted one; ``(0,)``: one frame alone). ``flip_average``: :meth:`lift_points` also
+    lifts each input mirrored left for right (the 2D's x negated about the hips and the
+    labels exchanged), mirrors that 3D back and returns the mean of the two (test-time
+    flip augmentation; the output then treats a pose and its mirror image alike)."""
 
-    def __init__(self, net: LifterNet, info: dict, metres: float, offsets=(0,)):
+    def __init__(self, net: LifterNet, info: dict, metres: float, offsets=(0,), flip_average: bool = False):
+        self.flip_average = bool(flip_average)
         self.net = net.eval()
         self.info = info
         self.metres = float(metres)
@@ -172,6 +178,11 @@ class Lifter:
         v, m = v_all[index], m_all[index] * inside[..., None]  # (n, F, 13, 2), (n, F, 13)
         with torch.no_grad():
             y = self.net(v * m[..., None], m).double().numpy() * self.metres
+            if self.flip_average:  # the mirror image lifted, mirrored back, averaged
+                flip = torch.tensor([-1.0, 1.0])
+                vm, mm = v[..., list(MIRROR), :] * flip, m[..., list(MIRROR)]
+                ym = self.net(vm * mm[..., None], mm).double().numpy() * self.metres
+                y = 0.5 * (y + ym[:, list(MIRROR)] * np.array([-1.0, 1.0, 1.0]))
         out[ok] = y - y[:, list(HIPS)].mean(1, keepdims=True)
         return out
 
