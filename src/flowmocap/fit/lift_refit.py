@@ -47,14 +47,13 @@ import torch
 
 from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
 from flowmocap.errors import InputError
+from flowmocap.vision.lifter import MIRROR
 
 __all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
 
 
 #: the 2D the refit's lifter reads (:func:`lifter_refit_motion`'s ``lifter_input``)
 LIFTER_INPUTS = ("detector", "fit", "agree", "unswap")
-#: the 13 points' left/right mirror images (the head is its own)
-MIRROR13 = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11)
 #: ``"agree"``: a detected point farther than this from the fit's (pixels) is replaced by the fit's
 AGREE_PX = 20.0
 
@@ -177,23 +176,25 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         fit_world, joints_before = keypoints13(body, kmap, poses0, betas, trans0)
     fit_cam = fit_world.numpy() @ R.T + t
     fps = float(motion.get("fps", 30.0))
+    n_exchanged = 0
     if lifter_input in ("detector", "unswap"):  # every frame of the track (a temporal lifter reads neighbours)
         pts_all, conf_all = eval_points_2d(track.keypoints, track.confidence)
         given_all = conf_all >= 0.5
-        back = np.asarray(sorted(int(f) for f in (exchanged or ()) if 0 <= int(f) < len(pts_all)), int)
+        back = np.asarray(sorted({int(f) for f in (exchanged or ()) if 0 <= int(f) < len(pts_all)}), int)
+        n_exchanged = int(back.size)
         if back.size:  # the tracker's own decision, frame by frame
-            pts_all[back] = pts_all[back][:, list(MIRROR13)]
-            given_all[back] = given_all[back][:, list(MIRROR13)]
+            pts_all[back] = pts_all[back][:, list(MIRROR)]
+            given_all[back] = given_all[back][:, list(MIRROR)]
         if lifter_input == "unswap":  # frames whose detection fits the fit's keypoints better left/right swapped
             fit2 = np.asarray(camera.project(fit_world.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)
-            both = given_all[idx] & given_all[idx][:, list(MIRROR13)]
+            both = given_all[idx] & given_all[idx][:, list(MIRROR)]
             det2 = np.nan_to_num(pts_all[idx])
             d0 = np.where(both, np.linalg.norm(det2 - fit2, axis=-1), 0).sum(1)
-            d1 = np.where(both, np.linalg.norm(det2[:, list(MIRROR13)] - fit2, axis=-1), 0).sum(1)
+            d1 = np.where(both, np.linalg.norm(det2[:, list(MIRROR)] - fit2, axis=-1), 0).sum(1)
             swap = np.zeros(len(pts_all), bool)
             swap[idx[d1 < 0.5 * d0]] = True
-            pts_all[swap] = pts_all[swap][:, list(MIRROR13)]
-            given_all[swap] = given_all[swap][:, list(MIRROR13)]
+            pts_all[swap] = pts_all[swap][:, list(MIRROR)]
+            given_all[swap] = given_all[swap][:, list(MIRROR)]
         lifted = lifter.lift_points(pts_all, given_all, fps=fps)[idx]
         pts2 = pts_all[idx]
     else:  # the fit's own keypoints in the image (or where the detection is far from them)
@@ -251,7 +252,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
     info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
-            "lifter_input": lifter_input, "frames_exchanged": int(len(set(exchanged or ()))),
+            "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
     return out, info
