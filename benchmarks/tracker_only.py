@@ -12,7 +12,10 @@ once); the detector-3D row is scored again from the run's own detections. Writes
 (finished tracks are kept).
 
 Usage: python benchmarks/tracker_only.py --config cfg.json --out DIR
-       [--reference benchmarks/results/diverse_after_speed.json] [--jobs 2]
+       [--reference benchmarks/results/diverse_after_speed.json] [--jobs 2] [--suite diverse|tune]
+
+``--suite tune``: the train clips of ``flowmocap bench --suite tune`` instead (tracker
+only, no baseline rows, no reference needed).
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def track_one(spec, out: str, cfg: dict | None) -> dict:
 
 
 def main() -> int:
-    from flowmocap.eval.bench import _write, commit, diverse_specs, format_table, summarise
+    from flowmocap.eval.bench import _write, commit, diverse_specs, format_table, summarise, tune_specs
     from flowmocap.fit.config import TrackerConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -83,11 +86,19 @@ def main() -> int:
     ap.add_argument("--reference", default=str(ROOT / "benchmarks" / "results" / "diverse_after_speed.json"),
                     help="a bench.json of the diverse suite: its baseline rows are reused")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--suite", choices=("diverse", "tune"), default="diverse",
+                    help="tune: the train clips of flowmocap bench --suite tune, without baseline rows "
+                         "(--reference is not read)")
     args = ap.parse_args()
     cfg = json.loads(Path(args.config).read_text())
     TrackerConfig.load(None, **cfg)  # a bad setting stops here, not in a worker
-    ref = json.loads(Path(args.reference).read_text())
-    specs = diverse_specs()
+    if args.suite == "tune":
+        ref = {"settings": {"suite": "tune"}, "commit": None,
+               "sequences": {s.name: {"settings": asdict(s)} for s in tune_specs()}}
+        specs = tune_specs()
+    else:
+        ref = json.loads(Path(args.reference).read_text())
+        specs = diverse_specs()
     for spec in specs:
         theirs = (ref["sequences"].get(spec.name) or {}).get("settings", {})
         ours = {k: v for k, v in asdict(spec).items() if k != "frames"}
@@ -98,7 +109,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     with ProcessPoolExecutor(args.jobs, mp_context=mp.get_context("spawn")) as ex:
         done = list(ex.map(track_one, specs, [str(out)] * len(specs), [cfg] * len(specs)))
-    result = {"commit": commit(), "suite": "diverse", "settings": {
+    result = {"commit": commit(), "suite": args.suite, "settings": {
         **ref["settings"], "tracker": TrackerConfig.load(None, **cfg).to_dict(),
         "baseline_rows_from": f"{args.reference} (commit {ref.get('commit')}): benchmarks/tracker_only.py"},
         "sequences": {}}

@@ -99,6 +99,26 @@ def test_diverse_suite_is_held_out_varied_and_seeded():
 
 
 @needs_prior_data
+def test_tune_suite_uses_train_clips_only_two_of_each_kind():
+    import csv
+
+    specs = bench.suite("tune")
+    with (bench.PRIOR_DATA / "index.csv").open(newline="") as f:
+        rows = {r["file"]: r for r in csv.DictReader(f)}
+    assert len(specs) == 2 * len(bench.TUNE_CATEGORIES)
+    for s in specs:
+        rel = Path(s.motion).relative_to(bench.PRIOR_DATA).as_posix()
+        assert rows[rel]["split"] == "train" and int(rows[rel]["subject"]) not in (2, 8, 13, 61)
+        assert rows[rel]["category"] == s.kind and s.seed >= 100
+        assert 0.0 <= s.azimuth < 360.0 and s.fps == 60.0 and s.frames == 100 and s.size == "640x480"
+    assert {s.kind for s in specs} == set(bench.TUNE_CATEGORIES)
+    assert all(sum(s.kind == k for s in specs) == 2 for k in bench.TUNE_CATEGORIES)
+    assert len({s.motion for s in specs}) == len(specs) and len({s.seed for s in specs}) == len(specs)
+    assert not {s.seed for s in specs} & {s.seed for s in bench.suite("diverse")}
+    assert [s.name for s in bench.suite("tune")] == [s.name for s in specs]  # deterministic
+
+
+@needs_prior_data
 def test_most_active_window_finds_the_motion(tmp_path):
     from flowmocap.io.mocap import read_mocap, write_bvh
 

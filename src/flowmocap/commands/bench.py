@@ -12,10 +12,11 @@ def register(subparsers) -> None:
         "frame-0 init, fit the per-frame baseline, and write DIR/bench.md and DIR/bench.json. Re-running with "
         "the same --out resumes: finished sequences and results are kept.")
     g = b.add_mutually_exclusive_group()
-    g.add_argument("--suite", choices=["quick", "full", "diverse", "real3d"], default=None,
+    g.add_argument("--suite", choices=["quick", "full", "diverse", "tune", "real3d"], default=None,
                    help="quick: a 20-frame 320x240 built-in walk (< 5 min); full: CMU 35_01 side-on and 45 deg "
                    "(130 frames, 640x480, 60 fps) and DAVIS dance-twirl; diverse: 16 held-out CMU clips of 9 kinds "
-                   "of motion (100 frames each, 640x480, 60 fps, random body and azimuth; ~30 min); real3d: the four-camera "
+                   "of motion (100 frames each, 640x480, 60 fps, random body and azimuth; ~30 min); tune: the same "
+                   "protocol on 16 train clips of 8 kinds, for choosing settings; real3d: the four-camera "
                    "pose2sim recording, both people tracked from every view, scored against points triangulated "
                    "from the other three views (~20 min)")
     g.add_argument("--mocap", action="append", metavar="FILE",

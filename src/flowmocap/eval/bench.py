@@ -75,6 +75,12 @@ DIVERSE_CLIPS: tuple[tuple[str, str], ...] = (
     ("cmu_mb/02_06.bvh", "bend"), ("cmu_mb/02_10.bvh", "everyday"),
     ("cmu_daz/61_01.bvh", "dance"), ("cmu_daz/61_05.bvh", "dance"), ("cmu_daz/61_10.bvh", "dance"),
 )
+#: The tuning suite's kinds of motion (``category`` of ``mocap/prior/index.csv``, ``train``
+#: split): two clips of each, for choosing settings without looking at the held-out clips.
+TUNE_CATEGORIES: tuple[str, ...] = (
+    "walk", "run", "dance (salsa)", "dance (modern/ballet)", "climb/playground", "sport (basketball)",
+    "martial arts (karate)", "jump/reach/tiptoe",
+)
 #: Keys of a method's entry in bench.json that are always present (None = not applicable).
 METRICS = ("local_cm", "global_cm", "mpjpe_cm", "accel_mm", "px2d", "iou", "s_per_frame")
 
@@ -114,8 +120,10 @@ def suite(name: str, frames: int | None = None, size: str | None = None) -> list
                  RealSpec("davis-dance-twirl", str(DAVIS / "JPEGImages"), str(DAVIS / "Annotations"))]
     elif name == "diverse":
         return diverse_specs(frames=frames or 100, size=size or "640x480")
+    elif name == "tune":
+        return tune_specs(frames=frames or 100, size=size or "640x480")
     else:
-        raise InputError(f"unknown suite {name!r}; use 'quick', 'full' or 'diverse'.")
+        raise InputError(f"unknown suite {name!r}; use 'quick', 'full', 'diverse' or 'tune'.")
     return [_override(s, frames, size) for s in specs]
 
 
@@ -162,6 +170,42 @@ def diverse_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0,
         start = most_active_window(path, frames, fps)
         specs.append(SyntheticSpec(f"{Path(rel).stem}-{kind}", str(path), frames, size, fps, round(azimuth, 1),
                                    seed=seed, start=start, kind=kind))
+    return specs
+
+
+def tune_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0, data: str | Path | None = None,
+               per_kind: int = 2) -> list:
+    """The ``tune`` suite: the diverse suite's protocol (:func:`diverse_specs`) on
+    ``train`` clips of ``mocap/prior`` (subjects never in the test split), ``per_kind``
+    clips of each of :data:`TUNE_CATEGORIES`, spread evenly over each kind's clips in
+    file order (chosen by that rule, not by results); seeds (the azimuth's and the
+    body's) 100 and up, so no view repeats the diverse suite's. It is where settings
+    are chosen; the diverse suite then says how they generalise.
+
+    Raises:
+        DataError: the data folder is missing, or a kind has fewer than ``per_kind`` train clips.
+    """
+    import csv
+
+    data = Path(data) if data is not None else PRIOR_DATA
+    index = data / "index.csv"
+    if not index.exists():
+        raise DataError(f"the tune suite needs {index} (../shared/data/mocap/prior next to the repository).")
+    with index.open(newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("split") == "train"]
+    specs = []
+    for kind in TUNE_CATEGORIES:
+        files = sorted(r["file"] for r in rows if r.get("category") == kind)
+        if len(files) < per_kind:
+            raise DataError(f"{index} has {len(files)} train clips of kind {kind!r}; the tune suite needs {per_kind}.")
+        for k in np.unique(np.linspace(0, len(files) - 1, per_kind).round().astype(int)):
+            seed = 100 + len(specs)
+            path = data / files[k]
+            azimuth = float(np.random.default_rng(seed).uniform(0.0, 360.0))
+            start = most_active_window(path, frames, fps)
+            short = kind.split(" ")[0].split("/")[0]
+            specs.append(SyntheticSpec(f"{Path(files[k]).stem}-{short}", str(path), frames, size, fps,
+                                       round(azimuth, 1), seed=seed, start=start, kind=kind))
     return specs
 
 
