@@ -16,13 +16,14 @@ it: the tracking is the same, only the finished motion changes. For each suite g
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
        [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
-       [--smooth-poses S] [--raw-detections] [--lifter-flip] [--out PREFIX]
+       [--smooth-poses S] [--stance SHARE] [--raw-detections] [--lifter-flip] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
 0.3`` then smooths the poses and translation (``pose_smoothing_s``,
 :func:`flowmocap.fit.smooth.pose_smoothed_motion`), the pipeline's last step; with both, the
-"after" columns are what the defaults write. ``--blend full`` blends all three coordinates
+"after" columns are what the defaults write (with ``--stance 0.5`` too, the stance depth
+correction between the two, ``stance_depth_share``). ``--blend full`` blends all three coordinates
 (``lifter_refit_blend`` "full"; the default, as the pipeline's, is ``depth``).
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
@@ -41,7 +42,7 @@ from flowmocap.body import load_body_model
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.eval import metrics as M
 from flowmocap.fit.lift_refit import lifter_refit_motion
-from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion
+from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion, stance_depth_motion
 from flowmocap.fit.swap import exchanged_frames
 from flowmocap.io.results import read_result
 from flowmocap.vision.auto import load_detections
@@ -57,6 +58,8 @@ POSES_S = 0.0
 #: Whether the lifter reads the frames the tracker exchanged left for right exchanged back,
 #: as the pipeline does (``--raw-detections``: as they came, as the pipeline did before).
 EXCHANGED = True
+#: The share of the stance depth correction after the refit, 0: none (``--stance``).
+STANCE = 0.0
 
 
 def _refit(res: Path, weight: float, track=None):
@@ -72,6 +75,8 @@ def _refit(res: Path, weight: float, track=None):
     reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
     if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
         refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)
+    if STANCE:  # as the pipeline does next (stance_depth_share, its other settings the defaults)
+        refit, _ = stance_depth_motion(refit, STANCE, breaks=reinits)
     if POSES_S:  # as the pipeline does last (pose_smoothing_s)
         refit, _ = pose_smoothed_motion(refit, model, POSES_S, breaks=reinits)
     return motion, refit, info
@@ -160,6 +165,9 @@ def main() -> int:
     ap.add_argument("--smooth-poses", type=float, default=0.0,
                     help="then smooth the poses and translation over this window (s), as the pipeline does last "
                          "with pose_smoothing_s (0.3); 0: not")
+    ap.add_argument("--stance", type=float, default=0.0,
+                    help="then move each frame so that a foot standing still keeps its depth, at this share, as the "
+                         "pipeline does with stance_depth_share (0.5); 0: not")
     ap.add_argument("--lifter-flip", action="store_true",
                     help="the lifter averages each input with its mirror image (Lifter.flip_average)")
     ap.add_argument("--raw-detections", action="store_true",
@@ -179,15 +187,16 @@ def main() -> int:
 
         OPTIONS["lifter"] = Lifter.load(a.lifter)  # the packaged one without --lifter
         OPTIONS["lifter"].flip_average = a.lifter_flip
-    global SMOOTH_S, POSES_S, EXCHANGED
+    global SMOOTH_S, POSES_S, EXCHANGED, STANCE
     EXCHANGED = not a.raw_detections
+    STANCE = a.stance
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
     result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "lifter_input": a.lifter_input,
               "iterations": a.iterations,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses,
-              "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip}
+              "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip, "stance_share": a.stance}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",

@@ -338,7 +338,10 @@ def test_post_pending_says_which_steps_after_tracking_a_finished_run_lacks(tmp_p
     motion = {"poses": np.zeros((3, 72), np.float32), "trans": np.zeros((3, 3), np.float32)}
     write_motion(out, motion)
     write_run(out, {"status": "finished", "events": []})
-    cfg, off = TrackerConfig(), TrackerConfig(pose_smoothing_s=0.0)
+    cfg, off = TrackerConfig(), TrackerConfig(pose_smoothing_s=0.0, stance_depth_share=0.0)
+    stance = TrackerConfig(pose_smoothing_s=0.0)  # the stance step alone
+    assert pipeline._post_pending(out, stance, "auto", {})  # not done
+    assert not pipeline._post_pending(out, stance, "auto", {"stance_depth": {"frames_in_stance": 0}})
     assert pipeline._post_pending(out, cfg, "auto", {})  # not smoothed
     assert not pipeline._post_pending(out, off, "auto", {})  # no detections: no refit to do either
     (out / "detections").mkdir()

@@ -791,12 +791,14 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
 def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: TrackerConfig, run: dict, joints3d: str,
                 say) -> dict:
     """The steps after tracking, each on the finished ``motion.npz`` and each done once:
-    the lifter refit (with the detections ``watch``) and the pose smoothing. Returns the
-    run info."""
+    the lifter refit (with the detections ``watch``), the stance depth correction and the
+    pose smoothing. Returns the run info."""
     if not has_result(out):
         return run
     if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
         run = _lifter_refit(out, watch, body, cfg, run, say)
+    if _stance_pending(out, cfg, run):
+        run = _stance_depth(out, cfg, run, say)
     if cfg.pose_smoothing_s > 0:
         run = _smooth_poses(out, body, cfg, run, say)
     return run
@@ -807,7 +809,17 @@ def _post_pending(out: Path, cfg: TrackerConfig, joints3d: str, run: dict) -> bo
     motion, _ = read_result(out)
     refit = (cfg.lifter_refit_weight > 0 and joints3d != "off" and "poses_tracked" not in motion
              and "lifter_refit" not in run and (out / "detections" / "keypoints.npz").exists())
-    return refit or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion)
+    return refit or _stance_pending(out, cfg, run) or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion)
+
+
+def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:
+    """Whether the stance depth correction is due: on, not done, and the pose smoothing
+    (which comes after it) not done either (a run finished before the step existed is
+    left as it is)."""
+    if cfg.stance_depth_share <= 0 or "stance_depth" in run:
+        return False
+    motion, _ = read_result(out)
+    return "poses_unsmoothed" not in motion
 
 
 def _reinit_frames(run: dict) -> list[int]:
@@ -853,6 +865,27 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     say(f"refitted {info['frames_refit']} frames towards the lifter's 3D (share {cfg.lifter_refit_weight:g}, "
         f"{cfg.lifter_refit_blend} blend): "
         f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average")
+    return run
+
+
+def _stance_depth(out: Path, cfg: TrackerConfig, run: dict, say) -> dict:
+    """The finished ``motion.npz`` moved so that a foot standing still in the image keeps
+    its depth (:func:`~flowmocap.fit.smooth.stance_depth_motion`, ``cfg.stance_depth_*``,
+    starting again at every re-initialisation), written atomically; ``run.json`` records
+    it under ``stance_depth``. Returns the run info."""
+    from flowmocap.fit.smooth import stance_depth_motion
+
+    motion, _ = read_result(out)
+    t0 = time.perf_counter()
+    moved, info = stance_depth_motion(motion, cfg.stance_depth_share, speed=cfg.stance_speed,
+                                      min_s=cfg.stance_min_s, window_s=cfg.stance_window_s,
+                                      breaks=_reinit_frames(run))
+    write_motion(out, moved)
+    info["seconds"] = round(time.perf_counter() - t0, 3)
+    run = {**run, "stance_depth": info}
+    write_run(out, run)
+    say(f"a foot standing still kept its depth in {info['frames_in_stance']} frames: the body moved "
+        f"{info['mean_shift_mm']:.0f} mm along the camera ray on average")
     return run
 
 

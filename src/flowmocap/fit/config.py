@@ -89,6 +89,7 @@ _RANGES: dict[str, str] = {
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
+    "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
@@ -184,6 +185,13 @@ class TrackerConfig:
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
+    stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by
+    #                                    this share of what keeps a foot that stands still in the image at its
+    #                                    median depth over the stance (fit.smooth.stance_depth_shift; chosen on
+    #                                    the tune suite, docs/experiments.md); 0: off
+    stance_speed: float = 0.12         # body heights per second: a foot slower than this in the image stands
+    stance_min_s: float = 0.2          # s: ... for at least this long
+    stance_window_s: float = 0.25      # s: the depth correction's moving average
     pose_smoothing_s: float = 0.3      # s: last, the finished motion's joint rotations (on SO(3)) and translation
     #                                    smoothed over this window (Savitzky-Golay, degree 2: fit.smooth.
     #                                    pose_smoothed_motion; the export's --smooth filter) between

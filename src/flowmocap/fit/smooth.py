@@ -27,7 +27,7 @@ from flowmocap.errors import InputError
 
 __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
            "smooth_root_depth", "depth_smoothed_motion", "pose_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
-           "DEPTH_ORDER"]
+           "DEPTH_ORDER", "FOOT_JOINTS", "stance_depth_shift", "stance_depth_motion"]
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
 #: CMU 35_01 protocol runs (8 seeds, 60 fps), the same on the held-out diverse suite;
@@ -363,4 +363,133 @@ def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S,
     info = {"window_s": float(window_s), "order": int(order),
             "mean_move_mm": float(1000 * np.linalg.norm(joints - before3d, axis=-1).mean()) if T else 0.0,
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean()) if T else 0.0}
+    return out, info
+
+
+#: the body model's foot joints (SMPL ``left_foot``, ``right_foot``): the stance test's points
+FOOT_JOINTS = (10, 11)
+
+
+def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray,
+                       fps: float, speed: float = 0.12, min_s: float = 0.2, window_s: float = 0.25,
+                       share: float = 0.5, frame_index=None, breaks=()) -> tuple[np.ndarray, np.ndarray]:
+    """How far to move the body in each frame, along the camera ray through its root, so
+    that a foot standing still in the image also stands still in depth.
+
+    A monocular fit's depth follows its pose's 3D size from frame to frame (see
+    :func:`flowmocap.fit.smooth.smooth_root_depth`); a foot that does not move in the image is, in the world,
+    planted, and so keeps its distance from the camera. For each foot joint
+    (:data:`FOOT_JOINTS`) the frames where its image speed stays below ``speed`` body
+    heights per second (the slower of the steps to and from the frame; the body's height
+    is the median over the frames of its 2D joints' vertical extent) for at least
+    ``min_s`` seconds are a stance; within a stance the foot's camera depth should be
+    its median there, and the difference is the frame's depth correction (the mean over
+    the feet in stance). Between stances the correction is interpolated (held before
+    the first and after the last), smoothed by a moving average over ``window_s``
+    seconds and applied at ``share``. Runs of consecutive frames are treated apart (a
+    gap, a non-finite frame or a frame in ``breaks`` starts a new one); a run without
+    a stance is not moved.
+
+    Args:
+        joints: ``(T, J, 3)`` world coordinates, metres (SMPL order, joint 0 the root).
+        joints2d: ``(T, J, 2)`` their image, pixels.
+        camera_R: ``(3, 3)`` world-to-camera rotation; camera_t: ``(3,)`` metres.
+        fps: frames per second (Hz). speed: body heights per second. min_s, window_s:
+            seconds. share: the part of the correction applied, in [0, 1].
+        frame_index: ``(T,)`` input frame numbers, or None (consecutive).
+        breaks: input frame numbers that start a new run (re-initialisations).
+
+    Returns:
+        ``(shift (T, 3), stance (T,) bool)``: the world shift (metres) to add to the
+        translation and every point of each frame, and the frames with a foot in stance.
+    """
+    J = np.asarray(joints, np.float64)
+    P = np.asarray(joints2d, np.float64)
+    if J.ndim != 3 or J.shape[2] != 3 or J.shape[1] <= max(FOOT_JOINTS) or P.shape != J.shape[:2] + (2,):
+        raise InputError(f"joints must be (T, J, 3) and joints2d (T, J, 2) with J > {max(FOOT_JOINTS)}; "
+                         f"got {J.shape} and {P.shape}.")
+    if not (fps > 0 and speed > 0 and min_s >= 0 and window_s >= 0 and 0.0 <= share <= 1.0):
+        raise InputError(f"fps, speed must be > 0, min_s, window_s >= 0 and share in [0, 1]; got {fps}, {speed}, "
+                         f"{min_s}, {window_s}, {share}.")
+    R = np.asarray(camera_R, np.float64)
+    t = np.asarray(camera_t, np.float64).reshape(3)
+    T = J.shape[0]
+    cam = J @ R.T + t
+    shift = np.zeros((T, 3))
+    stance = np.zeros(T, bool)
+    ok = np.isfinite(cam).all((1, 2)) & np.isfinite(P).all((1, 2)) & (cam[:, :, 2] > 0).all(1)
+    if not ok.any():
+        return shift, stance
+    height = float(np.median(np.ptp(P[ok, :, 1], axis=1)))
+    if not height > 0:
+        return shift, stance
+    need = max(int(np.ceil(min_s * fps)), 2)
+    width = max(int(round(window_s * fps)), 1)
+    for a, b in _runs(frame_index, T, ok, breaks):
+        n = b - a
+        total, count = np.zeros(n), np.zeros(n)
+        for f in FOOT_JOINTS:
+            step = np.linalg.norm(np.diff(P[a:b, f], axis=0), axis=-1) * fps / height
+            v = np.minimum(np.r_[np.inf, step], np.r_[step, np.inf])
+            for s0, s1 in _runs(None, n, v < speed):
+                if s1 - s0 < need:
+                    continue
+                z = cam[a + s0:a + s1, f, 2]
+                total[s0:s1] += np.median(z) - z
+                count[s0:s1] += 1
+        have = count > 0
+        if not have.any():
+            continue
+        stance[a:b] = have
+        k = np.arange(n)
+        dz = np.interp(k, k[have], total[have] / count[have])
+        if width > 1:
+            pad = np.pad(dz, (width // 2, width - 1 - width // 2), mode="edge")
+            dz = np.convolve(pad, np.ones(width) / width, mode="valid")
+        root = cam[a:b, 0]
+        moved = root * ((root[:, 2] + share * dz) / root[:, 2])[:, None]
+        moved[~(moved[:, 2] > 0)] = root[~(moved[:, 2] > 0)]
+        shift[a:b] = (moved - root) @ R
+    return shift, stance
+
+
+def stance_depth_motion(motion: dict, share: float, speed: float = 0.12, min_s: float = 0.2,
+                        window_s: float = 0.25, breaks=()) -> tuple[dict, dict]:
+    """A result's ``motion.npz`` arrays moved by :func:`stance_depth_shift`: ``trans`` and
+    ``joints3d`` shifted, ``joints2d`` projected again with the result's camera; the
+    poses are unchanged. ``share`` 0 returns the arrays unchanged.
+
+    Args:
+        motion: ``trans (T, 3)``, ``joints3d (T, 24, 3)``, ``joints2d (T, 24, 2)``,
+            ``fps``, ``camera`` (JSON of ``PinholeCamera.to_dict()``), ``frame_index (T,)``
+            and anything else (kept).
+        share, speed, min_s, window_s: as :func:`stance_depth_shift` (the defaults of
+            ``TrackerConfig``'s ``stance_depth_*`` settings).
+        breaks: input frame numbers where the depth may jump (re-initialisations).
+
+    Returns:
+        ``(motion, info)``: the new arrays, and ``frames_in_stance``, ``mean_shift_mm``
+        (mean distance each frame moved).
+    """
+    if share == 0:
+        return dict(motion), {"frames_in_stance": 0, "mean_shift_mm": 0.0}
+    import json
+
+    from flowmocap.geometry.camera import PinholeCamera
+
+    camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+    joints = np.asarray(motion["joints3d"], np.float64)
+    shift, stance = stance_depth_shift(joints, np.asarray(motion["joints2d"], np.float64), camera.R, camera.t,
+                                       float(np.asarray(motion["fps"])), speed=speed, min_s=min_s,
+                                       window_s=window_s, share=share, frame_index=motion.get("frame_index"),
+                                       breaks=breaks)
+    out = dict(motion)
+    trans = np.asarray(motion["trans"])
+    out["trans"] = (trans + shift).astype(trans.dtype)
+    moved = joints + shift[:, None, :]
+    out["joints3d"] = moved.astype(np.asarray(motion["joints3d"]).dtype)
+    j2d = np.asarray(camera.project(moved.reshape(-1, 3)), np.float64).reshape(joints.shape[0], -1, 2)
+    out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    info = {"frames_in_stance": int(stance.sum()),
+            "mean_shift_mm": float(1000 * np.linalg.norm(shift, axis=1).mean()) if len(shift) else 0.0}
     return out, info
