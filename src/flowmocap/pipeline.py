@@ -875,18 +875,11 @@ def _stance_depth(out: Path, cfg: TrackerConfig, run: dict, say) -> dict:
     it under ``stance_depth``. Returns the run info."""
     from flowmocap.fit.smooth import stance_depth_motion
 
-    motion, _ = read_result(out)
-    t0 = time.perf_counter()
-    moved, info = stance_depth_motion(motion, cfg.stance_depth_share, speed=cfg.stance_speed,
-                                      min_s=cfg.stance_min_s, window_s=cfg.stance_window_s,
-                                      breaks=_reinit_frames(run))
-    write_motion(out, moved)
-    info["seconds"] = round(time.perf_counter() - t0, 3)
-    run = {**run, "stance_depth": info}
-    write_run(out, run)
-    say(f"a foot standing still kept its depth in {info['frames_in_stance']} frames: the body moved "
-        f"{info['mean_shift_mm']:.0f} mm along the camera ray on average")
-    return run
+    return _post_step(out, run, "stance_depth", lambda motion: stance_depth_motion(
+        motion, cfg.stance_depth_share, speed=cfg.stance_speed, min_s=cfg.stance_min_s,
+        window_s=cfg.stance_window_s, breaks=_reinit_frames(run)), say,
+        lambda info: f"a foot standing still kept its depth in {info['frames_in_stance']} frames: the body moved "
+                     f"{info['mean_shift_mm']:.0f} mm along the camera ray on average")
 
 
 def _smooth_poses(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
@@ -898,14 +891,26 @@ def _smooth_poses(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say
     motion, _ = read_result(out)
     if "poses_unsmoothed" in motion:
         return run
+    return _post_step(out, run, "pose_smoothing", lambda m: pose_smoothed_motion(
+        m, body, cfg.pose_smoothing_s, breaks=_reinit_frames(run)), say,
+        lambda info: f"smoothed the motion over {cfg.pose_smoothing_s:g} s: joints moved {info['mean_move_mm']:.0f} "
+                     f"mm, {info['mean_move_px']:.1f} px in the image on average", motion=motion)
+
+
+def _post_step(out: Path, run: dict, key: str, apply, say, describe, motion: dict | None = None) -> dict:
+    """One step after tracking: ``apply(motion) -> (motion, info)`` on the finished
+    ``motion.npz`` (read unless given), the result written atomically, ``info`` (with its
+    ``seconds``) recorded in ``run.json`` under ``key`` and ``describe(info)`` said.
+    Returns the run info."""
+    if motion is None:
+        motion, _ = read_result(out)
     t0 = time.perf_counter()
-    smoothed, info = pose_smoothed_motion(motion, body, cfg.pose_smoothing_s, breaks=_reinit_frames(run))
-    write_motion(out, smoothed)
+    new, info = apply(motion)
+    write_motion(out, new)
     info["seconds"] = round(time.perf_counter() - t0, 2)
-    run = {**run, "pose_smoothing": info}
+    run = {**run, key: info}
     write_run(out, run)
-    say(f"smoothed the motion over {cfg.pose_smoothing_s:g} s: joints moved {info['mean_move_mm']:.0f} mm, "
-        f"{info['mean_move_px']:.1f} px in the image on average")
+    say(describe(info))
     return run
 
 
