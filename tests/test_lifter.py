@@ -374,3 +374,52 @@ def test_flip_average_lifts_a_pose_and_its_mirror_image_alike():
     p_a, p_b = plain.lift_points(pts, mask), plain.lift_points(mirrored, mask[:, list(MIRROR)])
     np.testing.assert_allclose(a, 0.5 * (p_a + p_b[:, list(MIRROR)] * np.array([-1.0, 1.0, 1.0])), atol=1e-5)
     assert np.abs(p_a - a).max() > 1e-3  # the plain lifter is not symmetric by itself
+
+
+def _pair_file(path: Path, truth: np.ndarray, detected_2d: np.ndarray, clip: str) -> None:
+    """A ``tools/render_detections.py`` file of ``truth (T, 13, 3)`` camera metres whose
+    detection is ``detected_2d (T, 13, 2)`` pixels (f = 640, centre (320, 240))."""
+    K = np.array([[640.0, 0, 320], [0, 640, 240], [0, 0, 1]])
+    T = len(truth)
+    kp = np.zeros((T, len(KEYPOINT_NAMES), 2))
+    for k, name in enumerate(POINTS):
+        for n in (("left_ear", "right_ear") if name == "head" else (name,)):
+            kp[:, KEYPOINT_NAMES.index(n)] = detected_2d[:, k]
+    uv = truth[..., :2] / truth[..., 2:] * 640 + [320, 240]
+    np.savez(path, keypoints=kp, confidence=np.ones((T, len(KEYPOINT_NAMES))), truth=truth, truth_2d=uv, K=K,
+             clip=clip)
+
+
+def test_detection_pairs_target_the_truth_as_the_detection_labels_it(tmp_path):
+    from flowmocap.vision.lifter import MIRROR
+
+    tool = _train_tool()
+    rng = np.random.default_rng(3)
+    X = rng.normal(0, 0.3, (2, 13, 3))
+    X[:, list(HIPS)] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+    X[..., 2] += 4.0  # the hips about the optical axis, 4 m away: the ray's axes are the camera's
+    uv = X[..., :2] / X[..., 2:] * 640 + [320, 240]
+    det = uv.copy()
+    det[1] = uv[1][list(MIRROR)]  # frame 1: the detector turned the person about
+    _pair_file(tmp_path / "a-v0.npz", X, det, "a.bvh")
+    _pair_file(tmp_path / "b-v0.npz", X[:1], uv[:1], "b.bvh")
+    pairs = tool.DetectionPairs(tmp_path)
+    assert len(pairs) == 3 and pairs.turned == 1
+    n = (uv - [320, 240]) / 640
+    n -= n[:, list(HIPS)].mean(1, keepdims=True)
+    s = np.sqrt((n ** 2).sum(-1).mean(1))
+    want = (X - X[:, list(HIPS)].mean(1, keepdims=True)) / (4.0 * s[:, None, None])
+    want[1] = want[1][list(MIRROR)]  # the 2D as labelled: the truth's mirror labelling
+    np.testing.assert_allclose(pairs.Y[:2].numpy(), want, atol=1e-5)
+    # the input is the detection normalised as at run time; a mirrored example mirrors all three
+    v, m, y = pairs.batch(torch.arange(3), None, mirror=False)
+    np.testing.assert_allclose(v[:, 0].numpy(), normalise_2d(pairs.P, pairs.M)[0].numpy(), atol=1e-6)
+    g = torch.Generator().manual_seed(0)
+    vs, ms, ys = zip(*(pairs.batch(torch.tensor([0]), g) for _ in range(20)))
+    flipped = [k for k in range(20) if not torch.allclose(ys[k], y[:1])]
+    assert 0 < len(flipped) < 20
+    k = flipped[0]
+    np.testing.assert_allclose(ys[k][0].numpy(), y[0][list(MIRROR)].numpy() * [-1, 1, 1], atol=1e-6)
+    np.testing.assert_allclose(vs[k][0, 0].numpy(), v[0, 0][list(MIRROR)].numpy() * [-1, 1], atol=1e-6)
+    train, held = pairs.split(2)  # clip 0 ("a") held back
+    assert len(held) == 2 and len(train) == 1

@@ -27,10 +27,17 @@ Steps:
    one) the neighbours come from the same clip, body and view, at a tempo drawn from
    ``1 +- --tempo``; a neighbour outside the clip, or dropped with probability
    ``--frame-drop``, is left out, as at run time.
+   With ``--detections FOLDER`` (``tools/render_detections.py``'s pairs: the real
+   detector's 2D on renders of train clips, none of the tune suite's) a share
+   ``--detection-share`` of each batch is drawn from those instead (each mirrored with
+   probability 0.5; no added noise: the detector's own errors are the point); every 10th
+   of their clips is held back as a check. ``--init FILE`` starts from a lifter file's
+   weights (fine-tuning; its ``metres`` is kept).
 3. Adam with a one-cycle learning rate, ``--epochs`` passes, loss the mean joint distance.
 4. Check (not used to choose anything): the mean per-joint error after a similarity
-   alignment on the train frames seen from random views, and the same on the held-out
-   test clips; written into the file's info.
+   alignment on the train frames seen from random views, the same on the held-out
+   test clips, and with ``--detections`` on the held-back detections; written into the
+   file's info.
 
 The packaged file's settings are in its ``info["settings"]`` (``vision/data/README.md``).
 At the defaults (512 wide, two blocks, one frame) about 10 minutes on 2 CPU cores;
@@ -178,6 +185,105 @@ def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: to
     return v, mask, target, c
 
 
+class DetectionPairs:
+    """Real detector 2D with the true 3D (``tools/render_detections.py``'s files): ``P (N,
+    13, 2)`` pixels, ``M (N, 13)`` the points given (confidence >= 0.5, as at run time),
+    ``Y (N, 13, 3)`` the target (step 2 of the module docstring: hip-centred, in the axes of
+    the ray through the detected hips, divided by the hips' distance times the clean 2D's
+    scale), ``clip (N,)`` each frame's clip index. A frame the detector turned about (its
+    points nearer the truth's mirror labelling, by half) gets the mirror labelling as its
+    target: the lifter lifts the 2D as labelled; which side is which is the tracker's
+    business (``detector_swap_check``). Frames with fewer than ``MIN_POINTS`` points or
+    without both hips are left out."""
+
+    def __init__(self, folder: Path, holdout_every: int = 0):
+        from flowmocap.geometry.camera import PinholeCamera
+        from flowmocap.vision.lifter import MIN_POINTS, MIRROR, eval_points_2d
+
+        files = sorted(folder.glob("*.npz"))
+        files = [f for f in files if not f.name.endswith(".part.npz")]
+        if not files:
+            sys.exit(f"no detection pairs in {folder}: run tools/render_detections.py --out {folder}")
+        P, M, Y, C, self.turned = [], [], [], [], 0
+        clips = sorted({str(np.load(f)["clip"]) for f in files})
+        for f in files:
+            z = np.load(f)
+            pts, conf = eval_points_2d(z["keypoints"], z["confidence"])
+            mask = (conf >= 0.5) & np.isfinite(pts).all(-1)
+            ok = mask[:, list(HIPS)].all(1) & (mask.sum(1) >= MIN_POINTS)
+            if not ok.any():
+                continue
+            K = z["K"]
+            cam = PinholeCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
+            truth, uv = z["truth"][ok], z["truth_2d"][ok]
+            pts, mask = pts[ok], mask[ok]
+            d_same = np.where(mask, np.linalg.norm(np.nan_to_num(pts) - uv, axis=-1), 0).sum(1)
+            d_mirr = np.where(mask, np.linalg.norm(np.nan_to_num(pts) - uv[:, list(MIRROR)], axis=-1), 0).sum(1)
+            turn = d_mirr < 0.5 * d_same
+            self.turned += int(turn.sum())
+            truth[turn], uv[turn] = truth[turn][:, list(MIRROR)], uv[turn][:, list(MIRROR)]
+            for k in range(len(pts)):
+                u, v = np.nan_to_num(pts[k, list(HIPS)]).mean(0)
+                R = cam.ray_rotation(float(u), float(v))
+                hips = truth[k, list(HIPS)].mean(0)
+                x = (truth[k] - hips) @ R
+                n = (uv[k] - [K[0, 2], K[1, 2]]) / K[0, 0]
+                n = n - n[list(HIPS)].mean(0)
+                s = np.sqrt((n ** 2).sum(-1).mean())
+                Y.append(x / (np.linalg.norm(hips) * s))
+            P.append(np.nan_to_num(pts))
+            M.append(mask)
+            C.append(np.full(len(pts), clips.index(str(z["clip"]))))
+        self.P = torch.as_tensor(np.concatenate(P), dtype=torch.float32)
+        self.M = torch.as_tensor(np.concatenate(M), dtype=torch.float32)
+        self.Y = torch.as_tensor(np.stack(Y), dtype=torch.float32)
+        self.clip = torch.as_tensor(np.concatenate(C))
+        self.files = len(files)
+
+    def split(self, every: int) -> tuple["DetectionPairs", "DetectionPairs"]:
+        """(the frames of clips whose index is not a multiple of ``every``, those that are)."""
+        held = (self.clip % every) == 0
+        parts = []
+        for keep in (~held, held):
+            d = object.__new__(DetectionPairs)
+            d.P, d.M, d.Y, d.clip = self.P[keep], self.M[keep], self.Y[keep], self.clip[keep]
+            d.turned, d.files = self.turned, self.files
+            parts.append(d)
+        return parts[0], parts[1]
+
+    def __len__(self) -> int:
+        return len(self.P)
+
+    def to(self, device) -> "DetectionPairs":
+        self.P, self.M, self.Y = self.P.to(device), self.M.to(device), self.Y.to(device)
+        return self
+
+    def batch(self, idx: torch.Tensor, g: torch.Generator, mirror: bool = True):
+        """``(inputs (B, 1, 13, 2), masks (B, 1, 13), targets (B, 13, 3))`` of the frames
+        ``idx``, each mirrored left for right with probability 0.5."""
+        from flowmocap.vision.lifter import MIRROR
+
+        p, m, y = self.P[idx], self.M[idx], self.Y[idx]
+        v, _ = normalise_2d(p, m)
+        if mirror:
+            flip = torch.rand(len(idx), generator=g, device=p.device) < 0.5
+            sign2, sign3 = torch.tensor([-1.0, 1.0], device=p.device), torch.tensor([-1.0, 1.0, 1.0], device=p.device)
+            v = torch.where(flip[:, None, None], v[:, list(MIRROR)] * sign2, v)
+            m = torch.where(flip[:, None], m[:, list(MIRROR)], m)
+            y = torch.where(flip[:, None, None], y[:, list(MIRROR)] * sign3, y)
+        return v[:, None], m[:, None], y
+
+
+def check_pairs(net: LifterNet, pairs: DetectionPairs, metres: float) -> float:
+    """Mean per-point error (cm, in units of an average body) of the lifter on real
+    detections after a similarity alignment onto their truth."""
+    with torch.no_grad():
+        y = net.eval()(*pairs.batch(torch.arange(len(pairs)), None, mirror=False)[:2]).double().numpy()
+    ref = pairs.Y.double().numpy()
+    aligned = similarity_procrustes(y, ref)[0]
+    return 100 * metres * float(np.linalg.norm(aligned - ref, axis=-1).mean())
+
+
 def check(net: LifterNet, seq: Sequences, offsets: torch.Tensor, metres: float, step: int = 1,
           seed: int = 1) -> float:
     """Mean per-point error (cm) after a similarity alignment over every ``step``-th frame
@@ -214,6 +320,10 @@ def main(argv=None) -> int:
     ap.add_argument("--outliers", type=float, default=0.0,
                     help="share of frames with 1-3 gross 2D errors (a point put on another body part)")
     ap.add_argument("--elevation", type=float, default=25.0, help="views' elevation drawn from +- this (degrees)")
+    ap.add_argument("--detections", type=Path, default=None,
+                    help="a folder of tools/render_detections.py's pairs (real detector 2D on renders of train clips)")
+    ap.add_argument("--detection-share", type=float, default=0.3, help="share of each batch drawn from --detections")
+    ap.add_argument("--init", type=Path, default=None, help="start from this lifter file's weights (fine-tuning)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-clips", type=int, default=None, help="only the first N train and N test clips (a quick try)")
     ap.add_argument("--device", default="cpu", help="where to train (e.g. cuda; the result is the same file)")
@@ -247,9 +357,29 @@ def main(argv=None) -> int:
     print(f"{len(train)} train clips: {len(seq)} frames ({args.bodies} bodies each, with mirrors); "
           f"{len(seq_test)} held-out test frames (a check only); window {offsets.tolist()} at {WINDOW_FPS:g} fps")
 
+    pairs = pairs_check = None
+    if args.detections is not None:
+        if len(offsets) != 1:
+            ap.error("--detections trains a one-frame lifter only (the pairs are not windows)")
+        pairs, pairs_check = DetectionPairs(args.detections).split(10)
+        print(f"detection pairs: {len(pairs)} frames to train on, {len(pairs_check)} held back as a check "
+              f"(every 10th clip), from {pairs.files} files; {pairs.turned} frames turned about", flush=True)
     dev = torch.device(args.device)
     seq, seq_test, offsets = seq.to(dev), seq_test.to(dev), offsets.to(dev)
-    net = LifterNet(args.hidden, args.blocks, frames=len(offsets)).to(dev)
+    net = LifterNet(args.hidden, args.blocks, frames=len(offsets))
+    if args.init is not None:
+        start = Lifter.load(args.init)
+        if start.offsets != tuple(offsets.tolist()) or start.net.inp.out_features != args.hidden or \
+                len(start.net.blocks) != args.blocks:
+            ap.error(f"--init {args.init} has another architecture or window")
+        net.load_state_dict(start.net.state_dict())
+        metres = start.metres
+        if pairs_check is not None:
+            print(f"check of the starting lifter on the held-back detections: {check_pairs(start.net, pairs_check, metres):.2f} cm")
+    net = net.to(dev)
+    if pairs is not None:
+        pairs.to(dev)
+    n_det = int(round(args.detection_share * args.batch)) if pairs is not None else 0
     opt = torch.optim.Adam(net.parameters(), args.lr)
     steps_per_epoch = len(seq) // args.batch
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, args.lr, total_steps=args.epochs * steps_per_epoch)
@@ -259,8 +389,11 @@ def main(argv=None) -> int:
         perm = torch.randperm(len(seq), generator=g, device=dev)
         total = 0.0
         for k in range(steps_per_epoch):
-            v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch], offsets, g, args.noise, args.drop,
-                                  args.frame_drop, args.tempo, args.outliers, args.elevation)
+            v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch - n_det], offsets, g, args.noise,
+                                  args.drop, args.frame_drop, args.tempo, args.outliers, args.elevation)
+            if n_det:
+                dv, dm, dy = pairs.batch(torch.randint(0, len(pairs), (n_det,), generator=g, device=dev), g)
+                v, m, y = torch.cat([v, dv]), torch.cat([m, dm]), torch.cat([y, dy])
             loss = (net(v, m) - y).norm(dim=-1).mean()
             opt.zero_grad()
             loss.backward()
@@ -273,6 +406,11 @@ def main(argv=None) -> int:
     test_cm = check(net, seq_test, offsets, metres, step=2)
     print(f"check, aligned mean point error from random views without noise: train {train_cm:.2f} cm, "
           f"held-out test clips {test_cm:.2f} cm")
+    pairs_cm = None
+    if pairs_check is not None:
+        net.cpu()
+        pairs_cm = check_pairs(net, pairs_check, metres)
+        print(f"check on the held-back detections (renders of train clips, real detector 2D): {pairs_cm:.2f} cm")
     info = {
         "source": "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu), cgspeed BVH conversions, "
                   "../shared/data/mocap/prior, split 'train' only",
@@ -280,7 +418,7 @@ def main(argv=None) -> int:
                            "The database was created with funding from NSF EIA-0196217.",
         "train_subjects": sorted({r["subject"] for r in train}), "frames_with_mirrors": len(seq),
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "check_train_cm": train_cm, "check_test_cm": test_cm,
+        "check_train_cm": train_cm, "check_test_cm": test_cm, "check_detections_cm": pairs_cm,
     }
     Lifter(net.cpu(), info, metres, offsets.tolist()).save(args.out)
     print(f"wrote {args.out} ({args.out.stat().st_size // 1024} KiB) in {time.perf_counter() - t0:.0f} s")

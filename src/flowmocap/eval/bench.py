@@ -180,7 +180,9 @@ def tune_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0, data
     clips of each of :data:`TUNE_CATEGORIES`, spread evenly over each kind's clips in
     file order (chosen by that rule, not by results); seeds (the azimuth's and the
     body's) 100 and up, so no view repeats the diverse suite's. It is where settings
-    are chosen; the diverse suite then says how they generalise.
+    are chosen; the diverse suite then says how they generalise. Not for choosing a
+    learned part (the pose prior, the lifter): its clips are train clips, and their
+    subjects' other clips are in that part's training data.
 
     Raises:
         DataError: the data folder is missing, or a kind has fewer than ``per_kind`` train clips.
