@@ -196,7 +196,7 @@ class DetectionPairs:
     business (``detector_swap_check``). Frames with fewer than ``MIN_POINTS`` points or
     without both hips are left out."""
 
-    def __init__(self, folder: Path, holdout_every: int = 0):
+    def __init__(self, folder: Path):
         from flowmocap.geometry.camera import PinholeCamera
         from flowmocap.vision.lifter import MIN_POINTS, MIRROR, eval_points_2d
 
