@@ -19,7 +19,8 @@ Steps:
    scale) and each point but the hips dropped with probability ``--drop``; with
    ``--outliers P`` a share P of the frames also get 1-3 gross errors (a point but the
    hips moved onto another point of the frame, as a detector does under occlusion;
-   ``--elevation`` widens the views' elevation; both tried, not used by the packaged
+   ``--elevation`` widens the views' elevation, ``--roll`` turns the cameras about their
+   optical axis by up to that many degrees; all tried, none used by the packaged
    file: docs/experiments.md, "Where the real3d error comes from"). Target: the 3D
    points in the camera's axes, hip-centred, divided by the hips' depth times the 2D
    scale (so its x, y match the input's under weak perspective and the network learns
@@ -111,7 +112,8 @@ class Sequences:
         return self
 
 
-def views(points: torch.Tensor, g: torch.Generator, elevation: float = 25.0) -> tuple[torch.Tensor, torch.Tensor]:
+def views(points: torch.Tensor, g: torch.Generator, elevation: float = 25.0,
+          roll: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Random views of hip-centred ``points (B, P, 3)`` (y up; one view per row ``B``;
     elevation uniform in +-``elevation`` degrees):
     ``(2D (B, P, 2) on the image plane at depth 1, 3D (B, P, 3) in the camera's axes)``."""
@@ -126,6 +128,11 @@ def views(points: torch.Tensor, g: torch.Generator, elevation: float = 25.0) -> 
     Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1, ce, -se, se, ce
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], device=dev))  # y up -> y down (and z turned: a proper rotation)
     cam = points @ (Rx @ flip @ Ry).transpose(1, 2)
+    if roll > 0:  # the camera turned about its optical axis (drawn only then: the stream of draws stays the same without)
+        r = (torch.rand(n, generator=g, device=dev) * 2 - 1) * math.radians(roll)
+        Rz = torch.zeros(n, 3, 3, device=dev)
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = r.cos(), -r.sin(), r.sin(), r.cos(), 1
+        cam = cam @ Rz.transpose(1, 2)
     cam[..., 2] += d[:, None]
     return cam[..., :2] / cam[..., 2:], cam
 
@@ -154,7 +161,7 @@ def outlying(uv: torch.Tensor, g: torch.Generator, rate: float, most: int = 3) -
 
 def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: torch.Generator, noise: float,
              drop: float, frame_drop: float = 0.0, speed: float = 0.0, outliers: float = 0.0,
-             elevation: float = 25.0):
+             elevation: float = 25.0, roll: float = 0.0):
     """``(inputs (B, F, 13, 2), masks (B, F, 13), targets (B, 13, 3), the middle frames'
     3D in the camera's axes (B, 13, 3) in metres)`` for the windows
     around the frames ``centres (B,)`` of ``seq`` (step 2 of the module docstring): one view
@@ -168,7 +175,7 @@ def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: to
     j = torch.where(inside, j, centres[:, None])
     keep = inside & (torch.rand(B, F, generator=g, device=dev) >= frame_drop)
     keep[:, mid] = True
-    uv, cam = views(seq.X[j].reshape(B, F * len(POINTS), 3), g, elevation)
+    uv, cam = views(seq.X[j].reshape(B, F * len(POINTS), 3), g, elevation, roll)
     uv, cam = uv.view(B, F, len(POINTS), 2), cam.view(B, F, len(POINTS), 3)
     clean = uv
     uv = outlying(uv.reshape(B * F, len(POINTS), 2), g, outliers).view(B, F, len(POINTS), 2)
@@ -320,6 +327,8 @@ def main(argv=None) -> int:
     ap.add_argument("--outliers", type=float, default=0.0,
                     help="share of frames with 1-3 gross 2D errors (a point put on another body part)")
     ap.add_argument("--elevation", type=float, default=25.0, help="views' elevation drawn from +- this (degrees)")
+    ap.add_argument("--roll", type=float, default=0.0,
+                    help="views' roll about the optical axis drawn from +- this (degrees; 0: upright cameras)")
     ap.add_argument("--detections", type=Path, default=None,
                     help="a folder of tools/render_detections.py's pairs (real detector 2D on renders of train clips)")
     ap.add_argument("--detection-share", type=float, default=0.3, help="share of each batch drawn from --detections")
@@ -390,7 +399,7 @@ def main(argv=None) -> int:
         total = 0.0
         for k in range(steps_per_epoch):
             v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch - n_det], offsets, g, args.noise,
-                                  args.drop, args.frame_drop, args.tempo, args.outliers, args.elevation)
+                                  args.drop, args.frame_drop, args.tempo, args.outliers, args.elevation, args.roll)
             if n_det:
                 dv, dm, dy = pairs.batch(torch.randint(0, len(pairs), (n_det,), generator=g, device=dev), g)
                 v, m, y = torch.cat([v, dv]), torch.cat([m, dm]), torch.cat([y, dy])
