@@ -143,6 +143,40 @@ def test_the_chosen_person_is_followed_in_every_frame(tmp_path, person):
     assert other.keypoints[5, 0, 1] > 60
 
 
+class FragmentDetector(ColourDetector):
+    """A :class:`ColourDetector` that sees only the top ``rows`` pixels of the people it
+    finds in the frames ``fragment`` (as a searcher does whose blanked box hides the
+    chosen person's legs)."""
+
+    def __init__(self, scene, fragment=(), rows=12):
+        super().__init__(scene)
+        self.fragment, self.rows = set(fragment), rows
+
+    def detect(self, img):
+        i = self.i
+        det = super().detect(img)
+        if det is None or i not in self.fragment:
+            return det
+        ys, xs = np.nonzero(det.mask)
+        x0, y0, x1 = xs.min(), ys.min(), xs.max() + 1
+        mask = np.zeros_like(det.mask)
+        mask[y0:y0 + self.rows, x0:x1] = True
+        return Detection(stick_keypoints(x0, y0, x1, y0 + self.rows), det.confidence, mask)
+
+
+def test_a_fragment_from_the_searcher_does_not_refuse_the_whole_person(tmp_path):
+    """Where the searcher's candidate of the chosen person is a fragment (a quarter of
+    their height: more than halved), the re-detection of the whole person continues the
+    pass's last detection and is kept, not the fragment."""
+    scene = two_people()
+    track = detect_sequence(scene, tmp_path, ColourDetector(scene), searcher=FragmentDetector(scene, {4, 5, 6, 7}),
+                            progress=False, person=1)
+    assert track.found.all()
+    for i in (4, 5, 6, 7):
+        np.testing.assert_allclose(track.keypoints[i], stick_keypoints(90, 10, 110, 60))
+    assert track.info["person"]["rank"] == 1
+
+
 def test_a_rank_beyond_the_people_found(tmp_path):
     scene = two_people()
     with pytest.raises(InputError, match="only 2 people were found"):

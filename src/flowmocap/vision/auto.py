@@ -718,13 +718,18 @@ def follow_person(seq, detector: PersonDetector, cands: list[list[Candidate]], t
     never does may be the chosen person lost and found again) are filled with the
     image's mean colour (their detection of that frame, else of their nearest frame
     within 3: thick limbs, torso and head cut to their dilated mask), so a tracking
-    detector locks onto the chosen person. A detection counts when it
-    continues the chosen person (:func:`~flowmocap.vision.person.same_person` with their
-    box in that frame, else their nearest box within ``max_gap`` frames), is between
-    half and twice that box's height (a partly hidden person can come out as a
-    collapsed skeleton) and overlaps no other person's box more than theirs; otherwise
-    the detector is reset and the chosen track's own candidate (if any) is kept for
-    that frame.
+    detector locks onto the chosen person. A detection counts when it continues
+    (:func:`_continues`) either the chosen track's candidate of that frame (else of its
+    nearest frame within ``max_gap``) or this pass's last kept detection (within
+    ``max_gap`` frames): the same person by :func:`~flowmocap.vision.person.same_person`,
+    between half and twice that box's height (a partly hidden person can come out as a
+    collapsed skeleton) and overlapping no other person's box more than that one.
+    Either may be the better guide: the searcher saw the chosen person with the others'
+    whole boxes blanked, so where someone stands in front of their legs its candidate
+    is a fragment (on the real3d recording, a man bending over behind a woman came out
+    a third of his height and the full detections were all refused). Otherwise the
+    detector is reset and the chosen track's own candidate (if any) is kept for that
+    frame.
 
     Returns:
         per frame, the chosen person's :class:`Candidate` or None.
@@ -765,22 +770,19 @@ def _follow(seq, detector: PersonDetector, own: dict, others: list[dict], frames
                   initial=frames.start):
         if i % TRIM_EVERY == 0:
             release_free_memory()
+        refs = []  # what a detection may continue: the searcher's candidate, this pass's last one
         ref, gap = nearest(own, i, max_gap)
-        if ref is None and last is not None and i - last[1] <= max_gap:
-            ref, gap = last[0], i - last[1]
-        if ref is None:
+        if ref is not None:
+            refs.append((ref, gap))
+        if last is not None and i - last[1] <= max_gap:
+            refs.append((last[0], i - last[1]))
+        if not refs:
             continue  # the chosen person is nowhere near this frame
         img = seq.frame(i)
         other_now = [c for c in (nearest(o, i, 3)[0] for o in others) if c is not None]
         blanked = _blank_people(img, other_now)
         det = _usable(detector.detect(blanked))
-        ok = det is not None and same_person(ref.box, det.box, max(gap, 1))
-        if ok:  # a person does not halve or double in height from one detection to the next
-            h, h_ref = det.box[3] - det.box[1], ref.box[3] - ref.box[1]
-            ok = 0.5 * h_ref <= h <= 2.0 * h_ref
-        if ok:
-            mine = box_iou(ref.box, det.box)
-            ok = all(box_iou(c.box, det.box) < max(mine, 0.1) for c in other_now)
+        ok = det is not None and any(_continues(det, r, g, other_now) for r, g in refs)
         if ok:
             out[i] = det
             last = (det, i)
@@ -791,6 +793,21 @@ def _follow(seq, detector: PersonDetector, own: dict, others: list[dict], frames
             if out[i] is not None:
                 last = (out[i], i)
     return out
+
+
+def _continues(det: Candidate, ref: Candidate, gap: int, others: list) -> bool:
+    """Whether :func:`follow_person`'s detection ``det`` continues the chosen person's
+    candidate ``ref`` from ``gap`` frames before (0: the same frame): the same person by
+    :func:`~flowmocap.vision.person.same_person`, between half and twice ``ref``'s box
+    height (a person does not halve or double in height from one detection to the next)
+    and overlapping no box of the ``others`` more than ``ref``'s."""
+    if not same_person(ref.box, det.box, max(gap, 1)):
+        return False
+    h, h_ref = det.box[3] - det.box[1], ref.box[3] - ref.box[1]
+    if not 0.5 * h_ref <= h <= 2.0 * h_ref:
+        return False
+    mine = box_iou(ref.box, det.box)
+    return all(box_iou(c.box, det.box) < max(mine, 0.1) for c in others)
 
 
 def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> tuple:
