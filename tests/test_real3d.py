@@ -89,11 +89,17 @@ def test_joints_off_the_skeleton_are_left_out():
     lw, rw = EVAL_NAMES.index("left_wrist"), EVAL_NAMES.index("right_wrist")
     bad[5, [lw, rw]] = bad[5, [rw, lw]]  # wrists swapped
     bad[7, EVAL_NAMES.index("left_knee")] = np.nan
+    ls, le = EVAL_NAMES.index("left_shoulder"), EVAL_NAMES.index("left_elbow")
+    bad[8, ls] += [0.0, 0.0, 0.3]  # a wrong shoulder and wrist, and the elbow between them far off too
+    bad[8, lw] += [0.0, 0.4, 0.0]
+    bad[8, le] += [0.0, 1.2, 0.0]
     ok = consistent_joints(bad, lengths)
     expected = np.ones((10, 13), bool)
     expected[2, lw] = False
     expected[5, [lw, rw]] = False
-    expected[7, EVAL_NAMES.index("left_knee")] = False
+    # a missing knee leaves the ankle with no bone that checks it
+    expected[7, [EVAL_NAMES.index("left_knee"), EVAL_NAMES.index("left_ankle")]] = False
+    expected[8, [ls, le, lw]] = False
     np.testing.assert_array_equal(ok, expected)
 
 

@@ -141,6 +141,9 @@ def consistent_joints(j13: np.ndarray, lengths: np.ndarray, error_px: np.ndarray
     off by more than ``tolerance`` x its median ``lengths``, the joint touching most
     such bones (ties: the larger reprojection error, then the later joint in
     :data:`EVAL_NAMES`, i.e. the more distal) is marked invalid and its bones dropped.
+    Then a joint left with no bone to another valid joint is marked invalid too: nothing
+    checks it any more (real3d's person1 without cam01: once a wrong shoulder and wrist
+    were dropped, the elbow between them, 1.4 m from the hips, stayed and was scored).
 
     Args:
         j13: ``(T, 13, 3)`` metres (NaN = missing).
@@ -163,6 +166,8 @@ def consistent_joints(j13: np.ndarray, lengths: np.ndarray, error_px: np.ndarray
             count = np.bincount(idx[bad].ravel(), minlength=len(EVAL_NAMES))
             key = count * 1e6 + err[t] + np.arange(len(EVAL_NAMES)) * 1e-6
             valid[t, int(np.argmax(np.where(count > 0, key, -1.0)))] = False
+        live = valid[t, idx[:, 0]] & valid[t, idx[:, 1]] & np.isfinite(lengths)
+        valid[t] &= np.bincount(idx[live].ravel(), minlength=len(EVAL_NAMES)) > 0
     return valid
 
 
