@@ -195,12 +195,25 @@ def test_track_and_cli_take_the_person(tmp_path):
     assert build_parser().parse_args(["track", "v.mp4", "--out", "o"]).person == "largest"
 
 
+def test_the_searcher_finds_a_person_inside_the_box_of_the_one_found_first():
+    """The searcher looks with the first person's body blanked, not their box: someone
+    standing within that box (grown by 10 %) but off the body is still found."""
+    from flowmocap.vision.auto import find_people
+
+    first = {i: (10, 20, 50, 110) for i in range(6)}
+    near = {i: (20, 110, 40, 126) for i in range(6)}  # centre (30, 118): inside the grown box's rows 11-118
+    scene = People([first, near], n=6)
+    got = find_people(scene, ColourDetector(scene), ColourDetector(scene), progress=False)
+    assert all(len(g) == 2 for g in got)
+    assert got[3][1].box[1] >= 100  # the second is the one below
+
+
 def test_find_people_searches_beside_the_detector_as_one_after_the_other():
     """find_people runs the searchers of frame i on a thread while the detector looks at
     frame i + 1: each searcher must still see its images in frame order with the people
     found before it blanked, so the candidates equal a plain loop's (three people, two
     searchers, frames the detector misses)."""
-    from flowmocap.vision.auto import _blank, _usable, find_people
+    from flowmocap.vision.auto import _blank_people, _usable, find_people
 
     third = {i: (60, 70, 80, 120) for i in range(12) if i % 4 != 1}
     scene = People(two_people().boxes + [third])
@@ -214,7 +227,7 @@ def test_find_people_searches_beside_the_detector_as_one_after_the_other():
             if c is not None:
                 got.append(c)
                 for s in (s1, s2):
-                    img = _blank(img, got[-1].box)
+                    img = _blank_people(img, [got[-1]])
                     c = _usable(s.detect(img))
                     if c is None:
                         break
