@@ -163,3 +163,35 @@ def test_compiled_energy_in_float32_follows_the_float64_one(setup):
     assert e.dtype == torch.float32 and x.grad.dtype == torch.float32
     np.testing.assert_allclose(float(e.detach()), want, rtol=1e-4)
     np.testing.assert_allclose(x.grad.numpy(), want_grad, rtol=1e-3, atol=1e-6)
+
+
+def test_unknown_pixels_cost_nothing_to_cover(setup):
+    """``silhouette_target(mask, unknown=U)``: the chamfer map is the distance to the mask
+    or U (0 on both), the mask the body must cover stays the mask; a vertex over U adds
+    nothing to the model-outside-the-mask part; a U of another shape is refused."""
+    import numpy as np
+    import pytest
+    import torch
+
+    from flowmocap.errors import InputError
+    from flowmocap.fit.energies import mesh_silhouette_residuals, silhouette_target
+    from flowmocap.vision.masks import chamfer_map
+
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 10:25] = True
+    unknown = np.zeros_like(mask)
+    unknown[5:35, 25:45] = True
+    plain, aware = silhouette_target(mask), silhouette_target(mask, unknown=unknown)
+    assert aware.count == plain.count == mask.sum() and torch.equal(aware.mask, plain.mask)
+    np.testing.assert_array_equal(aware.chamfer.numpy(), chamfer_map(mask | unknown).astype(np.float32))
+    assert float(aware.chamfer[20, 40]) == 0.0 and float(plain.chamfer[20, 40]) == pytest.approx(16.0)
+    # one triangle, two vertices over the unknown pixels, one over the mask
+    px = torch.tensor([[30.0, 12.0], [40.0, 20.0], [15.0, 20.0]], dtype=torch.float64)
+    depth = torch.ones(3, dtype=torch.float64)
+    faces = np.array([[0, 1, 2]])
+    r_plain = mesh_silhouette_residuals(px, depth, faces, silhouette_target(mask, dtype=torch.float64), a=1.0)
+    r_aware = mesh_silhouette_residuals(px, depth, faces, silhouette_target(mask, dtype=torch.float64,
+                                                                            unknown=unknown), a=1.0)
+    assert float(r_plain[:2].min()) > 0 and float(r_aware.abs().max()) == 0.0
+    with pytest.raises(InputError, match="unknown must have the mask's shape"):
+        silhouette_target(mask, unknown=unknown[:, :50])

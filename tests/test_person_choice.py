@@ -244,3 +244,32 @@ def test_find_people_searches_beside_the_detector_as_one_after_the_other():
         for a, b in zip(g, w):
             assert a.box == b.box
             np.testing.assert_array_equal(a.keypoints, b.keypoints)
+
+
+def test_the_other_peoples_pixels_are_stored_with_the_detections(tmp_path):
+    """detect_sequence stores, per frame, where the people it did not keep are seen (their
+    bodies outside the kept person's mask), and a rerun reads them back; a video of one
+    person stores none."""
+    from flowmocap.vision.auto import load_detections, others_region
+
+    scene = two_people()
+    track = detect_sequence(scene, tmp_path / "two", ColourDetector(scene), searcher=ColourDetector(scene),
+                            progress=False)
+    assert track.info["frames_with_others"] == 12
+    for i in (0, 7):
+        other = track.others(i)
+        ys, xs = np.nonzero(other)
+        assert len(xs) > 100 and xs.min() >= 87 and xs.max() <= 112 and ys.min() >= 7 and ys.max() <= 63  # the body, grown a little
+        assert not (other & track.mask(i)).any()
+    again = load_detections(tmp_path / "two")
+    np.testing.assert_array_equal(again.others(7), track.others(7))
+    one = People([two_people().boxes[0]])
+    alone = detect_sequence(one, tmp_path / "one", ColourDetector(one), searcher=ColourDetector(one), progress=False)
+    assert alone.info["frames_with_others"] == 0 and all(alone.others(i) is None for i in range(12))
+    # the kept person's own detection is not someone else
+    own = two_people()
+    det = ColourDetector(own).detect(own.frame(0))
+    from flowmocap.vision.auto import _usable
+
+    cand = _usable(det)
+    assert not others_region([cand], det.mask).any()

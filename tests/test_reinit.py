@@ -291,3 +291,23 @@ def test_minimise_refuses_to_leave_non_finite_parameters():
     with pytest.raises(OptimizationError, match="non-finite"):
         minimise([x], energy, iterations=5)
     assert not torch.isfinite(x).all()  # what the check caught
+
+
+def test_pixels_where_someone_else_is_seen_are_left_out_of_the_iou(setup):
+    """A body half hidden behind someone else: its mask is cut where they stand, so
+    the IoU drops; with those pixels given as the others' (unknown), the body may cover
+    them and the IoU is the visible part's."""
+    seq, track, scene = setup
+    from flowmocap.fit.reinit import body_silhouette
+
+    i = 3
+    st = _state(seq, i)
+    body = body_silhouette(scene, st.pose, st.trans)
+    cols = np.nonzero(body.any(0))[0]
+    front = np.zeros_like(body)
+    front[:, (cols[0] + cols[-1]) // 2:] = True  # someone in front of the body's right half
+    cut = seq.mask(i) & ~front
+    plain = ReinitMonitor(track, TrackerConfig()).judge(i, scene, st.pose, st.trans, cut)["iou"]
+    aware = ReinitMonitor(track, TrackerConfig(), others=lambda j: front & ~cut).judge(i, scene, st.pose, st.trans,
+                                                                                        cut)["iou"]
+    assert plain < 0.7 < 0.9 < aware

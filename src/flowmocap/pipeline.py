@@ -718,12 +718,18 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             region = flow_region([mask, seq.mask(i - 1)])
         return cache.flow(i, seq.frame(i), seq.frame(i - 1), region=region)
 
+    def others(i: int):
+        """Where other people are seen in frame i (the silhouette's unknown pixels), or None."""
+        if not (cfg.occluders_unknown and notes.get("masks") == "automatic" and hasattr(detections, "others")):
+            return None  # a user's masks may include what the detector took for someone else
+        return detections.others(i)
+
     def observe(i: int):
         """Mask and observations of frame i (the person-size fallback for a frame without a
         mask is the tracker's)."""
         mask = seq.mask(i)
         usable = mask if (mask is not None and mask.any()) else None
-        data = frame_data(usable, flow_of(i, usable), cfg, float("nan"), detected(i))
+        data = frame_data(usable, flow_of(i, usable), cfg, float("nan"), detected(i), others(i))
         data.joints3d = detected3d(i)
         return mask, data
 
@@ -738,7 +744,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             scene = Scene(model, torch.as_tensor(log.header["betas"])[None], camera)
             motion = log.motion()
             stored = {int(f): j for f, j in zip(motion["frame_index"], motion["joints2d"])}
-            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, stored))
+            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, stored, others))
             tracker.load_state_dict(committed["state"]["tracker"])
             done = log.rows
         else:
@@ -750,10 +756,10 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
                 terms0 = terms1 = {}
                 anchored = True
             else:
-                d0 = frame_data(mask_of(a), None, cfg, 1.0)
+                d0 = frame_data(mask_of(a), None, cfg, 1.0, unknown=others(a))
                 d0.joints3d = detected3d(a)
                 m1 = mask_of(a + 1)
-                d1 = frame_data(m1, flow_of(a + 1, m1), cfg, d0.person_pixels, detected(a + 1))
+                d1 = frame_data(m1, flow_of(a + 1, m1), cfg, d0.person_pixels, detected(a + 1), others(a + 1))
                 d1.joints3d = detected3d(a + 1)
                 start = initialise(model, camera, init, d0, d1, cfg)
                 scene, s0, s1 = start.scene, start.first, start.second
@@ -763,7 +769,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             timings["init_s"] = time.perf_counter() - t0
             log = FrameLog.start(out, {"betas": scene.betas[0].numpy(), "gender": scene.model.gender, "fps": fps,
                                        "camera": camera.to_dict(), "energy_names": ENERGY_NAMES})
-            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, None))
+            tracker = SequenceTracker(scene, cfg, _monitor(detections, cfg, None, others))
             tracker.start(s0, s1, anchored)
             _append(log, scene, a, s0, terms0, float("nan"), init_events)
             _append(log, scene, a + 1, s1, terms1, float("nan"), [])
@@ -948,5 +954,6 @@ def _record_end(out: Path, run: dict, log: FrameLog | None, timings: dict, statu
             raise
 
 
-def _monitor(detections: PersonTrack | None, cfg: TrackerConfig, stored: dict | None) -> ReinitMonitor | None:
-    return ReinitMonitor(detections, cfg, stored_joints2d=stored) if detections is not None else None
+def _monitor(detections: PersonTrack | None, cfg: TrackerConfig, stored: dict | None,
+             others=None) -> ReinitMonitor | None:
+    return ReinitMonitor(detections, cfg, stored_joints2d=stored, others=others) if detections is not None else None

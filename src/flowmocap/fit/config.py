@@ -127,6 +127,8 @@ class TrackerConfig:
     flow_weight: float = 1.0           # lambda_f, E_f: the rendered flow must match the observed flow
     silhouette_weight: float = 5.0     # lambda_c, E_c: keeps the body inside the person's mask
     silhouette_a: float = 0.6          # a in E_c: > 0.5 tolerates masks wider than the body (clothes)
+    occluders_unknown: bool = True     # E_c and the refits' IoU: pixels where other people are seen
+    #                                    (PersonTrack.others) may hide the person: the body may cover them
     limit_weight: float = 10.0         # lambda_b, E_b: soft joint limits rule out impossible poses
     penetration_weight: float = 10.0   # lambda_sp, E_sp: limbs must not pass through each other
     temporal_weight: float = 0.5       # lambda_theta, E_theta: towards the Kalman prediction, smooths

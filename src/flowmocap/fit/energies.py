@@ -473,19 +473,25 @@ class SilhouetteTarget:
         return int(self.mask.shape[1])
 
 
-def silhouette_target(mask: Any, dtype: torch.dtype = torch.float32, device: Any = None) -> SilhouetteTarget:
+def silhouette_target(mask: Any, dtype: torch.dtype = torch.float32, device: Any = None,
+                      unknown: Any = None) -> SilhouetteTarget:
     """Prepare an image mask for :func:`silhouette_energy`.
 
     Args:
         mask: ``(H, W)`` person mask (bool, or numbers: non-zero = person), numpy or torch.
         dtype, device: of the returned tensors.
+        unknown: optional ``(H, W)`` bool, pixels where the person may be hidden (another
+            person in front, :meth:`~flowmocap.vision.auto.PersonTrack.others`): the
+            chamfer map ``C_I`` is the distance to the nearest pixel of ``mask`` or
+            ``unknown``, so the body may cover them at no cost; ``S_I`` (the mask the
+            body must cover) stays ``mask``.
 
     Returns:
         :class:`SilhouetteTarget` with the mask and its chamfer map
         (:func:`flowmocap.vision.chamfer_map`).
 
     Raises:
-        InputError: not a 2D array. NoPersonError: the mask is empty.
+        InputError: not a 2D array, or ``unknown`` of another shape. NoPersonError: the mask is empty.
     """
     m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
     if m.ndim != 2 or m.size == 0:
@@ -497,7 +503,13 @@ def silhouette_target(mask: Any, dtype: torch.dtype = torch.float32, device: Any
             "the person mask is empty: nothing to fit the silhouette to; check the mask "
             "file or drop the silhouette term for this frame"
         )
-    cham = chamfer_map(m)
+    if unknown is not None:
+        u = np.asarray(unknown) != 0
+        if u.shape != m.shape:
+            raise InputError(f"unknown must have the mask's shape {m.shape}, got {u.shape}")
+        cham = chamfer_map(m | u)
+    else:
+        cham = chamfer_map(m)
     rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
     return SilhouetteTarget(
         mask=torch.as_tensor(m, dtype=dtype, device=device),

@@ -142,7 +142,8 @@ def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int
 
 
 def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,
-               fallback_pixels: float, keypoints: tuple | None = None) -> FrameData:
+               fallback_pixels: float, keypoints: tuple | None = None,
+               unknown: np.ndarray | None = None) -> FrameData:
     """Prepare the observations of one frame for repeated energy evaluations.
 
     Args:
@@ -150,11 +151,14 @@ def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerCon
         flow: ``(H, W, 2)`` observed backward flow in pixels, or None (no ``E_f``).
         fallback_pixels: the person's size in pixels when there is no mask.
         keypoints: a :func:`keypoint_observation`, or None.
+        unknown: ``(H, W)`` bool pixels where someone else may hide the person, or None
+            (:func:`~flowmocap.fit.energies.silhouette_target`; used when
+            ``cfg.occluders_unknown``).
     """
     target = None
     pixels = fallback_pixels
     if mask is not None:
-        target = en.silhouette_target(mask)
+        target = en.silhouette_target(mask, unknown=unknown if cfg.occluders_unknown else None)
         pixels = float(mask.sum())
     targets = []
     if flow is not None:

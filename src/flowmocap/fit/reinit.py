@@ -108,7 +108,8 @@ def joint3d_disagreement(joints_cam: np.ndarray, j3d: np.ndarray, conf: np.ndarr
 
 def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarray, mask: np.ndarray | None,
                      pose0: torch.Tensor, trans0: torch.Tensor, iterations: int | None = None,
-                     joints3d: tuple | None = None, root_distance: float | None = None) -> tuple:
+                     joints3d: tuple | None = None, root_distance: float | None = None,
+                     unknown: np.ndarray | None = None) -> tuple:
     """Fit pose and translation (shape fixed) to one frame's 2D joints and mask.
 
     Steps 1 and 2 of the initialisation (:func:`flowmocap.fit.init.fit_frame0`) with the
@@ -125,11 +126,13 @@ def fit_to_detection(scene, cfg: TrackerConfig, j2d: np.ndarray, conf: np.ndarra
             :func:`~flowmocap.fit.init.fit_to_joints`), or None.
         root_distance: metres: the root's distance from the camera to stay near
             (``cfg.reinit_depth_weight``), or None.
+        unknown: ``(H, W)`` bool pixels where someone else may hide the person
+            (:func:`~flowmocap.fit.energies.silhouette_target`), or None.
 
     Returns:
         ``pose (72,)``, ``trans (3,)`` and the final energy (float).
     """
-    sil = en.silhouette_target(mask) if mask is not None and mask.any() else None
+    sil = en.silhouette_target(mask, unknown=unknown) if mask is not None and mask.any() else None
     pose, trans, _, terms = fit_to_joints(scene.model, scene.camera, j2d, conf, sil, cfg, pose0, trans0,
                                           scene.betas, fit_shape=False, iterations=iterations, joints3d=joints3d,
                                           joints_from_detector=True, root_distance=root_distance)
@@ -158,9 +161,13 @@ class ReinitMonitor:
 
     def __init__(self, track: PersonTrack, cfg: TrackerConfig, stored_joints2d: dict | None = None,
                  min_iou: float | None = None, max_joint_error: float | None = None, patience: int | None = None,
-                 max_joint3d_error: float | None = None, patience3d: int | None = None):
+                 max_joint3d_error: float | None = None, patience3d: int | None = None, others=None):
         self.track = track
         self.cfg = cfg
+        #: ``others(i)``: frame ``i``'s pixels where someone else may hide the person (``(H, W)``
+        #: bool or None; ``PersonTrack.others``), left out of the IoU and unknown to the refit's
+        #: silhouette; None: none anywhere
+        self.others = others
         self.stored = dict(stored_joints2d or {})
         self.min_iou = cfg.reinit_min_iou if min_iou is None else min_iou
         self.max_joint_error = cfg.reinit_max_joint_error if max_joint_error is None else max_joint_error
@@ -177,6 +184,9 @@ class ReinitMonitor:
         #: frames whose detection the tracker exchanged left for right (``detector_swap_check``):
         #: judged and refitted against the exchanged detection
         self.exchanged: set[int] = set()
+
+    def _unknown(self, i: int) -> np.ndarray | None:
+        return self.others(i) if self.others is not None else None
 
     def _joints(self, i: int):
         """Frame ``i``'s detected ``(j2d (24, 2), conf (24,))``, exchanged where the tracker did."""
@@ -218,7 +228,11 @@ class ReinitMonitor:
             dp = detector_points(out, self.cfg)[0]
             pj = scene.camera.project(dp).numpy()
         err = joint_disagreement(pj, j2d, conf) if j2d is not None else None
-        iou = mask_iou(body_silhouette(scene, pose, trans), mask) if mask is not None and mask.any() else None
+        iou = None
+        if mask is not None and mask.any():
+            body = body_silhouette(scene, pose, trans)
+            hidden = self._unknown(i)
+            iou = mask_iou(body if hidden is None else body & ~hidden, mask)
         if err is None and iou is None:
             bad = None
         else:
@@ -305,7 +319,7 @@ class ReinitMonitor:
             try:
                 pose, trans, e = fit_to_detection(scene, self.cfg, j2d, conf, mask, pose0, trans0,
                                                   iterations=self.cfg.reinit_iterations, joints3d=joints3d,
-                                                  root_distance=distance)
+                                                  root_distance=distance, unknown=self._unknown(i))
             except OptimizationError:
                 continue
             if math.isfinite(e) and (best is None or e < best[2]):

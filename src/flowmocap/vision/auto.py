@@ -8,6 +8,9 @@ frame, keeps one person, cleans the masks and writes::
                                           names (K,), box (T, 4) px, world (T, K, 3) m (the
                                           detector's 3D guess, NaN where it gives none)
     OUT/detections/detections.json        detector, size, frames with no person, people ignored
+    OUT/detections/others/000000.png ...  where someone else is seen in a frame (0 / 255): the other
+                                          people's bodies outside the kept person's mask; only
+                                          frames with some, and none for a video of one person
 
 A rerun (or ``--resume``) with the same detector and frames reuses them. :func:`auto_init`
 turns one frame's keypoints into an ``init.json`` dict (the schema of
@@ -87,6 +90,8 @@ class PersonTrack:
         world: ``(T, K, 3)`` metres, the detector's 3D keypoints
             (:attr:`~flowmocap.vision.detect.Detection.world`), NaN where it gave none;
             None for detections stored without them.
+        others_dir: the folder of the other people's regions (:meth:`others`), or None
+            (detections stored before it, or made without a search for other people).
     """
 
     keypoints: np.ndarray
@@ -95,6 +100,7 @@ class PersonTrack:
     mask_paths: list[Path]
     info: dict = field(default_factory=dict)
     world: np.ndarray | None = None
+    others_dir: Path | None = None
 
     def __len__(self) -> int:
         return len(self.found)
@@ -104,6 +110,22 @@ class PersonTrack:
         import cv2
 
         return cv2.imread(str(self.mask_paths[i]), cv2.IMREAD_GRAYSCALE) > 0
+
+    def others(self, i: int) -> np.ndarray | None:
+        """``(H, W)`` bool: the pixels of frame ``i`` where other people are seen, outside
+        the kept person's mask (their bodies as :func:`follow_person` blanks them), or None
+        where nobody else is. Someone in front may hide the kept person there, so the
+        silhouette term treats these pixels as unknown
+        (:func:`~flowmocap.fit.energies.silhouette_target`)."""
+        if self.others_dir is None or i < 0 or i >= len(self):
+            return None
+        p = Path(self.others_dir) / f"{i:06d}.png"
+        if not p.exists():
+            return None
+        import cv2
+
+        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        return None if m is None or not m.any() else m > 0
 
     def _in_smpl_order(self, values: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``i``'s per-keypoint ``values (K, d)`` and confidences as ``(24, d)`` and
@@ -150,6 +172,38 @@ def _mask_dir(out_dir: Path) -> Path:
     return Path(out_dir) / "detections" / "masks"
 
 
+def _others_dir(out_dir: Path) -> Path:
+    return Path(out_dir) / "detections" / "others"
+
+
+#: A candidate counts as someone else in a frame (:func:`others_region`) when less than
+#: this share of its body lies in the kept person's mask.
+OTHER_MAX_INSIDE = 0.5
+
+
+def others_region(cands: list, mask: np.ndarray) -> np.ndarray:
+    """The pixels of one frame where people other than the kept one are seen.
+
+    Args:
+        cands: the frame's :class:`Candidate` s (:func:`find_people`), the kept person's
+            own among them or not.
+        mask: ``(H, W)`` bool, the kept person's mask.
+
+    Returns:
+        ``(H, W)`` bool: the union of the bodies (:func:`_body_region`) of the candidates
+        with less than :data:`OTHER_MAX_INSIDE` of their body inside ``mask`` (the kept
+        person's own detection and fragments of it are not someone else), less ``mask``.
+    """
+    m = np.asarray(mask, bool)
+    out = np.zeros(m.shape, bool)
+    for c in cands:
+        body = _body_region(c, m.shape)
+        n = int(body.sum())
+        if n and (body & m).sum() < OTHER_MAX_INSIDE * n:
+            out |= body
+    return out & ~m
+
+
 def load_detections(out_dir: str | Path, detector_name: str | None = None, num_frames: int | None = None,
                     size: tuple[int, int] | None = None) -> PersonTrack | None:
     """Stored detections of ``out_dir``, or None when absent or made for other input/settings."""
@@ -169,8 +223,9 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
     paths = [_mask_dir(out_dir) / f"{i:06d}.png" for i in range(len(arrays["found"]))]
     if not all(p.exists() for p in paths):
         return None
+    others = _others_dir(out_dir)
     return PersonTrack(arrays["keypoints"], arrays["confidence"], arrays["found"].astype(bool), paths, info,
-                       arrays.get("world"))
+                       arrays.get("world"), others if info.get("others_stored") else None)
 
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
@@ -551,15 +606,29 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
 
     empty = np.zeros((H, W), np.uint8)
     paths = []
+    odir = _others_dir(out_dir)
+    if odir.exists():  # from an earlier pass
+        for old in odir.glob("*.png"):
+            old.unlink()
+    odir.mkdir(parents=True, exist_ok=True)
+    with_others = 0
     for i in range(T):
         p = mdir / f"{i:06d}.png"
-        cv2.imwrite(str(p), empty if masks[i] is None else _mask_array(masks[i]).astype(np.uint8) * 255)
+        own = None if masks[i] is None else _mask_array(masks[i])
+        cv2.imwrite(str(p), empty if own is None else own.astype(np.uint8) * 255)
         paths.append(p)
+        if own is not None and len(cands[i]) > 0:
+            region = others_region(cands[i], own)
+            if region.any():
+                cv2.imwrite(str(odir / f"{i:06d}.png"), region.astype(np.uint8) * 255)
+                with_others += 1
     info = {
         "detector": name, "frames": T, "size": [W, H], "keypoint_names": list(KEYPOINT_NAMES),
         "frames_with_person": int(found.sum()),
         "no_person": frame_runs(np.nonzero(~found)[0]),
         "ignored_people": ignored,
+        "others_stored": True,
+        "frames_with_others": with_others,
         "person": {"choice": describe_person(choice),
                    "rank": rank.index(main) if tracks else None,
                    "people": people,
@@ -575,7 +644,8 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
     if not found.any():
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
                             "check that a whole person is visible, or give --init init.json and --masks FOLDER.")
-    return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32))
+    return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32),
+                       odir)
 
 
 class PackedMask(NamedTuple):
