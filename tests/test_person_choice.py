@@ -273,3 +273,26 @@ def test_the_other_peoples_pixels_are_stored_with_the_detections(tmp_path):
 
     cand = _usable(det)
     assert not others_region([cand], det.mask).any()
+
+
+def test_what_is_left_of_a_blanked_person_is_not_found_again():
+    """A searcher that finds the first person again in what blanking left of them (a
+    dress, hair) gives their own pose: that is not a second person."""
+    from flowmocap.vision.auto import find_people
+
+    class Echo(ColourDetector):
+        """Sees the first person again wherever their colour still shows."""
+
+        def detect(self, img):
+            i = self.i
+            self.i += 1
+            x0, y0, x1, y1 = self.scene.boxes[0][i]
+            if not (img[y0:y1, x0:x1] == People.COLOURS[0]).all(-1).any():
+                return None
+            mask = np.zeros(img.shape[:2], bool)
+            mask[y0:y1, x0:x1] = True
+            return Detection(stick_keypoints(x0, y0, x1, y1) + 1.0, np.full(15, 0.9), mask)
+
+    scene = People([{i: (10, 20, 50, 126) for i in range(12)}])
+    got = find_people(scene, ColourDetector(scene), Echo(scene), progress=False)
+    assert all(len(g) == 1 for g in got)
