@@ -247,19 +247,24 @@ def test_find_people_searches_beside_the_detector_as_one_after_the_other():
 
 
 def test_the_other_peoples_pixels_are_stored_with_the_detections(tmp_path):
-    """detect_sequence stores, per frame, where the people it did not keep are seen (their
-    bodies outside the kept person's mask), and a rerun reads them back; a video of one
-    person stores none."""
+    """detect_sequence stores, per frame, where people nearer the camera than the kept one
+    are seen (their bodies outside the kept person's mask; nearer: their feet lower in the
+    image), and a rerun reads them back; someone further away, or a video of one person,
+    stores none."""
     from flowmocap.vision.auto import load_detections, others_region
 
-    scene = two_people()
+    scene = two_people()  # the big person's feet at row 126, the small one's at 60: the big one is nearer
+    behind = detect_sequence(scene, tmp_path / "big", ColourDetector(scene), searcher=ColourDetector(scene),
+                             progress=False)
+    assert behind.info["frames_with_others"] == 0 and behind.others(3) is None
     track = detect_sequence(scene, tmp_path / "two", ColourDetector(scene), searcher=ColourDetector(scene),
-                            progress=False)
+                            progress=False, person=1)
     assert track.info["frames_with_others"] == 12
     for i in (0, 7):
         other = track.others(i)
         ys, xs = np.nonzero(other)
-        assert len(xs) > 100 and xs.min() >= 87 and xs.max() <= 112 and ys.min() >= 7 and ys.max() <= 63  # the body, grown a little
+        x0, y0, x1, y1 = scene.boxes[0][i]  # the big person's box; their body, grown a little
+        assert len(xs) > 500 and xs.min() >= x0 - 5 and xs.max() < x1 + 5 and ys.min() >= y0 - 5 and ys.max() < y1 + 5
         assert not (other & track.mask(i)).any()
     again = load_detections(tmp_path / "two")
     np.testing.assert_array_equal(again.others(7), track.others(7))

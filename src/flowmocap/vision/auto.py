@@ -8,9 +8,10 @@ frame, keeps one person, cleans the masks and writes::
                                           names (K,), box (T, 4) px, world (T, K, 3) m (the
                                           detector's 3D guess, NaN where it gives none)
     OUT/detections/detections.json        detector, size, frames with no person, people ignored
-    OUT/detections/others/000000.png ...  where someone else is seen in a frame (0 / 255): the other
-                                          people's bodies outside the kept person's mask; only
-                                          frames with some, and none for a video of one person
+    OUT/detections/others/000000.png ...  where someone nearer the camera is seen in a frame (0 / 255):
+                                          the bodies of the people whose feet are lower in the
+                                          image, outside the kept person's mask; only frames
+                                          with some, none for a video of one person
 
 A rerun (or ``--resume``) with the same detector and frames reuses them. :func:`auto_init`
 turns one frame's keypoints into an ``init.json`` dict (the schema of
@@ -112,11 +113,12 @@ class PersonTrack:
         return cv2.imread(str(self.mask_paths[i]), cv2.IMREAD_GRAYSCALE) > 0
 
     def others(self, i: int) -> np.ndarray | None:
-        """``(H, W)`` bool: the pixels of frame ``i`` where other people are seen, outside
-        the kept person's mask (their bodies as :func:`follow_person` blanks them), or None
-        where nobody else is. Someone in front may hide the kept person there, so the
-        silhouette term treats these pixels as unknown
-        (:func:`~flowmocap.fit.energies.silhouette_target`)."""
+        """``(H, W)`` bool: the pixels of frame ``i`` where people nearer the camera than
+        the kept one are seen (their feet lower in the image), outside the kept person's
+        mask (their bodies as :func:`follow_person` blanks them, :func:`others_region`), or
+        None where nobody is. They may hide the kept person there, so the silhouette term
+        treats these pixels as unknown (:func:`~flowmocap.fit.energies.silhouette_target`);
+        someone further away hides nothing and stays background."""
         if self.others_dir is None or i < 0 or i >= len(self):
             return None
         p = Path(self.others_dir) / f"{i:06d}.png"
@@ -618,7 +620,10 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
         cv2.imwrite(str(p), empty if own is None else own.astype(np.uint8) * 255)
         paths.append(p)
         if own is not None and len(cands[i]) > 0:
-            region = others_region(cands[i], own)
+            # only people nearer the camera may hide the kept one: standing on the same floor
+            # below the camera, the nearer has their feet lower in the image (track_scores)
+            front = [c for c in cands[i] if boxes[i] is not None and c.box[3] > boxes[i][3]]
+            region = others_region(front, own)
             if region.any():
                 cv2.imwrite(str(odir / f"{i:06d}.png"), region.astype(np.uint8) * 255)
                 with_others += 1
