@@ -177,6 +177,41 @@ def test_a_fragment_from_the_searcher_does_not_refuse_the_whole_person(tmp_path)
     assert track.info["person"]["rank"] == 1
 
 
+class SlidingDetector(ColourDetector):
+    """A :class:`ColourDetector` that, from the second pass on (the follow pass), takes
+    person 1 over person 0 from frame ``slide`` wherever person 1 shows, as MediaPipe's
+    tracking slid from the man onto the woman behind him on the real3d recording's cam03."""
+
+    def __init__(self, scene, slide=6):
+        self.passes, self.slide = 0, slide
+        super().__init__(scene)
+
+    def reset(self):
+        super().reset()
+        self.passes += 1
+
+    def detect(self, img):
+        if self.passes > 2 and self.i >= self.slide:  # made (1), reset by the search (2), by the follow pass (3)
+            self.locked = 1
+        return super().detect(img)
+
+
+def test_a_person_the_search_lost_stays_blanked_for_a_while(tmp_path):
+    """The searcher stops finding the small person from frame 6 (merged with the big one,
+    who stands beside them); the follow pass still blanks them at their last detection
+    for LOST_HOLD frames, so its detector, which would slide onto them, keeps the big one."""
+    big = {i: (10 + 2 * i, 20, 50 + 2 * i, 126) for i in range(12)}
+    small = {i: (55, 40, 85, 100) for i in range(12)}
+    scene = People([big, small])
+    miss = set(range(6, 12))
+    track = detect_sequence(scene, tmp_path, SlidingDetector(scene), searcher=ColourDetector(scene, miss=miss),
+                            progress=False, person="30,70")  # a point, not rank 0: the follow pass runs
+    assert track.info["person"]["rank"] == 0 and track.found.all()
+    for i in range(12):
+        x0, y0, x1, y1 = big[i]
+        np.testing.assert_allclose(track.keypoints[i], stick_keypoints(x0, y0, x1, y1))
+
+
 def test_a_rank_beyond_the_people_found(tmp_path):
     scene = two_people()
     with pytest.raises(InputError, match="only 2 people were found"):

@@ -84,7 +84,7 @@ REF_MAX_ERROR_PX = 20.0
 ASSOCIATE_MAX_PX = 40.0
 OFFSET_SEARCH = range(-15, 16)
 #: Change whenever the detections per view would come out differently (their cache is rebuilt).
-DETECTION_VERSION = 5  # 4: the follow pass keeps whole detections; the searcher blanks bodies, not boxes; 5: ... and drops what it finds again of a blanked person
+DETECTION_VERSION = 6  # 4: the follow pass keeps whole detections; the searcher blanks bodies, not boxes; 5: ... and drops what it finds again of a blanked person; 6: the follow pass blanks a person the search lost for 15 frames more
 #: Change whenever the reference would come out differently from the same detections.
 REFERENCE_VERSION = 3
 METHODS = ("flowmocap", "detector3d", "flowmocap_kp")
