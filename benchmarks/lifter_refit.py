@@ -173,8 +173,13 @@ def main() -> int:
     ap.add_argument("--raw-detections", action="store_true",
                     help="the lifter reads every detection as it came, also those the tracker exchanged left for "
                          "right (the pipeline before 2026-11-27's thirteenth session)")
+    ap.add_argument("--reg", type=float, default=0.3,
+                    help="the refit's pull towards the tracked joint rotations, radians (lifter_refit_motion's reg)")
+    ap.add_argument("--sigma", type=float, default=0.02,
+                    help="the refit's scale of the keypoint targets, metres (lifter_refit_motion's sigma)")
     ap.add_argument("--out")
     a = ap.parse_args()
+    OPTIONS["reg"], OPTIONS["sigma"] = a.reg, a.sigma
     if not (a.real3d or a.diverse or a.seeds):
         ap.error("give at least one of --real3d, --diverse, --seeds")
     if a.pixel_sigma:
@@ -193,7 +198,7 @@ def main() -> int:
     SMOOTH_S = a.smooth_after
     POSES_S = a.smooth_poses
     result = {"weight": a.weight, "pixel_sigma": a.pixel_sigma, "blend": a.blend, "lifter_input": a.lifter_input,
-              "iterations": a.iterations,
+              "iterations": a.iterations, "reg": a.reg, "sigma": a.sigma,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses,
               "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip, "stance_share": a.stance}

@@ -120,7 +120,7 @@ def test_largest_and_rank_zero_are_todays_behaviour(tmp_path):
     a = detect_sequence(scene, tmp_path / "a", ColourDetector(scene), searcher=ColourDetector(scene), progress=False)
     b = detect_sequence(scene, tmp_path / "b", ColourDetector(scene), searcher=ColourDetector(scene), progress=False,
                         person=0)
-    assert a.info["detector"] == b.info["detector"] == "colour+search:colour"
+    assert a.info["detector"] == b.info["detector"] == "colour+search:colour+follow"
     np.testing.assert_array_equal(a.keypoints, b.keypoints)
     assert a.found.all() and a.keypoints[3, 0, 1] > 60  # the big person's hip
     assert a.info["person"]["choice"] == "largest" and a.info["person"]["rank"] == 0
@@ -196,20 +196,37 @@ class SlidingDetector(ColourDetector):
         return super().detect(img)
 
 
-def test_a_person_the_search_lost_stays_blanked_for_a_while(tmp_path):
+@pytest.mark.parametrize("person", ["30,70", "largest"])
+def test_a_person_the_search_lost_stays_blanked_for_a_while(tmp_path, person):
     """The searcher stops finding the small person from frame 6 (merged with the big one,
     who stands beside them); the follow pass still blanks them at their last detection
-    for LOST_HOLD frames, so its detector, which would slide onto them, keeps the big one."""
+    for LOST_HOLD frames, so its detector, which would slide onto them, keeps the big one.
+    The largest person, the default, is followed too, since someone else shares frames."""
     big = {i: (10 + 2 * i, 20, 50 + 2 * i, 126) for i in range(12)}
     small = {i: (55, 40, 85, 100) for i in range(12)}
     scene = People([big, small])
     miss = set(range(6, 12))
     track = detect_sequence(scene, tmp_path, SlidingDetector(scene), searcher=ColourDetector(scene, miss=miss),
-                            progress=False, person="30,70")  # a point, not rank 0: the follow pass runs
+                            progress=False, person=person)
     assert track.info["person"]["rank"] == 0 and track.found.all()
     for i in range(12):
         x0, y0, x1, y1 = big[i]
         np.testing.assert_allclose(track.keypoints[i], stick_keypoints(x0, y0, x1, y1))
+
+
+@pytest.mark.parametrize("stray_frames", [0, 2])
+def test_a_person_alone_is_not_detected_again(tmp_path, stray_frames):
+    """With nobody else in their frames, or someone in fewer than a quarter of them (a
+    stray detection), the largest person's detections are the search's: the detector runs
+    over the video once (made, then reset by the search only)."""
+    big = {i: (10 + 2 * i, 20, 50 + 2 * i, 126) for i in range(12)}
+    stray = {i: (90, 10, 110, 60) for i in range(stray_frames)}
+    scene = People([big, stray])
+    det = SlidingDetector(scene)
+    track = detect_sequence(scene, tmp_path, det, searcher=ColourDetector(scene), progress=False)
+    assert track.found.all() and det.passes == 2
+    assert len(track.info["person"]["people"]) == (2 if stray_frames else 1)
+    assert "re-detected" not in track.info["person"]["note"]
 
 
 def test_a_rank_beyond_the_people_found(tmp_path):
