@@ -16,7 +16,8 @@ it: the tracking is the same, only the finished motion changes. For each suite g
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
        [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
-       [--smooth-poses S] [--stance SHARE] [--raw-detections] [--lifter-flip] [--out PREFIX]
+       [--smooth-poses S] [--stance SHARE] [--raw-detections] [--lifter-flip] [--reg RAD] [--sigma M]
+       [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
