@@ -858,7 +858,7 @@ def _chosen_and_others(cands, tracks, chosen: int) -> tuple[dict, list[dict]]:
     or the detector took the two for one), and they are still there; left unblanked, a
     tracking detector slides from the chosen person onto them (on the real3d recording's
     cam03 the man's detections moved onto the woman once the search stopped finding her
-    at frame 82: 11 of his last 15 frames more than 20 px from the reference, 3 with the
+    at frame 82: 11 of his 100 frames more than 20 px from the reference, 3 with the
     hold)."""
     own = {i: cands[i][c] for i, c in tracks[chosen]}
     others = []
