@@ -368,3 +368,12 @@ def test_keypoint_joints_put_the_fit_at_the_detectors_keypoints():
     np.testing.assert_allclose(pts[:, 0], kmap.ears_middle(J, T), atol=1e-5)
     assert EVAL_NAMES[0] == "head"
     assert np.linalg.norm(pts[:, 0] - J[:, EVAL_JOINTS[0]], axis=-1).min() > 0.01  # the ears are not the head joint
+
+
+def test_offset_margins_say_how_well_the_offsets_are_determined():
+    from flowmocap.eval.real3d import offset_margins
+
+    info = {"offset_cost": {"cam02": [3.0, 2.1, 2.0, 2.5], "cam03": [None, 4.0, 2.0, None], "cam04": [None, None]}}
+    m = offset_margins(info)
+    assert m == pytest.approx({"cam02": 0.05, "cam03": 1.0})  # the better neighbour; cam04 has no finite cost
+    assert offset_margins({}) == {}

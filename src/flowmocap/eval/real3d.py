@@ -778,14 +778,33 @@ def _mean_rows(rows: list[dict]) -> dict:
     return out
 
 
+def offset_margins(reference_info: dict) -> dict:
+    """Per view, how much worse the better neighbouring offset of the chosen one scores
+    (the reference's ``offset_cost`` at offset +-1 over its cost at the offset chosen,
+    minus 1): how well the detections determine the time offset. Views without a finite
+    cost are left out."""
+    cost, out = reference_info.get("offset_cost") or {}, {}
+    for view, values in cost.items():
+        c = np.array([np.inf if x is None else x for x in values], float)
+        k = int(np.argmin(c))
+        near = [c[j] for j in (k - 1, k + 1) if 0 <= j < len(c) and np.isfinite(c[j])]
+        if np.isfinite(c[k]) and c[k] > 0 and near:
+            out[view] = float(min(near) / c[k] - 1.0)
+    return out
+
+
 def format_real3d_table(result: dict) -> str:
     """The benchmark's result as Markdown: one row per person-view and the mean."""
     ref = result["reference"]
     s = result["settings"]
+    margins = offset_margins(ref)
     lines = ["# flowmocap bench: suite `real3d` (Pose2Sim multi-person, 4 calibrated views)", "",
              f"Reference: {ref['people_found']} people associated across views, the {len(ref['people'])} seen longest "
              f"used; time offsets to cam01 (frames at 60 fps): "
              + ", ".join(f"{v} {o:+d}" for v, o in ref["offsets"].items())
+             + (" (a frame more or less costs only " + ", ".join(f"{v} {100 * m:.1f} %" for v, m in margins.items())
+                + " more: the offsets, and with them single person-views, can move by a frame whenever the "
+                "detections change)" if margins else "")
              + f"; median reprojection error {ref['median_reprojection_px']:.1f} px (full resolution, all views).",
              f"Runs: `flowmocap track VIDEO --person x,y --max-size {s['max_size']}`"
              + (f" on the first {s['frames']} frames" if s.get("frames") else "")
