@@ -377,3 +377,18 @@ def test_offset_margins_say_how_well_the_offsets_are_determined():
     m = offset_margins(info)
     assert m == pytest.approx({"cam02": 0.05, "cam03": 1.0})  # the better neighbour; cam04 has no finite cost
     assert offset_margins({}) == {}
+
+
+def test_pinned_offsets_replace_the_estimate():
+    from flowmocap.errors import InputError
+    from flowmocap.eval.real3d import PINNED_OFFSETS, VIEWS, reference_offsets
+
+    est = np.array([0, -1, -4, -1])
+    np.testing.assert_array_equal(reference_offsets(est, None), est)
+    np.testing.assert_array_equal(reference_offsets(est, {"cam01": 0, "cam02": 0, "cam03": -2, "cam04": 0}),
+                                  [0, 0, -2, 0])
+    assert PINNED_OFFSETS is None or (set(PINNED_OFFSETS) == set(VIEWS) and PINNED_OFFSETS["cam01"] == 0)
+    with pytest.raises(InputError, match="lack cam04"):
+        reference_offsets(est, {"cam01": 0, "cam02": 0, "cam03": -2})
+    with pytest.raises(InputError, match="whole frames"):
+        reference_offsets(est, {"cam01": 0, "cam02": 0.5, "cam03": -2, "cam04": 0})

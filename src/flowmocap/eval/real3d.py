@@ -19,7 +19,9 @@ The reference is built with the project's own code and cached in ``OUT/reference
    the reference view (cam01) is paired with every track of each other view at every
    offset in [-15, 15] frames; a pair whose two-view triangulation reprojects within
    ``max_px`` (median over joints and frames) is the same person. The offsets are then
-   :func:`~flowmocap.geometry.triangulate.estimate_offsets` over all matched people.
+   :func:`~flowmocap.geometry.triangulate.estimate_offsets` over all matched people; that
+   estimate is reported, but the reference uses :data:`PINNED_OFFSETS` (it is uncertain by
+   about a frame and moved with every change of the detection code).
 3. **Triangulation** (:func:`triangulate_person`): robust, confidence-weighted DLT
    (:func:`~flowmocap.geometry.triangulate.triangulate`, the worst view dropped while it
    reprojects more than 20 px off and two views remain) of the 15 detector keypoints at
@@ -86,7 +88,17 @@ OFFSET_SEARCH = range(-15, 16)
 #: Change whenever the detections per view would come out differently (their cache is rebuilt).
 DETECTION_VERSION = 6  # 4: the follow pass keeps whole detections; the searcher blanks bodies, not boxes; 5: ... and drops what it finds again of a blanked person; 6: the follow pass blanks a person the search lost for 15 frames more
 #: Change whenever the reference would come out differently from the same detections.
-REFERENCE_VERSION = 3
+REFERENCE_VERSION = 4  # 4: the time offsets pinned (PINNED_OFFSETS)
+#: The views' time offsets the reference uses (frames at 60 fps: view v's frame f shows
+#: cam01's frame f + offset), or None to use the estimate. The estimate
+#: (:func:`associate_people`) is made and reported every time the reference is built, but
+#: its costs a frame either way lie within 0.3-1.2 % of the best, and it moved by one or
+#: two frames with each change of the detection code (detections v3: cam02 -1, cam03 -3,
+#: cam04 -1; v5: -1, -4, -1; v6: 0, -2, 0), moving single person-views by up to 11 mm for
+#: the same runs; fitted between frames it moves as much. The synchronisation is the
+#: recording's, not the code's: pinned at the estimate of detections v6, so that the
+#: reference changes only with the points it triangulates.
+PINNED_OFFSETS: dict | None = {"cam01": 0, "cam02": 0, "cam03": -2, "cam04": 0}
 METHODS = ("flowmocap", "detector3d", "flowmocap_kp")
 
 
@@ -320,6 +332,25 @@ def associate_people(cameras: list[CalibratedCamera], view_tracks: list[list[tup
     return {"people": people, "tracks": merged, "offsets": offsets, "offset_cost": ocost, "pair_cost": pair_cost}
 
 
+def reference_offsets(estimated, pinned: dict | None = None, views=VIEWS) -> np.ndarray:
+    """``(V,)`` ints: the time offsets the reference uses, ``pinned`` (view name -> frames,
+    :data:`PINNED_OFFSETS`) where given, else the ``estimated`` ones (``(V,)``, in the
+    order of ``views``).
+
+    Raises:
+        InputError: ``pinned`` leaves out a view or holds a non-integer offset.
+    """
+    estimated = np.asarray(estimated, int)
+    if pinned is None:
+        return estimated.copy()
+    missing = [v for v in views if v not in pinned]
+    if missing:
+        raise InputError(f"pinned offsets lack {', '.join(missing)}; give one per view or None.")
+    if any(int(pinned[v]) != pinned[v] for v in views):
+        raise InputError(f"pinned offsets must be whole frames; got {pinned}.")
+    return np.array([int(pinned[v]) for v in views], int)
+
+
 def _merge_tracks(tracks: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
     kp, conf = tracks[0][0].copy(), tracks[0][1].copy()
     for k2, c2 in tracks[1:]:
@@ -422,7 +453,8 @@ def build_reference(out_dir: str | Path, data_dir: str | Path = DATA, progress: 
     settings = {"version": REFERENCE_VERSION, "detection_version": DETECTION_VERSION, "files": _file_hashes(data_dir),
                 "detector_max_side": REF_MAX_SIDE,
                 "max_error_px": REF_MAX_ERROR_PX, "associate_max_px": ASSOCIATE_MAX_PX,
-                "offset_search": [min(OFFSET_SEARCH), max(OFFSET_SEARCH)], "main_people": main_people}
+                "offset_search": [min(OFFSET_SEARCH), max(OFFSET_SEARCH)], "main_people": main_people,
+                "pinned_offsets": PINNED_OFFSETS}
     cached = _load_reference(ref_dir, settings, cameras)
     if cached is not None:
         say(f"reference: cached in {ref_dir}")
@@ -450,7 +482,7 @@ def build_reference(out_dir: str | Path, data_dir: str | Path = DATA, progress: 
     if not assoc["people"]:
         raise DataError("no person of cam01 could be matched in another view; the reference cannot be built "
                         f"(pair costs: {[None if c is None else np.round(c, 1).tolist() for c in assoc['pair_cost']]}).")
-    offsets = assoc["offsets"]
+    offsets = reference_offsets(assoc["offsets"], PINNED_OFFSETS)
     coverage = [sum(int(np.isfinite(tr[0][:, 0, 0]).sum()) for tr in trs if tr is not None)
                 for trs in assoc["tracks"]]
     order = sorted(range(len(coverage)), key=lambda p: -coverage[p])[:main_people]
@@ -485,6 +517,8 @@ def build_reference(out_dir: str | Path, data_dir: str | Path = DATA, progress: 
         "views": list(VIEWS),
         "offsets": {v: int(o) for v, o in zip(VIEWS, offsets)},
         "offsets_note": "view v's frame f shows the instant of cam01's frame f + offset[v]",
+        "offsets_pinned": PINNED_OFFSETS is not None,
+        "offsets_estimated": {v: int(o) for v, o in zip(VIEWS, assoc["offsets"])},
         "offset_search": list(OFFSET_SEARCH),
         "offset_cost": {v: [None if not np.isfinite(x) else round(float(x), 3) for x in assoc["offset_cost"][c]]
                         for c, v in enumerate(VIEWS) if c != 0},
@@ -802,9 +836,13 @@ def format_real3d_table(result: dict) -> str:
              f"Reference: {ref['people_found']} people associated across views, the {len(ref['people'])} seen longest "
              f"used; time offsets to cam01 (frames at 60 fps): "
              + ", ".join(f"{v} {o:+d}" for v, o in ref["offsets"].items())
+             + (" (pinned; the detections' estimate now: "
+                + ", ".join(f"{v} {o:+d}" for v, o in ref["offsets_estimated"].items()) + ")"
+                if ref.get("offsets_pinned") else "")
              + (" (a frame more or less costs only " + ", ".join(f"{v} {100 * m:.1f} %" for v, m in margins.items())
-                + " more: the offsets, and with them single person-views, can move by a frame whenever the "
-                "detections change)" if margins else "")
+                + " more in the estimate" + ("" if ref.get("offsets_pinned") else
+                                             ": the offsets, and with them single person-views, can move by a "
+                                             "frame whenever the detections change") + ")" if margins else "")
              + f"; median reprojection error {ref['median_reprojection_px']:.1f} px (full resolution, all views).",
              f"Runs: `flowmocap track VIDEO --person x,y --max-size {s['max_size']}`"
              + (f" on the first {s['frames']} frames" if s.get("frames") else "")
