@@ -178,8 +178,20 @@ def main() -> int:
                     help="the refit's pull towards the tracked joint rotations, radians (lifter_refit_motion's reg)")
     ap.add_argument("--sigma", type=float, default=0.02,
                     help="the refit's scale of the keypoint targets, metres (lifter_refit_motion's sigma)")
+    ap.add_argument("--vote-frames", type=int, default=0,
+                    help="mirror a limb in depth over each run of at least this many frames where the sources "
+                         "reach the other way (lifter_refit_motion's vote_min_frames); 0: not")
+    ap.add_argument("--vote-reach", type=float, default=0.08,
+                    help="metres: the reach along the camera's axis a vote needs (vote_min_reach)")
+    ap.add_argument("--vote-sources", choices=("lifter", "detector", "both"), default="both",
+                    help="who votes: the lifter, the detector's own 3D, or both (vote_sources)")
+    ap.add_argument("--vote-no-2d", action="store_true",
+                    help="mirror an upper arm or thigh even where its wrist or ankle then lies further from the "
+                         "detected one (vote_check_2d false)")
     ap.add_argument("--out")
     a = ap.parse_args()
+    OPTIONS.update(vote_min_frames=a.vote_frames, vote_min_reach=a.vote_reach, vote_sources=a.vote_sources,
+                   vote_check_2d=not a.vote_no_2d)
     OPTIONS["reg"], OPTIONS["sigma"] = a.reg, a.sigma
     if not (a.real3d or a.diverse or a.seeds):
         ap.error("give at least one of --real3d, --diverse, --seeds")
@@ -202,16 +214,18 @@ def main() -> int:
               "iterations": a.iterations, "reg": a.reg, "sigma": a.sigma,
               "lifter": str(a.lifter) if a.lifter else "packaged",
               "smooth_after_s": a.smooth_after, "smooth_poses_s": a.smooth_poses,
-              "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip, "stance_share": a.stance}
+              "exchanged_as_tracked": not a.raw_detections, "lifter_flip": a.lifter_flip, "stance_share": a.stance,
+              "vote_min_frames": a.vote_frames, "vote_min_reach": a.vote_reach, "vote_sources": a.vote_sources,
+              "vote_check_2d": not a.vote_no_2d}
     md = [f"# The lifter refit at weight {a.weight:g}"
           f"{f', image held at {a.pixel_sigma:g} px' if a.pixel_sigma else ''} on finished runs\n"]
     syn_keys = ["before_local_cm", "after_local_cm", "before_global_cm", "after_global_cm", "before_px", "after_px",
-                "before_accel_mm", "after_accel_mm", "mean_move_px"]
+                "before_accel_mm", "after_accel_mm", "mean_move_px", "limb_frames_voted"]
     if a.real3d:
         rows = real3d_rows(a.real3d, a.weight)
         keys = ["before_per_frame_mm", "after_per_frame_mm", "before_per_sequence_mm", "after_per_sequence_mm",
                 "mediapipe_per_frame_mm", "after_at_keypoints_mm",
-                "mean_move_px"]
+                "mean_move_px", "limb_frames_voted"]
         result["real3d"] = {"dir": str(a.real3d), "rows": rows, "summary": _summary(rows, keys)}
         md.append(_table("real3d", rows, keys))
     if a.diverse:

@@ -59,10 +59,12 @@ class TruthLifter:
         return out
 
 
-def _setup(tmp_path, fit_pose):
-    truth_kp, _ = _bodies([TRUTH] * T)
+def _setup(tmp_path, fit_pose, truth=TRUTH, image=None):
+    """``image``: the pose whose keypoints the detection's 2D are (default ``truth``)."""
+    truth_kp, _ = _bodies([truth] * T)
     fit_kp, fit_joints = _bodies([fit_pose] * T)
-    px = np.asarray(CAM.project(truth_kp.reshape(-1, 3))).reshape(T, 13, 2)
+    image_kp = truth_kp if image is None else _bodies([image] * T)[0]
+    px = np.asarray(CAM.project(image_kp.reshape(-1, 3))).reshape(T, 13, 2)
     kp = np.zeros((T, len(KEYPOINT_NAMES), 2))
     for k, name in enumerate(POINTS):
         for n in (("left_ear", "right_ear", "nose") if name == "head" else (name,)):
@@ -349,3 +351,115 @@ def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkey
     pipeline._lifter_refit(out, track_sw, model, TrackerConfig(), {"status": "finished", "events": events},
                            lambda s: None)
     assert seen["exchanged"] == [2]
+
+
+def test_vote_flip_frames_finds_runs_where_every_source_reaches_the_other_way():
+    from flowmocap.body.skeleton import EVAL_JOINTS
+    from flowmocap.fit.lift_refit import vote_flip_frames
+
+    limb = (JOINT_INDEX["right_elbow"], JOINT_INDEX["right_wrist"])
+    a, b = EVAL_JOINTS.index(limb[0]), EVAL_JOINTS.index(limb[1])
+    n = 12
+    fit = np.zeros((n, 13, 3)) + (0, 0, 4.0)
+    fit[:, b, 2] += 0.15                          # the fit's forearm reaches away from the camera
+    src = fit.copy()
+    src[2:9, b, 2] = 4.0 - 0.15                   # frames 2-8: this source says towards
+    other = src.copy()
+    other[5, b, 2] = 4.0 + 0.15                   # the other source agrees with the fit in frame 5
+    got = vote_flip_frames(fit, [src], limb, min_reach=0.08, min_frames=3)
+    np.testing.assert_array_equal(np.flatnonzero(got), np.arange(2, 9))
+    assert not vote_flip_frames(fit, [src], limb, 0.08, 8).any()        # a run of 7 is too short for 8
+    both = vote_flip_frames(fit, [src, other], limb, 0.08, 3)            # every source must agree: 2-4 and 6-8
+    np.testing.assert_array_equal(np.flatnonzero(both), [2, 3, 4, 6, 7, 8])
+    assert not vote_flip_frames(fit, [src, other], limb, 0.08, 4).any()
+    assert not vote_flip_frames(fit, [src], limb, 0.2, 1).any()          # reaching 15 cm is not more than 20
+    shallow = src.copy()
+    shallow[:, b, 2] = 4.0 - 0.05
+    assert not vote_flip_frames(fit, [shallow], limb, 0.08, 1).any()     # the source must reach far enough too
+    missing = src.copy()
+    missing[4] = np.nan                                                  # no source in frame 4 ends the run
+    np.testing.assert_array_equal(np.flatnonzero(vote_flip_frames(fit, [missing], limb, 0.08, 3)), [5, 6, 7, 8])
+
+
+def _give_world(track, kp13):
+    """The detector's 3D (``track.world``): ``kp13 (T, 13, 3)`` world points in the axes of the
+    ray through the hips, hip-centred, as MediaPipe gives its world landmarks."""
+    world = np.full((T, len(KEYPOINT_NAMES), 3), np.nan)
+    truth_cam = kp13 @ CAM.R.T + CAM.t
+    px = np.asarray(CAM.project(kp13.reshape(-1, 3))).reshape(T, 13, 2)
+    for f in range(T):  # the detector's 3D: the truth in the axes of the ray through the hips, hip-centred
+        ray = CAM.ray_rotation(*map(float, px[f, list(HIPS)].mean(0)))
+        x = (truth_cam[f] - truth_cam[f, list(HIPS)].mean(0)) @ ray
+        for k, name in enumerate(POINTS):
+            for n in (("left_ear", "right_ear") if name == "head" else (name,)):
+                world[f, KEYPOINT_NAMES.index(n)] = x[k]
+    track.world = world
+
+
+@pytest.mark.parametrize("min_frames, flips", [(3, True), (4, False), (0, False)])
+def test_a_forearm_the_detector_sees_the_other_way_for_a_run_of_frames_is_mirrored(tmp_path, min_frames, flips):
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)  # reaching away instead of towards
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    _give_world(track, truth_kp)
+    # a lifter that agrees with the fit: the refit alone keeps the forearm where it is
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,
+                                    lifter=TruthLifter(fit_kp), iterations=30, pixel_sigma=6.0,
+                                    vote_min_frames=min_frames, vote_sources="detector")
+    kp_after, _ = _bodies(out["poses"].astype(np.float64))
+    wrist = POINTS.index("right_wrist")
+    err = np.linalg.norm(kp_after[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    assert info["limb_frames_voted"] == (3 if flips else 0)
+    if flips:
+        # the mirror image of the wrong forearm, not the truth itself, and the refit then pulls
+        # half-way towards the lifter's (the wrong) depths: much nearer, and reaching the right way
+        assert (before > 0.2).all() and (err < 0.25 * before).all(), (before, err)
+        elbow = POINTS.index("right_elbow")
+        cam = lambda x: x @ CAM.R.T + CAM.t  # noqa: E731
+        reach = cam(kp_after[:3])[:, wrist, 2] - cam(kp_after[:3])[:, elbow, 2]
+        true_reach = cam(truth_kp[:3])[:, wrist, 2] - cam(truth_kp[:3])[:, elbow, 2]
+        assert (true_reach < -0.1).all() and (reach < -0.1).all(), (true_reach, reach)
+        assert info["mean_move_px"] < 3.0  # the mirror image keeps the wrist's pixel
+    else:
+        assert (err > 0.8 * before).all(), (before, err)
+    np.testing.assert_array_equal(out["poses"][3], motion["poses"][3])  # no person: kept
+    np.testing.assert_array_equal(out["poses_tracked"], motion["poses"])
+
+
+def test_the_vote_reads_no_detector_3d_where_there_is_none(tmp_path):
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    assert track.world is None
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,
+                                    lifter=TruthLifter(fit_kp), iterations=5, vote_min_frames=1)
+    assert info["limb_frames_voted"] == 0
+    with pytest.raises(InputError, match="vote"):
+        lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5, lifter=TruthLifter(fit_kp),
+                            vote_min_frames=1, vote_sources="everyone")
+
+
+@pytest.mark.parametrize("image_of, check, flips", [("truth", True, True), ("fit", True, False), ("fit", False, True)])
+def test_an_upper_arm_is_mirrored_only_where_the_detected_wrist_agrees(tmp_path, image_of, check, flips):
+    from flowmocap.fit.flip import mirrored_rotvec
+
+    truth = _pose(right_shoulder=(0, 50, 30), right_elbow=(0, 70, 0))  # upper arm and forearm reach in depth
+    _, joints = _bodies([truth])
+    out = load_body_model("default", dtype=torch.float64)(betas=torch.zeros(1, 10), pose=torch.as_tensor(truth[None]),
+                                                           trans=torch.zeros(1, 3), with_vertices=False)
+    limb = (JOINT_INDEX["right_shoulder"], JOINT_INDEX["right_elbow"])
+    wrong = truth.copy()  # the upper arm mirrored in depth: the elbow on its pixel, the wrist elsewhere
+    wrong[3 * limb[0]:3 * limb[0] + 3] = mirrored_rotvec(truth, joints[0], out.transforms[0, :, :3, :3].numpy(),
+                                                        CAM.R, CAM.t, limb)
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong, truth=truth, image=truth if image_of == "truth" else wrong)
+    _give_world(track, truth_kp)
+    cam = lambda x: x[:3] @ CAM.R.T + CAM.t  # noqa: E731
+    e, w = POINTS.index("right_elbow"), POINTS.index("right_wrist")
+    s = POINTS.index("right_shoulder")
+    assert (np.abs(cam(truth_kp)[:, e, 2] - cam(truth_kp)[:, s, 2]) > 0.1).all()  # a vote can be cast
+    px = lambda kp: np.asarray(CAM.project(kp[:3, w]))  # noqa: E731
+    assert (np.linalg.norm(px(truth_kp) - px(fit_kp), axis=-1) > 10).all()  # the mirror moves the wrist's pixel
+    res, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5, lifter=TruthLifter(fit_kp),
+                                    iterations=1, vote_min_frames=3, vote_sources="detector", vote_check_2d=check)
+    assert info["limb_frames_voted"] == (3 if flips else 0), info

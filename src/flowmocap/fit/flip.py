@@ -47,7 +47,7 @@ from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.fit.lbfgs import minimise
 from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy
 
-__all__ = ["mirror_child", "limb_rotation", "flipped_pose", "flip_limbs", "limb_name"]
+__all__ = ["mirror_child", "limb_rotation", "flipped_pose", "mirrored_rotvec", "flip_limbs", "limb_name"]
 
 #: A flip is kept only when it lowers the frame's energy by more than this fraction: a
 #: flip that merely ties (float noise, or a polish that only continues an unconverged
@@ -121,21 +121,40 @@ def flipped_pose(scene: Scene, pose: torch.Tensor, trans: torch.Tensor, limb: tu
         raise InputError(f"a limb is (parent, child) joint indices of one bone, not the root's; got {limb!r}.")
     with torch.no_grad():
         out = posed_body(scene.rig, pose, trans, with_vertices=False)
-    joints = out.joints[0].double().numpy()
-    G = out.transforms[0, :, :3, :3].double().numpy()
-    R = np.asarray(scene.camera.R, np.float64)
-    t = np.asarray(scene.camera.t, np.float64)
-    jc = joints @ R.T + t
+    rotvec = mirrored_rotvec(pose.detach().double().numpy(), out.joints[0].double().numpy(),
+                             out.transforms[0, :, :3, :3].double().numpy(), scene.camera.R, scene.camera.t, limb)
+    if rotvec is None:
+        return None
+    out_pose = pose.detach().clone()
+    out_pose[3 * p:3 * p + 3] = torch.as_tensor(rotvec, dtype=pose.dtype)
+    return out_pose
+
+
+def mirrored_rotvec(pose: np.ndarray, joints: np.ndarray, rotations: np.ndarray, R, t,
+                    limb: tuple[int, int]) -> np.ndarray | None:
+    """The parent joint's new local rotation that mirrors one limb in depth (the module
+    docstring), from an already posed body.
+
+    Args:
+        pose: ``(72,)`` axis-angle, radians; joints: ``(24, 3)`` its posed joints, world
+            axes, metres; rotations: ``(24, 3, 3)`` the joints' global rotations.
+        R, t: ``(3, 3)`` and ``(3,)`` the camera's extrinsics (``x_cam = R x + t``).
+        limb: ``(parent, child)`` SMPL joint indices of one bone, not the root's.
+
+    Returns:
+        ``(3,)`` axis-angle of the parent joint, or None where the limb has no distinct
+        mirror image (:func:`mirror_child`).
+    """
+    p, c = limb
+    R = np.asarray(R, np.float64)
+    jc = np.asarray(joints, np.float64) @ R.T + np.asarray(t, np.float64).reshape(3)
     c2 = mirror_child(jc[p], jc[c])
     if c2 is None:
         return None
     d_world = R.T @ limb_rotation(jc[c] - jc[p], c2 - jc[p]) @ R
-    g_pp = G[PARENTS[p]]
-    local = Rotation.from_rotvec(pose.detach().double().numpy()[3 * p:3 * p + 3]).as_matrix()
-    new_local = g_pp.T @ d_world @ g_pp @ local
-    out_pose = pose.detach().clone()
-    out_pose[3 * p:3 * p + 3] = torch.as_tensor(Rotation.from_matrix(new_local).as_rotvec(), dtype=pose.dtype)
-    return out_pose
+    g_pp = np.asarray(rotations, np.float64)[PARENTS[p]]
+    local = Rotation.from_rotvec(np.asarray(pose, np.float64)[3 * p:3 * p + 3]).as_matrix()
+    return Rotation.from_matrix(g_pp.T @ d_world @ g_pp @ local).as_rotvec()
 
 
 def flip_limbs(scene: Scene, state: FrameState, data: FrameData, cfg: TrackerConfig, prev: FrameState,

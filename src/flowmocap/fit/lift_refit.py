@@ -31,6 +31,24 @@ after tracking it can be applied to every frame alike. For each frame with a lif
    ``TrackerConfig.lifter_refit_pixel_sigma``: the overlay moves less, the 3D gain stays
    nearly whole; docs/experiments.md).
 
+Before step 1, with ``vote_min_frames`` > 0 (the pipeline's default 3,
+``TrackerConfig.lifter_refit_vote_frames``), a limb the tracker left mirrored in depth is
+turned back where the detector says so for a run of frames (:func:`vote_flip_frames`):
+for each upper arm, forearm, thigh and shin in turn, where the detector's own 3D joints
+(``vote_sources="detector"``, the default; turned into the camera's axes about the ray
+through the detected hips and aligned onto ``F`` by a similarity per frame) and the fit
+both reach more than ``vote_min_reach`` (0.08 m) from the limb's parent to its child along
+the camera's axis, but opposite ways, in at least ``vote_min_frames`` frames in a row, the
+tracked pose's limb is mirrored in those frames (:func:`~flowmocap.fit.flip.mirrored_rotvec`:
+its child joint keeps its pixel and its distance from the parent). An upper arm's or
+thigh's mirror also moves the wrist or ankle in the image; with ``vote_check_2d`` (default)
+such a run is mirrored only if those land no further from the detected ones, summed over
+the run. The refit then starts from, and is held to, the mirrored poses; its image term
+(``pixel_sigma``) still holds the tracked body's image. Why: the tracker's per-frame flip
+test decides by one frame's energy, in which flow and silhouette hardly tell a limb from
+its mirror image, and a limb once flipped stays so (docs/experiments.md, eighteenth
+session).
+
 Frames without a lifted pose (no person, too few confident keypoints) keep the tracked
 body. ``joints3d`` and ``joints2d`` are recomputed; the tracked poses are kept as
 ``poses_tracked``.
@@ -47,6 +65,7 @@ import torch
 
 from flowmocap.body.skeleton import EVAL_JOINTS, JOINT_INDEX
 from flowmocap.errors import InputError
+from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.vision.lifter import MIRROR
 
 __all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
@@ -97,6 +116,48 @@ def blend_targets(fit_cam: np.ndarray, lifted_cam: np.ndarray, weight: float, bl
     return fit_cam * (z / fit_cam[..., 2])[..., None]
 
 
+#: The limbs a run of frames may be mirrored in depth by (:func:`vote_flip_frames`):
+#: SMPL's (parent, child) bones, parents before children (:data:`~flowmocap.fit.energies.DEPTH_LIMBS`).
+VOTE_LIMBS = DEPTH_LIMBS
+#: Who votes (``vote_sources``): the lifter's 3D, the detector's own, or both together.
+VOTE_SOURCES = ("detector", "lifter", "both")
+
+
+def vote_flip_frames(fit_cam: np.ndarray, sources: list[np.ndarray], limb: tuple[int, int],
+                     min_reach: float, min_frames: int) -> np.ndarray:
+    """``(T,)`` bool: the frames of runs, at least ``min_frames`` long, in which every
+    source reaches along the camera's axis with the limb the other way from the fit.
+
+    Args:
+        fit_cam: ``(T, 13, 3)`` the fit's keypoints (:data:`~flowmocap.body.skeleton.EVAL_JOINTS`'s
+            order), camera axes, metres.
+        sources: each ``(T, 13, 3)`` another 3D estimate of the same keypoints aligned
+            onto ``fit_cam`` (camera axes, metres), NaN where it has none.
+        limb: ``(parent, child)`` SMPL joint indices, both among the 13 keypoints.
+        min_reach: metres: a frame counts only where the fit and every source reach
+            further than this from the limb's parent to its child along the axis.
+        min_frames: the shortest run of such frames that counts (frames that follow
+            one another in the arrays' first axis).
+    """
+    a, b = EVAL_JOINTS.index(limb[0]), EVAL_JOINTS.index(limb[1])
+    reach = lambda x: np.asarray(x, np.float64)[:, b, 2] - np.asarray(x, np.float64)[:, a, 2]  # noqa: E731
+    rf = reach(fit_cam)
+    against = np.abs(rf) > min_reach
+    for src in sources:
+        rs = reach(src)
+        against &= np.isfinite(rs) & (np.abs(np.nan_to_num(rs)) > min_reach) & (np.sign(np.nan_to_num(rs)) != np.sign(rf))
+    out = np.zeros(len(rf), bool)
+    start = None
+    for k, v in enumerate(list(against) + [False]):
+        if v and start is None:
+            start = k
+        elif not v and start is not None:
+            if k - start >= min_frames:
+                out[start:k] = True
+            start = None
+    return out
+
+
 def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, sigma: float, reg: float,
                  camera=None, pixels=None, pixel_sigma: float | None = None):
     """The refit's energy (step 3 of the module docstring), a scalar: ``targets (B, 13, 3)``
@@ -113,7 +174,9 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
 def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: float = 0.02, reg: float = 0.3,
                         iterations: int = 60, chunk: int = 256, lifter=None, progress=None,
                         pixel_sigma: float | None = None, blend: str = "depth",
-                        lifter_input: str = "detector", exchanged=None) -> tuple[dict, dict]:
+                        lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
+                        vote_min_reach: float = 0.08, vote_sources: str = "both",
+                        vote_check_2d: bool = True) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -134,6 +197,14 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             the lifter reads those frames' keypoints exchanged back, as the tracker used
             them. None or empty: the detection as it came.
         sigma: metres, reg: radians: the energy's scales.
+        vote_min_frames: the shortest run of frames in which the sources see a limb the
+            other way that mirrors it before the refit (module docstring); 0: none.
+        vote_min_reach: metres: how far along the camera's axis the fit and every source
+            must reach with the limb for a frame to count.
+        vote_sources: who votes: ``"detector"`` (its own 3D joints, ``track.world``;
+            frames without all 13 at confidence 0.5 do not count), ``"lifter"`` or ``"both"``.
+        vote_check_2d: an upper arm or thigh is mirrored over a run only if its wrist or
+            ankle then lies no further from the detected one, summed over the run.
         iterations: L-BFGS iterations per chunk of ``chunk`` frames (60: about converged;
             ``TrackerConfig.lifter_refit_iterations``).
         pixel_sigma: pixels, or None: the scale of a term that holds the 24 joints' image
@@ -142,7 +213,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         progress: optional callable ``(done_frames, total)``.
 
     Returns:
-        ``(motion, info)``: the new arrays, and ``frames_refit``, ``mean_move_mm`` (mean
+        ``(motion, info)``: the new arrays, and ``frames_refit``, ``limb_frames_voted``
+        (limbs mirrored before the refit, counted once per frame), ``mean_move_mm`` (mean
         distance the 24 joints moved), ``mean_move_px`` (in the image).
     """
     from flowmocap.geometry.camera import PinholeCamera
@@ -157,6 +229,11 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"blend must be one of {BLENDS}; got {blend!r}.")
     if lifter_input not in LIFTER_INPUTS:
         raise InputError(f"lifter_input must be one of {LIFTER_INPUTS}; got {lifter_input!r}.")
+    if vote_sources not in VOTE_SOURCES:
+        raise InputError(f"vote_sources must be one of {VOTE_SOURCES}; got {vote_sources!r}.")
+    if not (int(vote_min_frames) == vote_min_frames and vote_min_frames >= 0 and vote_min_reach >= 0):
+        raise InputError(f"vote_min_frames must be a whole number >= 0 and vote_min_reach >= 0 metres; got "
+                         f"{vote_min_frames!r} and {vote_min_reach!r}.")
     if weight == 0:
         return dict(motion), {"frames_refit": 0, "mean_move_mm": 0.0, "mean_move_px": 0.0}
     lifter = load_lifter() if lifter is None else lifter
@@ -171,7 +248,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
     betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)
 
-    poses_new, trans_new = poses0.clone(), trans0.clone()
+    trans_new = trans0.clone()
     with torch.no_grad():
         fit_world, joints_before = keypoints13(body, kmap, poses0, betas, trans0)
     fit_cam = fit_world.numpy() @ R.T + t
@@ -209,6 +286,23 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     for k in np.flatnonzero(ok):
         u, v = pts2[k, list(HIPS)].mean(0)
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
+    n_voted = 0
+    if vote_min_frames > 0 and ok.any():
+        srcs = []
+        if vote_sources in ("lifter", "both"):
+            srcs.append(lifted)
+        if vote_sources in ("detector", "both"):
+            srcs.append(_detector_cam(track, idx, camera, pts2, exchanged))
+        det2 = None
+        if vote_check_2d:
+            d2, c2 = eval_points_2d(np.asarray(track.keypoints)[idx], np.asarray(track.confidence)[idx])
+            d2 = np.where((c2 >= 0.5)[..., None], d2, np.nan)
+            back = np.isin(idx, [int(f) for f in (exchanged or ())])
+            d2[back] = d2[back][:, list(MIRROR)]  # as the tracker used them
+            det2 = d2
+        poses0, fit_cam, n_voted = _vote_flips(body, kmap, poses0, trans0, betas, camera, srcs,
+                                               vote_min_reach, vote_min_frames, det2)
+    poses_new = poses0.clone()
     targets_cam = fit_cam.copy()
     if ok.any():
         targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight, blend)
@@ -251,8 +345,108 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
-    info = {"frames_refit": int(ok.sum()), "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
+    info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
     return out, info
+
+
+def _aligned(src: np.ndarray, fit_cam: np.ndarray) -> np.ndarray:
+    """``src (T, 13, 3)`` aligned onto ``fit_cam`` by a similarity per frame; NaN frames stay NaN."""
+    from flowmocap.geometry.procrustes import similarity_procrustes
+
+    out = np.full_like(fit_cam, np.nan)
+    have = np.isfinite(src).all((1, 2))
+    if have.any():
+        out[have] = similarity_procrustes(src[have], fit_cam[have])[0]
+    return out
+
+
+def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged) -> np.ndarray:
+    """``(T, 13, 3)`` the detector's own 3D keypoints of the result's frames turned into the
+    camera's axes (as the lifter's: about the ray through the detected hips), exchanged left
+    for right where the tracker did; NaN for frames without all 13 at confidence 0.5."""
+    from flowmocap.vision.lifter import HIPS, eval_points_2d
+
+    out = np.full((len(idx), 13, 3), np.nan)
+    if getattr(track, "world", None) is None:
+        return out
+    w, wc = eval_points_2d(np.asarray(track.world)[idx], np.asarray(track.confidence)[idx])
+    back = {int(f) for f in (exchanged or ())}
+    for k, f in enumerate(idx):
+        if not (track.found[f] and (wc[k] >= 0.5).all() and np.isfinite(w[k]).all()
+                and np.isfinite(pts2[k, list(HIPS)]).all()):
+            continue
+        x = w[k][list(MIRROR)] if int(f) in back else w[k]
+        u, v = pts2[k, list(HIPS)].mean(0)
+        out[k] = x @ camera.ray_rotation(float(u), float(v)).T
+    return out
+
+
+def _runs(frames: np.ndarray) -> list[np.ndarray]:
+    """The runs of consecutive True entries of ``frames (T,)`` bool, as index arrays."""
+    idx = np.flatnonzero(frames)
+    return [r for r in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if r.size] if idx.size else []
+
+
+def _vote_flips(body, kmap, poses, trans, betas, camera, sources, min_reach, min_frames, det2=None):
+    """Each limb of :data:`VOTE_LIMBS` mirrored in depth (:func:`~flowmocap.fit.flip.mirrored_rotvec`)
+    over the runs of frames :func:`vote_flip_frames` finds, limb after limb (each vote on
+    the body as the earlier limbs left it). The mirror keeps the limb's child joint on its
+    pixel but moves the joints below it: with ``det2 (T, 13, 2)`` (the detection's 2D
+    keypoints, NaN where not confident), a run of an upper arm or thigh is mirrored only
+    if its wrist or ankle does not end further from the detected one, summed over the
+    run. Returns ``(poses, fit_cam, limb-frames mirrored)``."""
+    from flowmocap.body.skeleton import PARENTS
+    from flowmocap.fit.flip import mirrored_rotvec
+
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    poses = poses.clone()
+    n = 0
+
+    def posed(p):
+        with torch.no_grad():
+            out = body(betas=betas.expand(len(p), -1), pose=p, trans=trans, with_vertices=False)
+            kp = keypoints13(body, kmap, p, betas, trans)[0].numpy()
+        return out.joints.numpy(), out.transforms[:, :, :3, :3].numpy(), kp
+
+    def pixels(kp, j):
+        return np.asarray(camera.project(kp[:, j]), np.float64)
+
+    joints, rots, kp = posed(poses)
+    for limb in VOTE_LIMBS:
+        fit_cam = kp @ R.T + t
+        frames = vote_flip_frames(fit_cam, [_aligned(s, fit_cam) for s in sources], limb, min_reach, min_frames)
+        cand = {}
+        for k in np.flatnonzero(frames):
+            rv = mirrored_rotvec(poses[k].numpy(), joints[k], rots[k], R, t, limb)
+            if rv is not None:
+                cand[int(k)] = torch.as_tensor(rv, dtype=poses.dtype)
+        if not cand:
+            continue
+        below = [c for c in range(len(PARENTS)) if PARENTS[c] == limb[1] and c in EVAL_JOINTS]
+        if below and det2 is not None:  # the joint below the child moves in the image: the detection decides
+            g = EVAL_JOINTS.index(below[0])
+            ks = np.array(sorted(cand))
+            trial = poses[ks].clone()
+            trial[:, 3 * limb[0]:3 * limb[0] + 3] = torch.stack([cand[int(k)] for k in ks])
+            with torch.no_grad():
+                kp_new = keypoints13(body, kmap, trial, betas, trans[ks])[0].numpy()
+            d_old = np.linalg.norm(pixels(kp[ks], g) - det2[ks, g], axis=-1)
+            d_new = np.linalg.norm(pixels(kp_new, g) - det2[ks, g], axis=-1)
+            at = {int(k): i for i, k in enumerate(ks)}
+            mask = np.zeros(len(poses), bool)
+            mask[ks] = True
+            for run in _runs(mask):
+                i = [at[int(k)] for k in run]
+                have = np.isfinite(d_old[i]) & np.isfinite(d_new[i])
+                if have.any() and d_new[i][have].sum() > d_old[i][have].sum():
+                    for k in run:
+                        cand.pop(int(k))
+        for k, rv in cand.items():
+            poses[k, 3 * limb[0]:3 * limb[0] + 3] = rv
+        n += len(cand)
+        if cand:
+            joints, rots, kp = posed(poses)
+    return poses, kp @ R.T + t, n
