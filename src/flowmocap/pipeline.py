@@ -852,7 +852,10 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         refit, info = lifter_refit_motion(motion, track, body, weight=cfg.lifter_refit_weight,
                                           pixel_sigma=cfg.lifter_refit_pixel_sigma or None,
                                           blend=cfg.lifter_refit_blend, iterations=cfg.lifter_refit_iterations,
-                                          exchanged=exchanged_frames(run.get("events", [])))
+                                          exchanged=exchanged_frames(run.get("events", [])),
+                                          vote_min_frames=cfg.lifter_refit_vote_frames,
+                                          vote_min_reach=cfg.lifter_refit_vote_reach,
+                                          vote_sources=cfg.lifter_refit_vote_sources)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}
@@ -870,7 +873,9 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
     write_run(out, run)
     say(f"refitted {info['frames_refit']} frames towards the lifter's 3D (share {cfg.lifter_refit_weight:g}, "
         f"{cfg.lifter_refit_blend} blend): "
-        f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average")
+        f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average"
+        + (f"; {info['limb_frames_voted']} limb-frames mirrored in depth where the {cfg.lifter_refit_vote_sources}"
+           f" saw them the other way" if info.get("limb_frames_voted") else ""))
     return run
 
 

@@ -89,6 +89,7 @@ _RANGES: dict[str, str] = {
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
+    "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -104,6 +105,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "depth_temporal_reference": ("previous", "prediction"),
     "detector3d_source": ("mediapipe", "lifter", "both"),
     "lifter_refit_blend": ("full", "depth"),
+    "lifter_refit_vote_sources": ("detector", "lifter", "both"),
 }
 
 
@@ -185,6 +187,11 @@ class TrackerConfig:
     lifter_refit_iterations: int = 60  # L-BFGS iterations of the lifter refit (each chunk of frames)
     lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
     #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
+    lifter_refit_vote_frames: int = 3  # before the refit: a limb mirrored in depth over each run of at least
+    #                                    this many frames in which the detector's own 3D reaches with it the
+    #                                    other way (fit.lift_refit.vote_flip_frames; docs/experiments.md); 0: off
+    lifter_refit_vote_reach: float = 0.08  # m: ... where both reach further than this along the camera's axis
+    lifter_refit_vote_sources: str = "detector"  # who votes: the "detector"'s 3D, the "lifter"'s, or "both"
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by
