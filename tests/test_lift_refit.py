@@ -411,6 +411,7 @@ def test_a_forearm_the_detector_sees_the_other_way_for_a_run_of_frames_is_mirror
     err = np.linalg.norm(kp_after[:3, wrist] - truth_kp[:3, wrist], axis=-1)
     before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
     assert info["limb_frames_voted"] == (3 if flips else 0)
+    assert info["limb_runs_voted"] == ([{"limb": "right_elbow->right_wrist", "frames": [0, 2]}] if flips else [])
     if flips:
         # the mirror image of the wrong forearm, not the truth itself, and the refit then pulls
         # half-way towards the lifter's (the wrong) depths: much nearer, and reaching the right way

@@ -875,8 +875,16 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         f"{cfg.lifter_refit_blend} blend): "
         f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average"
         + (f"; {info['limb_frames_voted']} limb-frames mirrored in depth where the {cfg.lifter_refit_vote_sources}"
-           f" saw them the other way" if info.get("limb_frames_voted") else ""))
+           f" saw them the other way ({_runs_text(info.get('limb_runs_voted', []))})"
+           if info.get("limb_frames_voted") else ""))
     return run
+
+
+def _runs_text(runs: list[dict], most: int = 3) -> str:
+    """``"left_elbow->left_wrist frames 50-72, ..."``: the first ``most`` limb runs the
+    refit's vote mirrored (``lifter_refit``'s ``limb_runs_voted`` in run.json has them all)."""
+    text = ", ".join(f"{r['limb']} frames {r['frames'][0]}-{r['frames'][1]}" for r in runs[:most])
+    return text + (f" and {len(runs) - most} more, listed in run.json" if len(runs) > most else "")
 
 
 def _stance_depth(out: Path, cfg: TrackerConfig, run: dict, say) -> dict:

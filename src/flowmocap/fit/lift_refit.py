@@ -214,7 +214,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``limb_frames_voted``
-        (limbs mirrored before the refit, counted once per frame), ``mean_move_mm`` (mean
+        (limbs mirrored before the refit, counted once per frame), ``limb_runs_voted``
+        (``[{"limb": "left_elbow->left_wrist", "frames": [first, last]}]``, input frame
+        numbers, both ends included), ``mean_move_mm`` (mean
         distance the 24 joints moved), ``mean_move_px`` (in the image).
     """
     from flowmocap.geometry.camera import PinholeCamera
@@ -235,7 +237,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"vote_min_frames must be a whole number >= 0 and vote_min_reach >= 0 metres; got "
                          f"{vote_min_frames!r} and {vote_min_reach!r}.")
     if weight == 0:
-        return dict(motion), {"frames_refit": 0, "mean_move_mm": 0.0, "mean_move_px": 0.0}
+        return dict(motion), {"frames_refit": 0, "limb_frames_voted": 0, "limb_runs_voted": [],
+                              "mean_move_mm": 0.0, "mean_move_px": 0.0}
     lifter = load_lifter() if lifter is None else lifter
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
     R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
@@ -286,8 +289,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     for k in np.flatnonzero(ok):
         u, v = pts2[k, list(HIPS)].mean(0)
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
-    n_voted = 0
+    n_voted, voted_runs = 0, []
     if vote_min_frames > 0 and ok.any():
+        from flowmocap.fit.flip import limb_name
+
         srcs = []
         if vote_sources in ("lifter", "both"):
             srcs.append(lifted)
@@ -300,8 +305,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             back = np.isin(idx, [int(f) for f in (exchanged or ())])
             d2[back] = d2[back][:, list(MIRROR)]  # as the tracker used them
             det2 = d2
-        poses0, fit_cam, n_voted = _vote_flips(body, kmap, poses0, trans0, betas, camera, srcs,
-                                               vote_min_reach, vote_min_frames, det2)
+        poses0, fit_cam, runs = _vote_flips(body, kmap, poses0, trans0, betas, camera, srcs,
+                                            vote_min_reach, vote_min_frames, det2)
+        n_voted = sum(b - a + 1 for _, a, b in runs)
+        voted_runs = [{"limb": limb_name(limb), "frames": [int(idx[a]), int(idx[b])]} for limb, a, b in runs]
     poses_new = poses0.clone()
     targets_cam = fit_cam.copy()
     if ok.any():
@@ -345,7 +352,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     before2d = np.asarray(motion["joints2d"], np.float64)
-    info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
+    info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "limb_runs_voted": voted_runs,
+            "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
@@ -397,13 +405,14 @@ def _vote_flips(body, kmap, poses, trans, betas, camera, sources, min_reach, min
     pixel but moves the joints below it: with ``det2 (T, 13, 2)`` (the detection's 2D
     keypoints, NaN where not confident), a run of an upper arm or thigh is mirrored only
     if its wrist or ankle does not end further from the detected one, summed over the
-    run. Returns ``(poses, fit_cam, limb-frames mirrored)``."""
+    run. Returns ``(poses, fit_cam, runs)``: ``runs`` the mirrored runs as ``(limb, first row,
+    last row)``."""
     from flowmocap.body.skeleton import PARENTS
     from flowmocap.fit.flip import mirrored_rotvec
 
     R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     poses = poses.clone()
-    n = 0
+    done = []
 
     def posed(p):
         with torch.no_grad():
@@ -446,7 +455,9 @@ def _vote_flips(body, kmap, poses, trans, betas, camera, sources, min_reach, min
                         cand.pop(int(k))
         for k, rv in cand.items():
             poses[k, 3 * limb[0]:3 * limb[0] + 3] = rv
-        n += len(cand)
+        mask = np.zeros(len(poses), bool)
+        mask[list(cand)] = True
+        done += [(limb, int(run[0]), int(run[-1])) for run in _runs(mask)]
         if cand:
             joints, rots, kp = posed(poses)
-    return poses, kp @ R.T + t, n
+    return poses, kp @ R.T + t, done
