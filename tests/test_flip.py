@@ -239,3 +239,75 @@ def test_a_flip_judged_without_the_temporal_term(scene32, pose):
     assert float((got[SHIN[1]] - want[SHIN[1]]).norm()) < 1e-3
     assert terms["temporal"] > 0
     assert terms["total"] == pytest.approx(sum(v for k, v in terms.items() if k != "total"), rel=1e-5)
+
+
+THIGH = (J["left_hip"], J["left_knee"])
+
+
+def _reach(scene, state, limb):
+    with torch.no_grad():
+        jc = scene.camera.to_camera(scene.forward(state.pose, state.trans)[0].joints[0]).double().numpy()
+    return jc[limb[1], 2] - jc[limb[0], 2]
+
+
+def test_the_trackers_vote_mirrors_a_limb_the_detector_sees_the_other_way_for_a_run_of_frames(scene32, pose):
+    """``flip_vote_frames``: the detector's 3D (the truth) reaches with the left shin the other
+    way from the tracked state; the limb is mirrored at the third frame in a row, not before,
+    and the count starts again; the count survives a state_dict round trip."""
+    from flowmocap.fit.tracker import SequenceTracker
+
+    pose = pose.float()
+    trans = torch.tensor([0.0, 0.0, 0.2])
+    flipped = FrameState(flipped_pose(scene32, pose, trans, SHIN), trans)
+    truth = FrameState(pose, trans)
+    assert abs(_reach(scene32, truth, SHIN)) > 0.08 and np.sign(_reach(scene32, truth, SHIN)) != np.sign(
+        _reach(scene32, flipped, SHIN))
+    data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans))
+    tracker = SequenceTracker(scene32, TrackerConfig(flip_vote_frames=3))
+    tracker.prev = truth
+    for i in (5, 6):
+        state, events = tracker.vote_flips(flipped, data, i)
+        assert events == [] and state is flipped
+    k = [limb for limb in DEPTH_LIMBS].index(SHIN)
+    assert tracker.votes[k] == 2
+    again = SequenceTracker(scene32, TrackerConfig(flip_vote_frames=3))
+    again.load_state_dict(tracker.state_dict())
+    assert again.votes.tolist() == tracker.votes.tolist()
+    state, events = again.vote_flips(flipped, data, 7)
+    assert [(e["frame"], e["limb"]) for e in events] == [(7, limb_name(SHIN))]
+    with torch.no_grad():
+        got = scene32.forward(state.pose, state.trans)[0].joints[0]
+        want = scene32.forward(pose, trans)[0].joints[0]
+    assert float((got[J["left_ankle"]] - want[J["left_ankle"]]).norm()) < 1e-3
+    assert again.votes[k] == 0
+    # off, or without the detector's 3D: nothing
+    assert SequenceTracker(scene32, TrackerConfig(flip_vote_frames=1)).vote_flips(
+        flipped, FrameData(mask=None, silhouette=None, person_pixels=1.0), 7)[1] == []
+
+
+def test_the_trackers_vote_keeps_a_thigh_whose_ankle_the_detector_sees_where_it_is(scene32, pose):
+    """A thigh's mirror moves the ankle in the image: with the detected ankle where the
+    tracked body has it, the vote is refused; with it where the truth has it, taken."""
+    from flowmocap.fit.objective import keypoint_observation
+    from flowmocap.fit.tracker import SequenceTracker
+
+    pose = pose.float().clone()
+    pose[3 * J["left_hip"]] -= 0.9  # the thigh raised forwards: it reaches in depth
+    trans = torch.tensor([0.0, 0.0, 0.2])
+    truth = FrameState(pose, trans)
+    wrong = flipped_pose(scene32, pose, trans, THIGH)
+    assert wrong is not None and abs(_reach(scene32, truth, THIGH)) > 0.08
+    wrong = FrameState(wrong, trans)
+    got = {}
+    for image_of, st in (("truth", truth), ("tracked", wrong)):
+        with torch.no_grad():
+            px = scene32.camera.project(scene32.forward(st.pose, st.trans)[0].joints[0]).double().numpy()
+        moved = np.linalg.norm(px[J["left_ankle"]] - scene32.camera.project(
+            scene32.forward(wrong.pose, trans)[0].joints[0]).detach().double().numpy()[J["left_ankle"]])
+        data = FrameData(mask=None, silhouette=None, person_pixels=1.0, joints3d=_truth3d(scene32, pose, trans),
+                         keypoints=keypoint_observation(px, np.ones(24)))
+        tracker = SequenceTracker(scene32, TrackerConfig(flip_vote_frames=1))
+        got[image_of] = [e["limb"] for e in tracker.vote_flips(wrong, data, 0)[1]]
+        if image_of == "truth":
+            assert moved > 3  # the mirror moves the ankle's pixel
+    assert got == {"truth": [limb_name(THIGH)], "tracked": []}

@@ -85,6 +85,7 @@ _RANGES: dict[str, str] = {
     "keypoint_hold_frames": _AT_LEAST_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
+    "flip_vote_frames": _AT_LEAST_0, "flip_vote_reach": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
@@ -167,6 +168,10 @@ class TrackerConfig:
     #                                    or the mean of the two ("both")
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
+    flip_vote_frames: int = 0          # in the tracker: a limb the detector's 3D sees reaching the other way in
+    #                                    depth for this many frames in a row is mirrored (SequenceTracker.
+    #                                    vote_flips; the refit's lifter_refit_vote_frames after tracking); 0: off
+    flip_vote_reach: float = 0.08      # m: ... where both reach further than this along the camera's axis
     flip_without_temporal: bool = False  # judge a flip by the energy without E_theta (whose Kalman
                                        # prediction carries a flipped limb on to the next frames)
     pose_prior_weight: float = 0.01    # lambda_p, E_p: the learned pose prior (GMM, nats); 0: off

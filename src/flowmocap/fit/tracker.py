@@ -28,9 +28,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from flowmocap.body.skeleton import EVAL_JOINTS, PARENTS
 from flowmocap.errors import InputError, OptimizationError
 from flowmocap.fit import energies as en
 from flowmocap.fit.config import TrackerConfig
+from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.fit.flip import flip_limbs
 from flowmocap.fit.kalman import PoseFilter
 from flowmocap.fit.lbfgs import minimise
@@ -165,6 +167,7 @@ class SequenceTracker:
         self.anchor: FrameState | None = None  # E_a's reference (the first frame), None for no E_a
         self.kf: PoseFilter | None = None
         self.lost = np.zeros(24, np.int64)  # frames in a row each joint's detection was far from the fit
+        self.votes = np.zeros(len(DEPTH_LIMBS), np.int64)  # frames in a row the detector saw each limb the other way
 
     def start(self, first: FrameState, second: FrameState, anchored: bool) -> None:
         """Begin after the first two frames. ``anchored``: the start is one someone vouched
@@ -185,6 +188,7 @@ class SequenceTracker:
             "kalman": None if self.kf is None else self.kf.state_dict(),
             "monitor": self.monitor.state_dict() if hasattr(self.monitor, "state_dict") else None,
             "lost_joints": self.lost.tolist(),
+            "limb_votes": self.votes.tolist(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -197,6 +201,7 @@ class SequenceTracker:
             self.monitor.load_state_dict(state["monitor"])
         # a state stored before the hold existed: the counts start again
         self.lost = np.asarray(state.get("lost_joints", np.zeros(24)), np.int64)
+        self.votes = np.asarray(state.get("limb_votes", np.zeros(len(DEPTH_LIMBS))), np.int64)
 
     def predict(self) -> FrameState:
         """The Kalman prediction of the next frame (the previous frame without filters)."""
@@ -250,6 +255,11 @@ class SequenceTracker:
                 events += flips
             except OptimizationError as e:
                 events.append({"frame": i, "event": "depth-flip test skipped", "detail": str(e)})
+        voted = False
+        if self.cfg.flip_vote_frames > 0:
+            state, votes = self.vote_flips(state, data, i)
+            events += votes
+            voted = bool(votes)
         reinit = self.monitor(i, state, self.scene, mask) if self.monitor is not None else None
         if reinit is not None:
             state, info = reinit
@@ -258,6 +268,8 @@ class SequenceTracker:
             self.anchor = state.clone() if self.cfg.anchor_any_start else None
             if self.kf is not None:
                 self.kf = new_filter(state.pose.numpy(), state.trans.numpy(), self.cfg)
+        elif self.kf is not None and voted:  # a limb turned over: no velocity carried across the jump
+            self.kf = new_filter(state.pose.numpy(), state.trans.numpy(), self.cfg)
         elif self.kf is not None:
             self.kf.update(state.pose.numpy().astype(np.float64), state.trans.numpy().astype(np.float64))
         if self.cfg.keypoint_hold_frames > 0 and self.cfg.keypoint_weight > 0:
@@ -283,6 +295,62 @@ class SequenceTracker:
         if data.joints3d is not None:
             data.joints3d = exchanged_3d(*data.joints3d, root)
         return True
+
+    def vote_flips(self, state: FrameState, data: FrameData, i: int) -> tuple[FrameState, list]:
+        """The multi-frame companion of the flip test (``cfg.flip_vote_frames``): for each
+        limb of :data:`~flowmocap.fit.energies.DEPTH_LIMBS`, count the frames in a row in
+        which the detector's 3D joints (``data.joints3d``, confidence at least 0.5, aligned
+        onto the fit's joints by a similarity) and the fit both reach more than
+        ``cfg.flip_vote_reach`` metres along the camera's axis from the limb's parent to
+        its child, opposite ways; at ``cfg.flip_vote_frames`` the limb is mirrored in this
+        frame (:func:`~flowmocap.fit.flip.flipped_pose`; an upper arm or thigh only if its
+        wrist or ankle then lies no further from the detected one, when that is detected),
+        and the tracking goes on from there. Returns ``(state, events)``."""
+        from flowmocap.fit.flip import flipped_pose, limb_name
+        from flowmocap.geometry.procrustes import similarity_procrustes
+
+        if data.joints3d is None:
+            self.votes[:] = 0
+            return state, []
+        j3d, conf = (np.asarray(x, np.float64) for x in data.joints3d)
+        use = (conf >= 0.5) & np.isfinite(j3d).all(-1)
+        if use.sum() < 6:
+            self.votes[:] = 0
+            return state, []
+        events = []
+        for li, (p, c) in enumerate(DEPTH_LIMBS):
+            with torch.no_grad():
+                out, _, _ = self.scene.forward(state.pose, state.trans)
+                jc = self.scene.camera.to_camera(out.joints[0]).double().numpy()
+            if not (use[p] and use[c]):
+                self.votes[li] = 0
+                continue
+            al = np.full_like(j3d, np.nan)
+            al[use] = similarity_procrustes(j3d[use], jc[use])[0]
+            rf, rs = jc[c, 2] - jc[p, 2], al[c, 2] - al[p, 2]
+            reach = self.cfg.flip_vote_reach
+            against = abs(rf) > reach and abs(rs) > reach and np.sign(rf) != np.sign(rs)
+            self.votes[li] = self.votes[li] + 1 if against else 0
+            if self.votes[li] < self.cfg.flip_vote_frames:
+                continue
+            pose = flipped_pose(self.scene, state.pose, state.trans, (p, c))
+            if pose is None:
+                continue
+            below = [g for g in range(len(PARENTS)) if PARENTS[g] == c and g in EVAL_JOINTS]
+            if below and data.keypoints is not None and float(data.keypoints[1][below[0]]) >= 0.5:
+                g = below[0]
+                seen = np.asarray(data.keypoints[0][g], np.float64)
+                with torch.no_grad():
+                    new, _, _ = self.scene.forward(pose, state.trans)
+                    px_old = self.scene.camera.project(out.joints[0, g]).double().numpy()
+                    px_new = self.scene.camera.project(new.joints[0, g]).double().numpy()
+                if np.linalg.norm(px_new - seen) > np.linalg.norm(px_old - seen):
+                    continue
+            state = FrameState(pose, state.trans.clone())
+            self.votes[li] = 0
+            events.append({"frame": i, "event": "limb flipped in depth by the detector's vote", "limb": limb_name((p, c)),
+                           "frames": int(self.cfg.flip_vote_frames)})
+        return state, events
 
     def keypoint_hold(self, data: FrameData) -> np.ndarray | None:
         """``(24,)`` bool: the joints ``E_j`` holds in the next frame (``FrameData.keypoint_hold``:
