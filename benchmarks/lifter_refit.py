@@ -183,7 +183,7 @@ def main() -> int:
                          "reach the other way (lifter_refit_motion's vote_min_frames); 0: not")
     ap.add_argument("--vote-reach", type=float, default=0.08,
                     help="metres: the reach along the camera's axis a vote needs (vote_min_reach)")
-    ap.add_argument("--vote-sources", choices=("lifter", "detector", "both"), default="both",
+    ap.add_argument("--vote-sources", choices=("lifter", "detector", "both"), default="detector",
                     help="who votes: the lifter, the detector's own 3D, or both (vote_sources)")
     ap.add_argument("--vote-no-2d", action="store_true",
                     help="mirror an upper arm or thigh even where its wrist or ankle then lies further from the "

@@ -175,7 +175,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         iterations: int = 60, chunk: int = 256, lifter=None, progress=None,
                         pixel_sigma: float | None = None, blend: str = "depth",
                         lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
-                        vote_min_reach: float = 0.08, vote_sources: str = "both",
+                        vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
