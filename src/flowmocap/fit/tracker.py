@@ -318,10 +318,14 @@ class SequenceTracker:
             self.votes[:] = 0
             return state, []
         events = []
-        for li, (p, c) in enumerate(DEPTH_LIMBS):
+
+        def posed(st):
             with torch.no_grad():
-                out, _, _ = self.scene.forward(state.pose, state.trans)
-                jc = self.scene.camera.to_camera(out.joints[0]).double().numpy()
+                o, _, _ = self.scene.forward(st.pose, st.trans)
+            return o, self.scene.camera.to_camera(o.joints[0]).double().numpy()
+
+        out, jc = posed(state)
+        for li, (p, c) in enumerate(DEPTH_LIMBS):
             if not (use[p] and use[c]):
                 self.votes[li] = 0
                 continue
@@ -347,6 +351,7 @@ class SequenceTracker:
                 if np.linalg.norm(px_new - seen) > np.linalg.norm(px_old - seen):
                     continue
             state = FrameState(pose, state.trans.clone())
+            out, jc = posed(state)
             self.votes[li] = 0
             events.append({"frame": i, "event": "limb flipped in depth by the detector's vote", "limb": limb_name((p, c)),
                            "frames": int(self.cfg.flip_vote_frames)})
