@@ -319,18 +319,19 @@ class SequenceTracker:
             return state, []
         events = []
 
-        def posed(st):
+        def posed(st):  # the body, its joints in the camera's axes and the detector's aligned onto them
             with torch.no_grad():
                 o, _, _ = self.scene.forward(st.pose, st.trans)
-            return o, self.scene.camera.to_camera(o.joints[0]).double().numpy()
+            j = self.scene.camera.to_camera(o.joints[0]).double().numpy()
+            aligned = np.full_like(j3d, np.nan)
+            aligned[use] = similarity_procrustes(j3d[use], j[use])[0]
+            return o, j, aligned
 
-        out, jc = posed(state)
+        out, jc, al = posed(state)
         for li, (p, c) in enumerate(DEPTH_LIMBS):
             if not (use[p] and use[c]):
                 self.votes[li] = 0
                 continue
-            al = np.full_like(j3d, np.nan)
-            al[use] = similarity_procrustes(j3d[use], jc[use])[0]
             rf, rs = jc[c, 2] - jc[p, 2], al[c, 2] - al[p, 2]
             reach = self.cfg.flip_vote_reach
             against = abs(rf) > reach and abs(rs) > reach and np.sign(rf) != np.sign(rs)
@@ -351,7 +352,7 @@ class SequenceTracker:
                 if np.linalg.norm(px_new - seen) > np.linalg.norm(px_old - seen):
                     continue
             state = FrameState(pose, state.trans.clone())
-            out, jc = posed(state)
+            out, jc, al = posed(state)
             self.votes[li] = 0
             events.append({"frame": i, "event": "limb flipped in depth by the detector's vote", "limb": limb_name((p, c)),
                            "frames": int(self.cfg.flip_vote_frames)})
