@@ -147,14 +147,9 @@ def vote_flip_frames(fit_cam: np.ndarray, sources: list[np.ndarray], limb: tuple
         rs = reach(src)
         against &= np.isfinite(rs) & (np.abs(np.nan_to_num(rs)) > min_reach) & (np.sign(np.nan_to_num(rs)) != np.sign(rf))
     out = np.zeros(len(rf), bool)
-    start = None
-    for k, v in enumerate(list(against) + [False]):
-        if v and start is None:
-            start = k
-        elif not v and start is not None:
-            if k - start >= min_frames:
-                out[start:k] = True
-            start = None
+    for run in _runs(against):
+        if run.size >= min_frames:
+            out[run] = True
     return out
 
 
