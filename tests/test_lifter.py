@@ -324,6 +324,35 @@ def test_training_windows_stay_inside_their_clip_and_target_the_middle_frame():
     np.testing.assert_allclose(v[0].numpy(), v[0, :1].expand(5, -1, -1).numpy(), atol=1e-6)
 
 
+def test_training_noise_that_persists_over_a_window():
+    """``persist``: the noise between two frames of a window correlates at persist^2 (one
+    shared draw scaled by persist, one own draw by sqrt(1 - persist^2)), its variance is
+    kept, and a share persist of the windows drop the same points in every frame."""
+    tool = _train_tool()
+    seq = tool.Sequences.__new__(tool.Sequences)  # one still clip: every frame the same pose
+    seq.X = (torch.randn(1, 13, 3) * 0.3).expand(7, -1, -1).clone()
+    seq.start, seq.end = torch.zeros(7, dtype=torch.long), torch.full((7,), 7)
+    offsets = torch.tensor([-1, 0, 1])
+    centres = torch.full((4000,), 3)
+
+    def noise(persist, drop=0.0):
+        g = torch.Generator().manual_seed(1)
+        clean, _, _, _ = tool.examples(seq, centres, offsets, g, 0.0, 0.0)
+        g = torch.Generator().manual_seed(1)
+        v, m, _, _ = tool.examples(seq, centres, offsets, g, 0.5, drop, persist=persist)
+        return (v - clean * m[..., None]), m
+
+    for persist in (0.0, 0.6, 1.0):
+        e, _ = noise(persist)
+        a, b = e[:, 0, 3:].reshape(-1), e[:, 2, 3:].reshape(-1)  # two frames, points off the hips
+        corr = float(torch.corrcoef(torch.stack([a, b]))[0, 1])
+        assert abs(corr - persist ** 2 * 1.0) < 0.05 if persist < 1 else corr > 0.999
+    assert abs(float(noise(0.6)[0].var() / noise(0.0)[0].var()) - 1) < 0.05  # same size either way
+    _, m = noise(0.0, drop=0.3)
+    _, mp = noise(1.0, drop=0.3)
+    assert (mp == mp[:, 1:2]).all() and not (m == m[:, 1:2]).all()
+
+
 def test_training_outliers_move_a_few_points_onto_other_points():
     tool = _train_tool()
     g = torch.Generator().manual_seed(0)

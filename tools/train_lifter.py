@@ -161,12 +161,16 @@ def outlying(uv: torch.Tensor, g: torch.Generator, rate: float, most: int = 3) -
 
 def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: torch.Generator, noise: float,
              drop: float, frame_drop: float = 0.0, speed: float = 0.0, outliers: float = 0.0,
-             elevation: float = 25.0, roll: float = 0.0):
+             elevation: float = 25.0, roll: float = 0.0, persist: float = 0.0):
     """``(inputs (B, F, 13, 2), masks (B, F, 13), targets (B, 13, 3), the middle frames'
     3D in the camera's axes (B, 13, 3) in metres)`` for the windows
     around the frames ``centres (B,)`` of ``seq`` (step 2 of the module docstring): one view
     and one tempo (``1 +- speed``) per window; neighbours outside the clip, or dropped with
-    probability ``frame_drop``, are masked out."""
+    probability ``frame_drop``, are masked out. ``persist`` in [0, 1]: how much the 2D
+    errors last over a window, as a detector's do -- the noise is ``persist`` times one draw
+    shared by the window's frames plus ``sqrt(1 - persist^2)`` times a draw of its own per
+    frame (the same variance), and with probability ``persist`` a window's frames drop the
+    same points; 0: every frame's errors independent."""
     B, F, dev = len(centres), len(offsets), seq.X.device
     mid = int((offsets == 0).nonzero()[0])
     tempo = 1 + (torch.rand(B, generator=g, device=dev) * 2 - 1) * speed
@@ -180,11 +184,18 @@ def examples(seq: Sequences, centres: torch.Tensor, offsets: torch.Tensor, g: to
     clean = uv
     uv = outlying(uv.reshape(B * F, len(POINTS), 2), g, outliers).view(B, F, len(POINTS), 2)
     mask = (torch.rand(B, F, len(POINTS), generator=g, device=dev) > drop).float()
+    if persist > 0:  # some windows drop the same points in every frame
+        same = torch.rand(B, 1, 1, generator=g, device=dev) < persist
+        mask = torch.where(same, mask[:, mid:mid + 1].expand_as(mask), mask)
     mask[..., list(HIPS)] = 1
     mask = mask * keep[..., None].float()
     v, _ = normalise_2d(uv.reshape(B * F, len(POINTS), 2), mask.reshape(B * F, len(POINTS)))
     v = v.view(B, F, len(POINTS), 2)
-    v = (v + torch.randn(v.shape, generator=g, device=dev) * torch.rand(B, 1, 1, 1, generator=g, device=dev) * noise) * mask[..., None]
+    e = torch.randn(v.shape, generator=g, device=dev)
+    if persist > 0:
+        shared = torch.randn(B, 1, len(POINTS), 2, generator=g, device=dev)
+        e = persist * shared + math.sqrt(1 - persist ** 2) * e
+    v = (v + e * torch.rand(B, 1, 1, 1, generator=g, device=dev) * noise) * mask[..., None]
     _, s = normalise_2d(clean[:, mid], torch.ones(B, len(POINTS), device=dev))
     c = cam[:, mid]
     z0 = c[:, list(HIPS), 2].mean(1)[:, None, None]
@@ -326,6 +337,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tempo", type=float, default=0.2, help="each window's tempo drawn from 1 +- this")
     ap.add_argument("--outliers", type=float, default=0.0,
                     help="share of frames with 1-3 gross 2D errors (a point put on another body part)")
+    ap.add_argument("--persist", type=float, default=0.0,
+                    help="how much a window's 2D errors last over its frames, 0-1 (noise shared, same points dropped)")
     ap.add_argument("--elevation", type=float, default=25.0, help="views' elevation drawn from +- this (degrees)")
     ap.add_argument("--roll", type=float, default=0.0,
                     help="views' roll about the optical axis drawn from +- this (degrees; 0: upright cameras)")
@@ -354,6 +367,8 @@ def main(argv=None) -> int:
     offsets = torch.as_tensor(sorted({int(k) for k in args.offsets.split(",")}))
     if 0 not in offsets:
         ap.error("--offsets must hold 0 (the lifted frame)")
+    if not 0.0 <= args.persist <= 1.0:
+        ap.error("--persist must lie in [0, 1]")
     seq = Sequences([poses[r["file"]] for r in train], rng, body, kmap, args.bodies, mirror=True)
     seq_test = Sequences([poses[r["file"]] for r in test], rng, body, kmap, 1, mirror=False)
     # one normalised unit in metres: the 3D target's RMS size per unit of the 2D scale, on average
@@ -399,7 +414,8 @@ def main(argv=None) -> int:
         total = 0.0
         for k in range(steps_per_epoch):
             v, m, y, _ = examples(seq, perm[k * args.batch:(k + 1) * args.batch - n_det], offsets, g, args.noise,
-                                  args.drop, args.frame_drop, args.tempo, args.outliers, args.elevation, args.roll)
+                                  args.drop, args.frame_drop, args.tempo, args.outliers, args.elevation, args.roll,
+                                  args.persist)
             if n_det:
                 dv, dm, dy = pairs.batch(torch.randint(0, len(pairs), (n_det,), generator=g, device=dev), g)
                 v, m, y = torch.cat([v, dv]), torch.cat([m, dm]), torch.cat([y, dy])
