@@ -90,9 +90,9 @@ def test_too_few_joints_and_coinciding_detections():
     xs = x.detach().numpy()[0]
     r2 = ((xs - conf @ xs / conf.sum()) ** 2).sum(-1)
     assert float(e1) == pytest.approx(float((conf * 2 * 0.01 * (np.sqrt(1 + r2 / 0.01) - 1)).sum()), rel=1e-12)
-    _, g0 = _reference(x, same, conf, 0.1)
-    assert not torch.isfinite(g0).all()  # autograd through the SVD of a (rounding-)zero matrix gives up here
-    assert torch.isfinite(g1).all()  # the written-out gradient does not
+    # autograd through the reference's SVD of a (rounding-)zero matrix may give up here (NaN
+    # on some CPUs, finite on others); the written-out gradient is finite and right on all
+    assert torch.isfinite(g1).all()
     assert torch.autograd.gradcheck(lambda t: aligned_joints_energy(t, same, conf, 0.1), (x,), eps=1e-6, atol=1e-7)
 
 

@@ -96,7 +96,10 @@ def test_float32_model_and_the_default_body():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=2e-6)
     (g_got,) = torch.autograd.grad(got.vertices.square().sum(), pose)
     (g_ref,) = torch.autograd.grad(ref.vertices.square().sum(), pose)
-    torch.testing.assert_close(g_got, g_ref, rtol=1e-4, atol=1e-4)
+    # the gradient's entries reach ~1.7e4 here; a small entry is a float32 sum of large terms
+    # that cancel, so the absolute tolerance follows the largest entry (float32 rounding
+    # differs between CPUs: one entry of ~2 moved by 1e-3 on one machine)
+    torch.testing.assert_close(g_got, g_ref, rtol=1e-4, atol=1e-6 * float(g_ref.abs().max()))
 
 
 def test_non_finite_pose_is_the_models_input_error(toy_model):
