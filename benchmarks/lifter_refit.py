@@ -14,7 +14,7 @@ it: the tracking is the same, only the finished motion changes. For each suite g
   and after.
 
 Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds DIR]
-       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend depth|full]
+       [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend full|depth]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
        [--smooth-poses S] [--stance SHARE] [--raw-detections] [--lifter-flip] [--reg RAD] [--sigma M]
        [--out PREFIX]
@@ -24,8 +24,9 @@ Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds
 0.3`` then smooths the poses and translation (``pose_smoothing_s``,
 :func:`flowmocap.fit.smooth.pose_smoothed_motion`), the pipeline's last step; with both, the
 "after" columns are what the defaults write (with ``--stance 0.5`` too, the stance depth
-correction between the two, ``stance_depth_share``). ``--blend full`` blends all three coordinates
-(``lifter_refit_blend`` "full"; the default, as the pipeline's, is ``depth``).
+correction between the two, ``stance_depth_share``). ``--blend`` says how the targets blend:
+all three coordinates (``full``, the default, as the pipeline's ``lifter_refit_blend``; with the
+pipeline's hold add ``--pixel-sigma 4``) or the depth only (``depth``, the default until 2026-11-28).
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
 """
@@ -156,8 +157,8 @@ def main() -> int:
     ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
     ap.add_argument("--iterations", type=int, default=60,
                     help="L-BFGS iterations of the refit (lifter_refit_iterations; 20 before 2026-11-27's eleventh session)")
-    ap.add_argument("--blend", choices=("full", "depth"), default="depth",
-                    help="the refit's targets: the depth only blended (the pipeline's default) or all three coordinates")
+    ap.add_argument("--blend", choices=("full", "depth"), default="full",
+                    help="the refit's targets: all three coordinates blended (the pipeline's default) or the depth only")
     ap.add_argument("--lifter-input", choices=("detector", "fit", "agree", "unswap"), default="detector",
                     help="the 2D the lifter reads: the detection's keypoints or the fit's own, projected")
     ap.add_argument("--smooth-after", type=float, default=0.0,

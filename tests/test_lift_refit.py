@@ -159,6 +159,25 @@ def test_the_image_term_holds_the_tracked_image(tmp_path):
     assert (after < 0.5 * before).all(), (before, after)
 
 
+@pytest.mark.parametrize("blend,sigma,turns", [("full", 4.0, True), ("depth", 6.0, True), ("full", 2.0, False)])
+def test_the_hold_lets_a_wrong_forearm_turn(tmp_path, blend, sigma, turns):
+    """The pipeline's defaults (``lifter_refit_blend`` "full" with a 4 px hold; before,
+    "depth" with 6 px) still turn a forearm reaching the wrong way in depth to the lifter's
+    side, while a 2 px hold keeps it from turning: the turn passes through poses whose
+    image is further off (docs/experiments.md, "The full blend with a 4 px hold")."""
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    wrong[3 * JOINT_INDEX["spine2"]] = np.radians(15)
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    out, _ = lifter_refit_motion(motion, track, load_body_model("default"), weight=1.0, lifter=TruthLifter(truth_kp),
+                                 iterations=60, pixel_sigma=sigma, blend=blend)
+    wrist = POINTS.index("right_wrist")
+    kp, _ = _bodies(out["poses"][:3].astype(np.float64))
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    after = np.linalg.norm(kp[:, wrist] - truth_kp[:3, wrist], axis=-1)
+    assert ((after < 0.35 * before).all() if turns else (after > 0.5 * before).all()), (before, after)
+
+
 def test_weight_zero_and_bad_input(tmp_path):
     motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
     model = load_body_model("default")

@@ -186,12 +186,13 @@ class TrackerConfig:
     lifter_refit_weight: float = 0.5   # after tracking (and the depth smoothing): each frame's body refitted
     #                                    towards its keypoints blended with this share of the lifter's
     #                                    (fit.lift_refit; lifter_refit_blend says how); 0: off
-    lifter_refit_blend: str = "depth"  # the refit's targets: the fit's keypoints blended with the lifter's only
-    #                                    in depth along each ray ("depth") or in all three coordinates ("full":
-    #                                    better on the renders, a worse overlay on real clips; docs/experiments.md)
+    lifter_refit_blend: str = "full"  # the refit's targets: the fit's keypoints blended with the lifter's in all
+    #                                    three coordinates ("full") or only in depth along each ray ("depth", the
+    #                                    default until 2026-11-28; docs/experiments.md, "The full blend with a 4 px hold")
     lifter_refit_iterations: int = 60  # L-BFGS iterations of the lifter refit (each chunk of frames)
-    lifter_refit_pixel_sigma: float = 6.0  # px: the refit also holds the tracked 24 joints' image at this
-    #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off
+    lifter_refit_pixel_sigma: float = 4.0  # px: the refit also holds the tracked 24 joints' image at this
+    #                                    scale (fit.lift_refit.refit_energy), for the overlay; 0: off (6 px with
+    #                                    the "depth" blend until 2026-11-28)
     lifter_refit_vote_frames: int = 3  # before the refit: a limb mirrored in depth over each run of at least
     #                                    this many frames in which the detector's own 3D reaches with it the
     #                                    other way (fit.lift_refit.vote_flip_frames; docs/experiments.md); 0: off

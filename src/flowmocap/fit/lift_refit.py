@@ -17,17 +17,19 @@ after tracking it can be applied to every frame alike. For each frame with a lif
    the fit's own keypoints projected instead, ``"agree"`` the detected ones within
    :data:`AGREE_PX` of the fit's and the fit's elsewhere (both measured against the
    default in docs/experiments.md, "Where the real3d error comes from"; not the default).
-2. The target of keypoint ``j``, with ``blend="depth"`` (the pipeline's default,
-   ``TrackerConfig.lifter_refit_blend``): ``F_j`` moved along its own camera ray to the
-   depth ``(1 - w) z(F_j) + w z(A_j)`` (``w`` = ``weight``), the same pixel with a blended
-   depth; with ``blend="full"``: ``(1 - w) F_j + w A_j``, all three coordinates blended
-   (better 3D on the renders, a worse overlay on real clips: docs/experiments.md). Either
-   way the image is also held by the third term of step 3 when ``pixel_sigma`` is given.
+2. The target of keypoint ``j``, with ``blend="full"`` (the pipeline's default,
+   ``TrackerConfig.lifter_refit_blend``): ``(1 - w) F_j + w A_j`` (``w`` = ``weight``),
+   all three coordinates blended; with ``blend="depth"`` (the pipeline's default until
+   2026-11-28): ``F_j`` moved along its own camera ray to the depth ``(1 - w) z(F_j) + w
+   z(A_j)``, the same pixel with a blended depth. Either way the image is also held by
+   the third term of step 3 when ``pixel_sigma`` is given; the full blend with a 4 px
+   hold moves the image about as much as the depth blend with 6 px did and is better in
+   3D on every suite (docs/experiments.md, "The full blend with a 4 px hold").
 3. The body's pose and translation are refitted to those targets by L-BFGS: ``sum_j |k_j -
    target_j|^2 / sigma^2 + sum |theta - theta_tracked|^2 / reg^2`` over the 23 joint
    rotations (m^2 / m^2 and rad^2 / rad^2); the shape stays. With ``pixel_sigma`` a third
    term holds the image: each of the 24 joints' squared pixel distance from where the
-   tracked body put it, over ``pixel_sigma^2`` (the pipeline's default 6 px,
+   tracked body put it, over ``pixel_sigma^2`` (the pipeline's default 4 px,
    ``TrackerConfig.lifter_refit_pixel_sigma``: the overlay moves less, the 3D gain stays
    nearly whole; docs/experiments.md).
 
