@@ -20,8 +20,9 @@ Steps:
    ``--outliers P`` a share P of the frames also get 1-3 gross errors (a point but the
    hips moved onto another point of the frame, as a detector does under occlusion;
    ``--elevation`` widens the views' elevation, ``--roll`` turns the cameras about their
-   optical axis by up to that many degrees; all tried, none used by the packaged
-   file: docs/experiments.md, "Where the real3d error comes from"). Target: the 3D
+   optical axis by up to that many degrees, ``--persist`` makes a window's 2D errors last
+   over its frames; all tried, none used by the packaged file: docs/experiments.md,
+   "Where the real3d error comes from" and the nineteenth session). Target: the 3D
    points in the camera's axes, hip-centred, divided by the hips' depth times the 2D
    scale (so its x, y match the input's under weak perspective and the network learns
    mostly the depth). With a window (``--offsets``, frames at 30 fps around the lifted
