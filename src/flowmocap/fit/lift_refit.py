@@ -23,8 +23,9 @@ after tracking it can be applied to every frame alike. For each frame with a lif
    2026-11-28): ``F_j`` moved along its own camera ray to the depth ``(1 - w) z(F_j) + w
    z(A_j)``, the same pixel with a blended depth. Either way the image is also held by
    the third term of step 3 when ``pixel_sigma`` is given; the full blend with a 4 px
-   hold moves the image about as much as the depth blend with 6 px did and is better in
-   3D on every suite (docs/experiments.md, "The full blend with a 4 px hold").
+   hold moves the image a little more than the depth blend with 6 px did (real3d 1.7
+   against 1.3 px) and is better in 3D on the real recording, level or better on the
+   renders (docs/experiments.md, "The full blend with a 4 px hold").
 3. The body's pose and translation are refitted to those targets by L-BFGS: ``sum_j |k_j -
    target_j|^2 / sigma^2 + sum |theta - theta_tracked|^2 / reg^2`` over the 23 joint
    rotations (m^2 / m^2 and rad^2 / rad^2); the shape stays. With ``pixel_sigma`` a third
