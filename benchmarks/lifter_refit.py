@@ -29,6 +29,8 @@ all three coordinates (``full``, the default, as the pipeline's ``lifter_refit_b
 pipeline's hold add ``--pixel-sigma 4``) or the depth only (``depth``, the default until 2026-11-28).
 
 ``--lifter FILE``: another lifter file (``tools/train_lifter.py --out``) instead of the packaged one.
+``--lifter-mean FILE [FILE ...]``: the refit's lifter the mean of several lifter files (``-``
+for the packaged one), an ensemble (docs/experiments.md, twenty-first session: not adopted).
 """
 
 from __future__ import annotations
@@ -51,6 +53,26 @@ from flowmocap.vision.auto import load_detections
 
 E = list(EVAL_JOINTS)
 _MODELS: dict = {}
+class MeanLifter:
+    """Several lifters as one: :meth:`lift_points` is the mean of theirs (``(T, 13, 3)``
+    metres, hip-centred; NaN where any gives none). ``files``: lifter files, None for the
+    packaged one."""
+
+    def __init__(self, files):
+        from flowmocap.vision.lifter import Lifter
+
+        if not files:
+            raise ValueError("MeanLifter needs at least one lifter file")
+        self.lifters = [Lifter.load(f) for f in files]
+
+    @property
+    def temporal(self) -> bool:
+        return any(lf.temporal for lf in self.lifters)
+
+    def lift_points(self, points, mask, fps=None):
+        return np.mean([lf.lift_points(points, mask, fps=fps) for lf in self.lifters], axis=0)
+
+
 #: Further keyword arguments of lifter_refit_motion (``--pixel-sigma``, ``--lifter``).
 OPTIONS: dict = {}
 #: The window (s) of the depth smoothing after the refit, 0: none (``--smooth-after``).
@@ -155,6 +177,8 @@ def main() -> int:
     ap.add_argument("--weight", type=float, default=0.5)
     ap.add_argument("--pixel-sigma", type=float, help="hold the tracked 24 joints' image at this scale (px)")
     ap.add_argument("--lifter", type=Path, help="a lifter file instead of the packaged one")
+    ap.add_argument("--lifter-mean", nargs="+", metavar="FILE",
+                    help="the mean of these lifter files ('-': the packaged one) instead of one lifter")
     ap.add_argument("--iterations", type=int, default=60,
                     help="L-BFGS iterations of the refit (lifter_refit_iterations; 20 before 2026-11-27's eleventh session)")
     ap.add_argument("--blend", choices=("full", "depth"), default="full",
@@ -201,6 +225,10 @@ def main() -> int:
     OPTIONS["blend"] = a.blend
     OPTIONS["lifter_input"] = a.lifter_input
     OPTIONS["iterations"] = a.iterations
+    if a.lifter_mean and (a.lifter or a.lifter_flip):
+        ap.error("--lifter-mean goes without --lifter and --lifter-flip")
+    if a.lifter_mean:
+        OPTIONS["lifter"] = MeanLifter([None if f == "-" else Path(f) for f in a.lifter_mean])
     if a.lifter or a.lifter_flip:
         from flowmocap.vision.lifter import Lifter
 

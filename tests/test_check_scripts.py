@@ -84,3 +84,86 @@ def test_hypotheses_combine_the_runs_given():
     assert h["median"] == pytest.approx(base[:K] + 2.0)
     assert h["main_and_mirror"] == pytest.approx(base[:K] + 1.0)
     assert h["mean_of_agreeing"] == pytest.approx(base[:K] + 1.0)  # the run 100 px off is left out
+
+
+@pytest.fixture(scope="module")
+def selection():
+    return _load("source_selection")
+
+
+def _poses(rng, T=6, P=13):
+    return rng.normal(size=(T, P, 3)) * 0.3 + (0.0, 0.0, 4.0)
+
+
+def test_frame_errors_ignore_a_similarity_and_count_only_valid_points(selection):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    ref = _poses(rng)
+    moved = 1.7 * Rotation.from_rotvec([0.3, -0.2, 1.0]).apply(ref.reshape(-1, 3)).reshape(ref.shape) + 5.0
+    valid = np.ones(ref.shape[:2], bool)
+    assert selection.frame_errors(moved, ref, valid) == pytest.approx(np.zeros(len(ref)), abs=1e-9)
+    bad = moved.copy()
+    bad[:, 0] += 10.0  # a wild point, left out of the scored points
+    valid[:, 0] = False
+    assert selection.frame_errors(bad, ref, valid) == pytest.approx(np.zeros(len(ref)), abs=1e-9)
+    valid[2, :10] = False  # fewer than 4 points: no score
+    assert np.isnan(selection.frame_errors(bad, ref, valid)[2])
+
+
+def test_the_oracle_takes_the_exact_source_point_by_point(selection):
+    rng = np.random.default_rng(1)
+    ref = _poses(rng)
+    # each source exact but for one point, a different one, 0.5 m off
+    fit, lift = ref.copy(), ref.copy()
+    fit[:, 5] += (0.5, 0.0, 0.0)
+    lift[:, 3] += (0.0, -0.5, 0.0)
+    valid = np.ones(ref.shape[:2], bool)
+    out = selection.oracle_blend(fit, lift, ref, valid)
+    assert np.allclose(out, ref, atol=1e-9)
+    assert selection.frame_errors(out, ref, valid) == pytest.approx(np.zeros(len(ref)), abs=1e-9)
+    # a point not valid keeps the middle share
+    valid[:, 3] = False
+    out = selection.oracle_blend(fit, lift, ref, valid)
+    assert np.allclose(out[:, 3], 0.5 * (fit[:, 3] + lift[:, 3]))
+
+
+def test_point_errors_favour_no_source_and_blend3_mixes_per_point(selection):
+    rng = np.random.default_rng(2)
+    ref = _poses(rng)
+    valid = np.ones(ref.shape[:2], bool)
+    a, b = ref + 0.02, ref - 0.02  # the same offset either way from the truth
+    ea, eb = selection.point_errors([a, b], ref, valid)
+    assert ea == pytest.approx(eb, abs=1e-9)
+    assert ea == pytest.approx(np.full(ref.shape[:2], 0.02 * np.sqrt(3)), rel=1e-6)
+    share = np.zeros(ref.shape[:2])
+    share[:, 3] = 1.0
+    mixed = selection.blend3(ref, a, b, share, 0.0)
+    assert np.allclose(mixed[:, 3], a[:, 3]) and np.allclose(np.delete(mixed, 3, 1), np.delete(ref, 3, 1))
+    assert np.allclose(selection.blend3(ref, a, b, 0.25, 0.25), 0.5 * ref + 0.25 * (a + b))
+
+
+def test_the_mean_lifter_of_benchmarks_lifter_refit_averages_its_lifters():
+    from flowmocap.vision.lifter import load_lifter
+
+    mod = _load("lifter_refit")
+    one = load_lifter()
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(100, 400, size=(4, 13, 2))
+    mask = np.ones((4, 13), bool)
+    mask[1, 5] = False
+    same = mod.MeanLifter([None, None])
+    assert not same.temporal
+    assert np.allclose(same.lift_points(pts, mask), one.lift_points(pts, mask), equal_nan=True)
+
+    class Shifted:  # a second lifter that answers 1 m to the right
+        temporal = False
+
+        def lift_points(self, p, m, fps=None):
+            return one.lift_points(p, m) + (1.0, 0.0, 0.0)
+
+    mixed = mod.MeanLifter([None])
+    mixed.lifters.append(Shifted())
+    assert np.allclose(mixed.lift_points(pts, mask), one.lift_points(pts, mask) + (0.5, 0.0, 0.0))
+    with pytest.raises(ValueError):
+        mod.MeanLifter([])
