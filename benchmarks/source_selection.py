@@ -53,33 +53,34 @@ ORACLE_SHARES = (0.0, 0.5, 1.0)
 CONF_BINS = (0.0, 0.3, 0.5, 0.7, 0.9, 1.01)
 
 
+def _onto(x: np.ndarray, ref: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x aligned onto ref (T, P, 3), scored (T,))``: a similarity per frame fitted on the
+    points ``valid (T, P)`` only; frames with fewer than 4 of them are not scored."""
+    w = np.asarray(valid, bool) & np.isfinite(ref).all(-1) & np.isfinite(x).all(-1)
+    zero = lambda a: np.where(w[..., None], a, 0.0)  # left-out points: weight 0, no NaN in the SVD
+    scored = w.sum(1) >= 4
+    aligned = np.full(x.shape, np.nan)
+    if scored.any():
+        aligned[scored] = similarity_procrustes(zero(x)[scored], zero(ref)[scored], weights=w[scored].astype(float))[0]
+    return aligned, scored
+
+
 def frame_errors(x: np.ndarray, ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``(T,)`` each frame's mean point error (metres) of ``x (T, P, 3)`` after a similarity
     onto ``ref (T, P, 3)`` over the points ``valid (T, P)``; NaN for frames with fewer
     than 4 valid points."""
-    out = np.full(len(x), np.nan)
-    for t in range(len(x)):
-        v = np.asarray(valid[t], bool)
-        if v.sum() < 4:
-            continue
-        a = similarity_procrustes(x[t][v][None], ref[t][v][None])[0][0]
-        out[t] = np.linalg.norm(a - ref[t][v], axis=-1).mean()
-    return out
+    aligned, scored = _onto(x, ref, valid)
+    w = np.asarray(valid, bool)
+    d = np.where(w, np.linalg.norm(aligned - ref, axis=-1), 0.0).sum(1)
+    return np.where(scored, d / np.maximum(w.sum(1), 1), np.nan)
 
 
 def point_errors(sources: list[np.ndarray], ref: np.ndarray, valid: np.ndarray) -> list[np.ndarray]:
     """Each source's ``(T, P)`` point errors (metres; NaN where not valid), the reference
     aligned per frame by a similarity onto the sources' mean (so no source is favoured)."""
-    mean = np.mean(sources, axis=0)
-    out = [np.full(ref.shape[:2], np.nan) for _ in sources]
-    for t in range(len(ref)):
-        v = np.asarray(valid[t], bool)
-        if v.sum() < 4:
-            continue
-        r = similarity_procrustes(ref[t][v][None], mean[t][v][None])[0][0]
-        for o, s in zip(out, sources):
-            o[t, v] = np.linalg.norm(s[t][v] - r, axis=-1)
-    return out
+    r, scored = _onto(ref, np.mean(sources, axis=0), valid)
+    keep = np.asarray(valid, bool) & scored[:, None]
+    return [np.where(keep, np.linalg.norm(s - r, axis=-1), np.nan) for s in sources]
 
 
 def oracle_blend(fit: np.ndarray, lift: np.ndarray, ref: np.ndarray, valid: np.ndarray,
@@ -89,15 +90,10 @@ def oracle_blend(fit: np.ndarray, lift: np.ndarray, ref: np.ndarray, valid: np.n
     similarity per frame); points not valid get the middle share."""
     cands = np.stack([(1.0 - w) * fit + w * lift for w in shares])  # (S, T, P, 3)
     mid = len(shares) // 2
-    out = cands[mid].copy()
-    for t in range(len(fit)):
-        v = np.asarray(valid[t], bool)
-        if v.sum() < 4:
-            continue
-        r = similarity_procrustes(ref[t][v][None], cands[mid, t][v][None])[0][0]
-        d = np.linalg.norm(cands[:, t][:, v] - r[None], axis=-1)  # (S, n)
-        out[t, v] = cands[d.argmin(0), t, np.flatnonzero(v)]
-    return out
+    r, scored = _onto(ref, cands[mid], valid)
+    pick = np.linalg.norm(cands - r[None], axis=-1).argmin(0)  # (T, P)
+    pick = np.where(np.asarray(valid, bool) & scored[:, None], pick, mid)
+    return np.take_along_axis(cands, pick[None, ..., None], 0)[0]
 
 
 def random_blend(fit: np.ndarray, lift: np.ndarray, shares=ORACLE_SHARES, seed: int = 0) -> np.ndarray:
