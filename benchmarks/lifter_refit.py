@@ -53,6 +53,8 @@ from flowmocap.vision.auto import load_detections
 
 E = list(EVAL_JOINTS)
 _MODELS: dict = {}
+
+
 class MeanLifter:
     """Several lifters as one: :meth:`lift_points` is the mean of theirs (``(T, 13, 3)``
     metres, hip-centred; NaN where any gives none). ``files``: lifter files, None for the
