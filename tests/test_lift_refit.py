@@ -279,6 +279,10 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     assert smooth == (np.abs(got["trans"] - refit["trans"]).max() > 1e-3)  # the smoothing moved the frames
     np.testing.assert_array_equal(got["trans_tracked"], motion["trans_tracked"])  # the tracker's own, kept
     assert ("depth_smoothed_s" in run["lifter_refit"]) == smooth
+    # the sources' disagreement is written with the motion and read back by the API
+    np.testing.assert_array_equal(got["disagreement"], refit["disagreement"])
+    assert run["lifter_refit"]["disagreement_median_mm"] > 0
+    assert pipeline.Result(out, got, run).disagreement.shape == (T, 24)
 
 
 def test_the_lifter_can_read_the_fits_own_keypoints(tmp_path):
@@ -445,6 +449,32 @@ def test_a_forearm_the_detector_sees_the_other_way_for_a_run_of_frames_is_mirror
         assert (err > 0.8 * before).all(), (before, err)
     np.testing.assert_array_equal(out["poses"][3], motion["poses"][3])  # no person: kept
     np.testing.assert_array_equal(out["poses_tracked"], motion["poses"])
+
+
+@pytest.mark.parametrize("with_detector", [True, False])
+def test_the_refit_flags_the_joint_where_its_sources_part(tmp_path, with_detector):
+    from flowmocap.body.skeleton import EVAL_JOINTS
+
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)  # the fit's forearm reaching away
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    if with_detector:
+        _give_world(track, truth_kp)  # the detector's 3D agrees with the lifter (the truth)
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,
+                                    lifter=TruthLifter(truth_kp), iterations=5)
+    d = out["disagreement"]
+    assert d.shape == (T, 24) and d.dtype == np.float32
+    others = [j for j in range(24) if j not in EVAL_JOINTS]
+    assert np.isnan(d[:, others]).all() and np.isnan(d[3]).all()  # not scored; no person in frame 3
+    wrist = JOINT_INDEX["right_wrist"]
+    gap = np.linalg.norm(fit_kp[:3, POINTS.index("right_wrist")] - truth_kp[:3, POINTS.index("right_wrist")], axis=-1)
+    assert (gap > 0.2).all()
+    # the fit parts from both other sources at the wrist (2 of 3 pairs), from the lifter alone without the detector
+    share = 2 / 3 if with_detector else 1.0
+    assert (d[:3, wrist] > 0.5 * share * gap).all() and (d[:3, wrist] < 1.05 * share * gap).all(), (d[:3, wrist], gap)
+    rest = [j for j in EVAL_JOINTS if j not in (wrist, JOINT_INDEX["right_elbow"])]
+    assert (d[:3, rest] < 0.35 * d[:3, wrist, None]).all()
+    assert info["disagreement_p90_mm"] >= info["disagreement_median_mm"] > 0
 
 
 def test_the_vote_reads_no_detector_3d_where_there_is_none(tmp_path):

@@ -114,6 +114,15 @@ class Result:
         return self.motion["joints2d"]
 
     @property
+    def disagreement(self) -> np.ndarray | None:
+        """``(T, 24)`` metres, or None (no lifter refit ran): per frame and joint, how far
+        the run's three 3D sources (the fit, the keypoint lifter, the detector's own 3D) part
+        (:func:`~flowmocap.fit.disagreement.source_disagreement`); NaN outside the 13 scored
+        joints and where fewer than two sources give one. Large values flag joints to
+        review; it is a ranking, not a calibrated error."""
+        return self.motion.get("disagreement")
+
+    @property
     def frame_index(self) -> np.ndarray:
         """``(T,)`` the input's frame numbers of the rows."""
         return self.motion["frame_index"]
@@ -877,6 +886,10 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         + (f"; {info['limb_frames_voted']} limb-frames mirrored in depth where the {cfg.lifter_refit_vote_sources}"
            f" saw them the other way ({_runs_text(info.get('limb_runs_voted', []))})"
            if info.get("limb_frames_voted") else ""))
+    if info.get("disagreement_median_mm") is not None:
+        say(f"the 3D sources (fit, lifter, detector) part by {info['disagreement_median_mm'] / 10:.1f} cm at the "
+            f"median joint, {info['disagreement_p90_mm'] / 10:.1f} cm at the 90th percentile: motion.npz's "
+            "'disagreement' flags the joints and frames to review")
     return run
 
 

@@ -54,7 +54,9 @@ session).
 
 Frames without a lifted pose (no person, too few confident keypoints) keep the tracked
 body. ``joints3d`` and ``joints2d`` are recomputed; the tracked poses are kept as
-``poses_tracked``.
+``poses_tracked``. The three 3D sources' disagreement per frame and joint
+(:mod:`flowmocap.fit.disagreement`) is added as ``disagreement``: the refit does not use
+it; it tells the user where the 3D is least sure.
 """
 
 from __future__ import annotations
@@ -215,7 +217,14 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         (limbs mirrored before the refit, counted once per frame), ``limb_runs_voted``
         (``[{"limb": "left_elbow->left_wrist", "frames": [first, last]}]``, input frame
         numbers, both ends included), ``mean_move_mm`` (mean
-        distance the 24 joints moved), ``mean_move_px`` (in the image).
+        distance the 24 joints moved), ``mean_move_px`` (in the image),
+        ``disagreement_median_mm`` and ``disagreement_p90_mm`` (the median and 90th
+        percentile of ``disagreement`` over the joint-frames that have one; None if none).
+        The arrays gain ``disagreement (T, 24)`` float32, metres: per frame and joint, how far
+        the fit (after the vote), the lifter and the detector's own 3D part
+        (:func:`~flowmocap.fit.disagreement.source_disagreement`), for the 13 scored joints
+        (:data:`~flowmocap.body.skeleton.EVAL_JOINTS`), NaN for the rest and where fewer than
+        two sources give the joint.
     """
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.vision.keypoint_map import load_keypoint_map
@@ -307,6 +316,12 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                                             vote_min_reach, vote_min_frames, det2)
         n_voted = sum(b - a + 1 for _, a, b in runs)
         voted_runs = [{"limb": limb_name(limb), "frames": [int(idx[a]), int(idx[b])]} for limb, a, b in runs]
+    # where the three 3D sources part (the fit as voted, the lifter, the detector's own 3D):
+    # a per-joint flag for the user (flowmocap.fit.disagreement), not used by the refit
+    from flowmocap.fit.disagreement import source_disagreement, to_body_joints
+
+    disagreement = source_disagreement(fit_cam, [lifted, _detector_cam(track, idx, camera, pts2, exchanged,
+                                                                       gate=False)])
     poses_new = poses0.clone()
     targets_cam = fit_cam.copy()
     if ok.any():
@@ -349,12 +364,16 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     out["trans"] = trans_new.numpy().astype(np.asarray(motion["trans"]).dtype)
     out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
     out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    out["disagreement"] = to_body_joints(disagreement, joints.shape[1]).astype(np.float32)
     before2d = np.asarray(motion["joints2d"], np.float64)
+    known = disagreement[np.isfinite(disagreement)]
     info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "limb_runs_voted": voted_runs,
             "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
-            "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean())}
+            "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean()),
+            "disagreement_median_mm": float(1000 * np.median(known)) if known.size else None,
+            "disagreement_p90_mm": float(1000 * np.quantile(known, 0.9)) if known.size else None}
     return out, info
 
 
@@ -369,10 +388,12 @@ def _aligned(src: np.ndarray, fit_cam: np.ndarray) -> np.ndarray:
     return out
 
 
-def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged) -> np.ndarray:
+def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged, gate: bool = True) -> np.ndarray:
     """``(T, 13, 3)`` the detector's own 3D keypoints of the result's frames turned into the
     camera's axes (as the lifter's: about the ray through the detected hips), exchanged left
-    for right where the tracker did; NaN for frames without all 13 at confidence 0.5."""
+    for right where the tracker did; NaN for frames without all 13 at confidence 0.5
+    (``gate=False``: every frame where the person was found and the detected hips' pixels
+    are known, NaN only for points the detector gives none)."""
     from flowmocap.vision.lifter import HIPS, eval_points_2d
 
     out = np.full((len(idx), 13, 3), np.nan)
@@ -381,8 +402,8 @@ def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged) -
     w, wc = eval_points_2d(np.asarray(track.world)[idx], np.asarray(track.confidence)[idx])
     back = {int(f) for f in (exchanged or ())}
     for k, f in enumerate(idx):
-        if not (track.found[f] and (wc[k] >= 0.5).all() and np.isfinite(w[k]).all()
-                and np.isfinite(pts2[k, list(HIPS)]).all()):
+        if not (track.found[f] and np.isfinite(pts2[k, list(HIPS)]).all()
+                and (not gate or ((wc[k] >= 0.5).all() and np.isfinite(w[k]).all()))):
             continue
         x = w[k][list(MIRROR)] if int(f) in back else w[k]
         u, v = pts2[k, list(HIPS)].mean(0)
