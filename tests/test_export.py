@@ -256,6 +256,27 @@ def test_obj_and_json(posed_result, tmp_path):
     assert np.array(doc["frames"][4]["pose"]).shape == (72,)
 
 
+def test_json_carries_the_sources_disagreement_where_the_result_has_it(posed_result, tmp_path):
+    import shutil
+
+    from flowmocap.body.skeleton import EVAL_JOINTS
+    from flowmocap.io.results import read_result
+
+    folder, _ = posed_result
+    doc = json.loads(export_result(folder, "json", tmp_path / "plain.json", frame="up").read_text())
+    assert "disagreement" not in doc["frames"][0]  # a result without the lifter refit has none
+    copy = tmp_path / "result"
+    shutil.copytree(folder, copy)
+    motion, _ = read_result(copy)
+    dis = np.full((T, 24), np.nan, np.float32)
+    dis[:, list(EVAL_JOINTS)] = np.linspace(0.01, 0.3, T * 13).reshape(T, 13)
+    write_motion(copy, {**motion, "disagreement": dis})
+    doc = json.loads(export_result(copy, "json", tmp_path / "m.json", frame="up").read_text())
+    got = doc["frames"][2]["disagreement"]
+    assert len(got) == 24 and all(got[j] is None for j in range(24) if j not in EVAL_JOINTS)
+    np.testing.assert_allclose([got[j] for j in EVAL_JOINTS], dis[2, list(EVAL_JOINTS)], atol=1e-4)
+
+
 def test_export_errors_tell_what_to_do(posed_result, tmp_path, capsys):
     folder, _ = posed_result
     with pytest.raises(InputError, match="choose one of"):

@@ -165,3 +165,19 @@ def test_render_errors_tell_what_to_do(demo, tmp_path, capsys):
     assert ResultScene(moved, input=seq).num_frames == T
     assert main(["render", str(root / "exact"), "--figure1", str(tmp_path / "f.png"), "--frames", "a,b"]) == 2
     assert main(["render", str(root / "exact"), "--video", str(tmp_path / "v.mp4"), "--alpha", "2"]) == 2
+
+
+def test_the_energy_plot_gains_a_panel_for_the_sources_disagreement():
+    from flowmocap.viz.plots import energy_error_plot
+
+    x = np.arange(6)
+    e = np.ones((6, 2))
+    plain = energy_error_plot(x, e, ["total", "flow"])
+    dis = np.full((6, 24), np.nan)
+    dis[1:, :13] = np.linspace(0.02, 0.2, 5 * 13).reshape(5, 13)  # frame 0: none
+    more = energy_error_plot(x, e, ["total", "flow"], disagreement=dis)
+    assert more.shape[1] > plain.shape[1]  # a third panel beside the two energies
+    red = (more[..., 0] > 200) & (more[..., 1] < 80) & (more[..., 2] < 80)
+    assert red.sum() > 20 and not ((plain[..., 0] > 200) & (plain[..., 1] < 80) & (plain[..., 2] < 80)).any()
+    same = energy_error_plot(x, e, ["total", "flow"], disagreement=np.full((6, 24), np.nan))
+    assert same.shape == plain.shape  # nothing to show: no panel

@@ -57,7 +57,10 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
     to the result's world), "camera" (the result's camera, world frame), "units",
     "frames": [{"index", "time_s", "pose" (72, radians), "trans" (3, metres),
-    "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels)}, ...]}``.
+    "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels), and where the result
+    has them "contact" (left, right foot on the ground) and "disagreement" (24, metres,
+    null outside the 13 scored joints: how far the run's 3D sources part,
+    :mod:`flowmocap.fit.disagreement`)}, ...]}``.
     """
     from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
 
@@ -71,6 +74,8 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
         "joints3d": r(j3d[k]),
         "joints2d": r(motion.joints2d[k], 3),
         **({"contact": [bool(c) for c in motion.world.contacts[k]]} if motion.world is not None else {}),
+        **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
+           if motion.disagreement is not None else {}),
     } for k in range(motion.num_frames)]
     doc = {
         "format": "flowmocap-motion", "version": 1, "fps": motion.fps, "gender": motion.gender,

@@ -60,6 +60,9 @@ class FittedMotion:
         world: the :class:`~flowmocap.export.world.WorldFrame` (floor, foot contacts) for
             ``frame="ground"``, else None.
         smoothed: the smoothing applied (``{"window_s", "order", "window_frames"}``) or None.
+        disagreement: ``(T, 24)`` metres, the result's ``disagreement``
+            (:func:`~flowmocap.fit.disagreement.source_disagreement`; NaN outside the 13
+            scored joints), or None where the result has none.
     """
 
     poses: np.ndarray
@@ -77,6 +80,7 @@ class FittedMotion:
     offset: np.ndarray = None
     world: object = None
     smoothed: dict | None = None
+    disagreement: np.ndarray | None = None
 
     def __post_init__(self):
         if self.offset is None:
@@ -220,7 +224,9 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     fm = FittedMotion(poses=poses, trans=trans, betas=betas, gender=gender, fps=fps, frame_index=index,
                       rotation=W, model=body, camera=camera_in_frame(camera, W, offset), run=run, frame=frame,
                       joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64),
-                      offset=offset, world=world, smoothed=smoothed)
+                      offset=offset, world=world, smoothed=smoothed,
+                      disagreement=(np.asarray(motion["disagreement"], np.float64) if "disagreement" in motion
+                                    else None))
     if not np.allclose(W, np.eye(3)) or np.any(offset != 0):
         p, t = rotate_motion(poses, trans, fm.rest_joints()[0], W)
         fm.poses, fm.trans = p, t + offset

@@ -356,8 +356,9 @@ def joint_traces(scene: ResultScene, frames: list[int], history: int | None = No
 
 
 def energy_figure(scene: ResultScene) -> np.ndarray:
-    """Per-frame energy terms and (with ground truth) 3D joint errors as an RGB image,
-    see :func:`flowmocap.viz.plots.energy_error_plot`."""
+    """Per-frame energy terms, the 3D sources' disagreement (where the result has it) and
+    (with ground truth) 3D joint errors as an RGB image, see
+    :func:`flowmocap.viz.plots.energy_error_plot`."""
     from flowmocap.viz.plots import energy_error_plot
 
     a = scene.arrays
@@ -366,4 +367,4 @@ def energy_figure(scene: ResultScene) -> np.ndarray:
     errors = scene.errors_cm()
     return energy_error_plot(scene.motion.frame_index, a["energies"], a["energy_names"], errors,
                              title=f"{scene.result_dir.name}: per-frame energies"
-                             + (" and 3D joint error" if errors else ""))
+                             + (" and 3D joint error" if errors else ""), disagreement=a.get("disagreement"))
