@@ -1,6 +1,7 @@
-"""Closed-form checks of the measures in two of issue 18's check scripts:
-benchmarks/real3d_torso.py (the torso's yaw) and benchmarks/detector_runs_2d.py (the
-detector runs' keypoints combined)."""
+"""Closed-form checks of the measures in issue 18's check scripts:
+benchmarks/real3d_torso.py (the torso's yaw), benchmarks/detector_runs_2d.py (the
+detector runs' keypoints combined), benchmarks/source_selection.py and
+benchmarks/disagreement.py (the sources' disagreement as a flag)."""
 
 import importlib.util
 from pathlib import Path
@@ -167,3 +168,27 @@ def test_the_mean_lifter_of_benchmarks_lifter_refit_averages_its_lifters():
     assert np.allclose(mixed.lift_points(pts, mask), one.lift_points(pts, mask) + (0.5, 0.0, 0.0))
     with pytest.raises(ValueError):
         mod.MeanLifter([])
+
+
+def test_disagreement_scripts_measures():
+    dis = _load("disagreement")
+    score = np.arange(100.0)
+    worst = score >= 90
+    assert dis.auroc(score, worst) == 1.0 and dis.auroc(-score, worst) == 0.0
+    assert dis.auroc(np.zeros(100), worst) == 0.5  # ties count half
+    assert np.isnan(dis.auroc(score, np.zeros(100, bool)))
+    f = dis.flag_scores(score / 1000, score / 1000)  # a perfect flag
+    assert f["auroc_top10"] == 1.0 and f["precision_top10"] == 1.0 and f["spearman"] == pytest.approx(1.0)
+    assert f["error_flagged_mm"] == pytest.approx(94.5) and f["error_rest_mm"] == pytest.approx(44.5)
+    # the per-joint error after a similarity per frame: none for a turned, scaled copy, one moved point's otherwise
+    rng = np.random.default_rng(0)
+    ref = rng.normal(0, 0.3, (3, 13, 3))
+    pred = 1.5 * Rotation.from_rotvec([0.2, -0.4, 0.1]).apply(ref.reshape(-1, 3)).reshape(ref.shape) + 2.0
+    valid = np.ones((3, 13), bool)
+    valid[1, 4] = False
+    err = dis.per_joint_error(pred, ref, valid)
+    assert np.isnan(err[1, 4]) and np.nanmax(err) < 1e-9
+    valid[2, 4:] = False  # 4 valid points is enough, 3 is not
+    valid[0, 3:] = False
+    err = dis.per_joint_error(pred, ref, valid)
+    assert np.isfinite(err[2, :4]).all() and np.isnan(err[0]).all()
