@@ -183,3 +183,46 @@ def test_page_in_headless_chromium_draws_the_body_where_the_camera_sees_it(serve
     iou = (seen & mask).sum() / (seen | mask).sum()
     print("overlay IoU", iou)
     assert iou > 0.85, iou
+
+
+@pytest.fixture(scope="module")
+def reviewed(tmp_path_factory, result):
+    """The same result with the 3D sources' disagreement: frame 4 parts most."""
+    from flowmocap.body.skeleton import EVAL_JOINTS
+    from flowmocap.io.results import read_result, write_motion
+
+    d = tmp_path_factory.mktemp("view_review") / "result"
+    shutil.copytree(result, d)
+    motion, _ = read_result(d)
+    T = len(motion["poses"])
+    dis = np.full((T, 24), np.nan, np.float32)
+    dis[:, list(EVAL_JOINTS)] = 0.03
+    dis[4, list(EVAL_JOINTS)] = np.linspace(0.1, 0.3, 13)  # mean 20 cm
+    dis[1] = np.nan  # a frame without sources
+    write_motion(d, {**motion, "disagreement": dis})
+    data = ViewerData(d)
+    server = make_server(data, port=0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield data, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_meta_marks_the_frames_where_the_3d_sources_part_most(served, reviewed):
+    plain = json.loads(_get(served[1] + "/api/meta.json")[2])
+    assert plain["disagreement_cm"] is None and plain["review"] is None
+    meta = json.loads(_get(reviewed[1] + "/api/meta.json")[2])
+    d, review = meta["disagreement_cm"], meta["review"]
+    assert len(d) == len(review) == meta["num_frames"]
+    assert d[4] == 20.0 and d[0] == 3.0 and d[1] is None
+    assert review[4] == 1 and sum(review) == 1  # the one frame above the 90th percentile
+
+
+def test_page_says_which_frames_to_review(reviewed, tmp_path):
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    for k, flag in ((4, "1"), (2, "0")):
+        dom = _chromium_run(reviewed[1] + f"/?frame={k}", "--dump-dom")
+        assert 'data-ready="1"' in dom.stdout and "data-error" not in dom.stdout, (dom.stdout[-2000:], dom.stderr[-2000:])
+        assert f'data-review="{flag}"' in dom.stdout
+        assert "3D sources part" in dom.stdout and (("(review)" in dom.stdout) == (flag == "1"))

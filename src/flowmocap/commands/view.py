@@ -112,7 +112,10 @@ class ViewerData:
         frame), ``camera`` (its ``to_dict``), ``centre`` (mean pelvis, metres), ``floor``
         (how the floor was found), ``contacts`` (T x 2), ``feet`` (T x 2 x 3: the lowest
         point of the left and right foot, metres), ``path`` (T x 3: the pelvis, metres),
-        ``smoothed``, ``has_input``."""
+        ``smoothed``, ``has_input``, and from the result's ``disagreement``
+        (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
+        per frame the mean over the scored joints, centimetres; None where there is none)
+        and ``review`` (T, 0/1: the frames at or above the run's 90th percentile of it)."""
         from flowmocap.export.world import foot_vertex_sets
 
         m = self.motion
@@ -131,7 +134,21 @@ class ViewerData:
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
                 "centre": joints[:, 0].mean(0).tolist(), "floor": floor,
                 "contacts": w.contacts.astype(int).tolist(), "feet": np.round(np.concatenate(feet), 4).tolist(),
-                "path": np.round(joints[:, 0], 4).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None}
+                "path": np.round(joints[:, 0], 4).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None,
+                **self._review()}
+
+    def _review(self) -> dict:
+        """``disagreement_cm`` and ``review`` of :meth:`meta`."""
+        d = self.motion.disagreement
+        if d is None or not np.isfinite(d).any():
+            return {"disagreement_cm": None, "review": None}
+        have = np.isfinite(d).any(1)
+        per_frame = np.full(len(d), np.nan)
+        per_frame[have] = 100 * np.nanmean(d[have], 1)
+        flag = np.zeros(len(d), int)
+        flag[have] = per_frame[have] >= np.quantile(per_frame[have], 0.9)
+        return {"disagreement_cm": [None if not np.isfinite(v) else round(float(v), 1) for v in per_frame],
+                "review": flag.tolist()}
 
     def frame_jpeg(self, k: int) -> bytes:
         """JPEG of result row ``k``'s input frame (grey without an input)."""

@@ -6,8 +6,10 @@
 // URL parameters: ?frame=K (start at row K, paused), ?play=1 (start playing), ?scale=S (draw
 // the input at S x its size instead of fitting it into its pane), ?az=DEG (the 3D view's
 // start, turned DEG about the vertical from the video camera's side; default 30).
-// When a frame is drawn, <body> carries data-frame=K, data-ready=1 and data-overlay=[left,
-// top, width, height] (the overlay's place on the page, CSS pixels), for tests.
+// When a frame is drawn, <body> carries data-frame=K, data-ready=1, data-overlay=[left,
+// top, width, height] (the overlay's place on the page, CSS pixels) and, where the result has
+// the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
+// tenth), for tests. The strip under the slider marks those frames in red.
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -138,6 +140,22 @@ function layout() {
 }
 window.addEventListener('resize', () => { layout(); draw(); });
 
+// the frames to review (the 3D sources part most): red marks on a strip under the slider
+function drawStrip() {
+  const strip = $('strip');
+  if (!meta.review) { strip.style.display = 'none'; return; }
+  const w = Math.max(1, Math.round($('slider').getBoundingClientRect().width));
+  strip.width = w;
+  const g = strip.getContext('2d');
+  g.fillStyle = '#3a404a';
+  g.fillRect(0, 0, w, strip.height);
+  g.fillStyle = '#ff5050';
+  for (let k = 0; k < T; k++) {
+    if (meta.review[k]) g.fillRect(Math.floor((k / Math.max(T - 1, 1)) * (w - 2)), 0, 2, strip.height);
+  }
+}
+window.addEventListener('resize', drawStrip);
+
 let current = 0;
 let playing = false;
 let token = 0;
@@ -161,6 +179,12 @@ async function setFrame(k) {
   const mine = ++token;
   $('slider').value = String(current);
   label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(current / fps).toFixed(2)} s`;
+  if (meta.review) {
+    const d = meta.disagreement_cm[current];
+    label.textContent += d === null ? '' : `, 3D sources part ${d.toFixed(1)} cm` + (meta.review[current] ? ' (review)' : '');
+    label.classList.toggle('review', meta.review[current] === 1);
+    document.body.dataset.review = String(meta.review[current]);
+  }
   const img = $('frame');
   await new Promise((resolve) => { img.onload = resolve; img.onerror = resolve; img.src = `/frame/${current}.jpg`; });
   if (mine !== token) return;  // a newer frame was asked for meanwhile
@@ -196,5 +220,6 @@ window.addEventListener('keydown', (e) => {
 });
 
 layout();
+drawStrip();
 await setFrame(Number(params.get('frame') || 0));
 if (params.get('play') === '1') setPlaying(true);
