@@ -70,25 +70,25 @@ def energy_error_plot(frame_index: np.ndarray, energies: np.ndarray, names, erro
         mean[have], top[have] = np.nanmean(dis[have], 1), np.nanmax(dis[have], 1)
         ax.plot(x, top, ".-", lw=1.0, ms=2, color="tab:red", label="largest joint")
         ax.plot(x, mean, ".-", lw=1.2, ms=3, color="tab:purple", label="mean of the joints")
-        ax.set_title("3D sources' disagreement [cm]", fontsize=10)
-        ax.set_xlabel("frame", fontsize=8)
-        ax.set_ylim(bottom=0)
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=8)
+        _finish_curves(ax, "3D sources' disagreement [cm]")
     if errors:
         ax = axes[-1]
         for label, err in errors.items():
             err = np.asarray(err, np.float64)
             ax.plot(x, err, ".-", lw=1.2, ms=3, label=f"{label} (mean {np.nanmean(err):.2f})")
-        ax.set_title("3D joint error vs ground truth [cm]", fontsize=10)
-        ax.set_xlabel("frame", fontsize=8)
-        ax.set_ylim(bottom=0)
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=8)
+        _finish_curves(ax, "3D joint error vs ground truth [cm]")
     if title:
         fig.suptitle(title, fontsize=11)
     fig.tight_layout()
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _finish_curves(ax, title: str) -> None:
+    """Title, axis from zero, legend and grid of a panel of labelled per-frame curves."""
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("frame", fontsize=8)
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    ax.tick_params(labelsize=8)
