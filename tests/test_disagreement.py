@@ -93,3 +93,21 @@ def test_to_body_joints_puts_the_13_in_their_places():
     assert np.isnan(np.delete(out, list(EVAL_JOINTS), axis=1)).all()
     with pytest.raises(InputError):
         to_body_joints(np.zeros((2, 12)))
+
+
+def test_review_frames_marks_the_tenth_where_the_sources_part_most():
+    from flowmocap.fit.disagreement import review_frames
+
+    d = np.full((21, 24), np.nan)
+    d[:20, :13] = np.arange(20)[:, None] * 0.01  # frame means 0.00 .. 0.19 m; frame 20 has none
+    d[3, 0] = np.nan  # a joint without sources leaves the frame's mean to the others
+    per_frame, flagged = review_frames(d)
+    np.testing.assert_allclose(per_frame[:20], np.arange(20) * 0.01)
+    assert np.isnan(per_frame[20]) and not flagged[20]
+    np.testing.assert_array_equal(np.flatnonzero(flagged), [18, 19])  # at or above the 90th percentile
+    assert review_frames(d, share=1.0)[1][:20].all()
+    assert not review_frames(np.full((4, 24), np.nan))[1].any()
+    with pytest.raises(InputError):
+        review_frames(d, share=0.0)
+    with pytest.raises(InputError):
+        review_frames(d[0])

@@ -181,3 +181,24 @@ def test_the_energy_plot_gains_a_panel_for_the_sources_disagreement():
     assert red.sum() > 20 and not ((plain[..., 0] > 200) & (plain[..., 1] < 80) & (plain[..., 2] < 80)).any()
     same = energy_error_plot(x, e, ["total", "flow"], disagreement=np.full((6, 24), np.nan))
     assert same.shape == plain.shape  # nothing to show: no panel
+
+
+def test_overlay_video_frames_the_frames_to_review_in_red(demo, tmp_path):
+    import shutil
+
+    import imageio.v3 as iio
+
+    from flowmocap.io.results import read_result
+
+    root, _, _ = demo
+    res = tmp_path / "flagged"
+    shutil.copytree(root / "exact", res)
+    motion, _ = read_result(res)
+    dis = np.full((T, 24), 0.02, np.float32)
+    dis[3] = 0.3  # the one frame of five at the run's 90th percentile
+    write_motion(res, {**motion, "disagreement": dis})
+    assert main(["render", str(res), "--video", str(tmp_path / "f.mp4"), "--quiet"]) == 0
+    video = iio.imread(tmp_path / "f.mp4", plugin="pyav").astype(int)
+    edge = lambda f: np.concatenate([video[f, :2].reshape(-1, 3), video[f, -2:].reshape(-1, 3)])  # noqa: E731
+    red = lambda px: ((px[:, 0] > 150) & (px[:, 1] < 100) & (px[:, 2] < 100)).mean()  # noqa: E731
+    assert red(edge(3)) > 0.8 and all(red(edge(f)) < 0.1 for f in (0, 1, 2, 4))

@@ -115,7 +115,8 @@ class ViewerData:
         ``smoothed``, ``has_input``, and from the result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
         per frame the mean over the scored joints, centimetres; None where there is none)
-        and ``review`` (T, 0/1: the frames at or above the run's 90th percentile of it)."""
+        and ``review`` (T, 0/1: :func:`~flowmocap.fit.disagreement.review_frames`, the tenth
+        of the frames where the sources part most)."""
         from flowmocap.export.world import foot_vertex_sets
 
         m = self.motion
@@ -139,16 +140,14 @@ class ViewerData:
 
     def _review(self) -> dict:
         """``disagreement_cm`` and ``review`` of :meth:`meta`."""
+        from flowmocap.fit.disagreement import review_frames
+
         d = self.motion.disagreement
         if d is None or not np.isfinite(d).any():
             return {"disagreement_cm": None, "review": None}
-        have = np.isfinite(d).any(1)
-        per_frame = np.full(len(d), np.nan)
-        per_frame[have] = 100 * np.nanmean(d[have], 1)
-        flag = np.zeros(len(d), int)
-        flag[have] = per_frame[have] >= np.quantile(per_frame[have], 0.9)
-        return {"disagreement_cm": [None if not np.isfinite(v) else round(float(v), 1) for v in per_frame],
-                "review": flag.tolist()}
+        per_frame, flagged = review_frames(d)
+        return {"disagreement_cm": [None if not np.isfinite(v) else round(100 * float(v), 1) for v in per_frame],
+                "review": flagged.astype(int).tolist()}
 
     def frame_jpeg(self, k: int) -> bytes:
         """JPEG of result row ``k``'s input frame (grey without an input)."""

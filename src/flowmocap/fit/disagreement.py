@@ -21,10 +21,12 @@ import numpy as np
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.errors import InputError
 
-__all__ = ["MIN_ALIGN_POINTS", "source_disagreement", "to_body_joints"]
+__all__ = ["MIN_ALIGN_POINTS", "REVIEW_SHARE", "review_frames", "source_disagreement", "to_body_joints"]
 
 #: A source is aligned onto the first in a frame only where both give at least this many points.
 MIN_ALIGN_POINTS = 4
+#: The share of a run's frames :func:`review_frames` marks: those where the sources part most.
+REVIEW_SHARE = 0.1
 
 
 def source_disagreement(first: np.ndarray, others: list[np.ndarray]) -> np.ndarray:
@@ -84,3 +86,28 @@ def to_body_joints(points13: np.ndarray, joints: int = 24) -> np.ndarray:
     out = np.full((len(points13), joints), np.nan)
     out[:, list(EVAL_JOINTS)] = points13
     return out
+
+
+def review_frames(disagreement: np.ndarray, share: float = REVIEW_SHARE) -> tuple[np.ndarray, np.ndarray]:
+    """The frames to review: ``(per_frame (T,) metres, flagged (T,) bool)``.
+
+    Args:
+        disagreement: ``(T, J)`` metres, a result's ``disagreement`` (NaN where none).
+        share: the share of the frames that have a value to flag: those whose mean over the
+            joints is at or above the run's ``1 - share`` quantile of it.
+
+    Returns:
+        Each frame's mean over its joints (NaN where it has none), and the flag (False there).
+    """
+    d = np.asarray(disagreement, np.float64)
+    if d.ndim != 2:
+        raise InputError(f"disagreement must be (T, J); got {d.shape}.")
+    if not 0.0 < share <= 1.0:
+        raise InputError(f"share must lie in (0, 1]; got {share!r}.")
+    have = np.isfinite(d).any(1)
+    per_frame = np.full(len(d), np.nan)
+    flagged = np.zeros(len(d), bool)
+    if have.any():
+        per_frame[have] = np.nanmean(d[have], 1)
+        flagged[have] = per_frame[have] >= np.quantile(per_frame[have], 1.0 - share)
+    return per_frame, flagged

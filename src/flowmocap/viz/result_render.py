@@ -195,7 +195,9 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
                   progress: bool = True) -> Path:
     """Write the body-over-video MP4: one video frame per tracked frame, the input's size
     (twice as wide with ``side``: the view from a camera orbited 90 degrees about the
-    body's mean pelvis, on the right).
+    body's mean pelvis, on the right). Where the result has the 3D sources' disagreement,
+    the frames to review (:func:`~flowmocap.fit.disagreement.review_frames`) get a red frame
+    and a caption with the frame's value.
 
     Args:
         scene: the result.
@@ -211,15 +213,39 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     from flowmocap.viz.video import VideoWriter
 
+    from flowmocap.fit.disagreement import review_frames
+
     cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
+    review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
     with VideoWriter(path, scene.motion.fps) as out:
         for k in tqdm(range(scene.num_frames), disable=not progress, unit="frame", desc="overlay video"):
             v = scene.vertices(k)
             img = overlay_body(scene.image(k), v, scene.faces, scene.camera, alpha=alpha)
+            if review is not None and review[1][k]:
+                img = _flag(img, f"review: 3D sources part {100 * review[0][k]:.0f} cm")
             if cam2 is not None:
                 img = np.concatenate([img, _label(render_body_view(v, scene.faces, cam2), "side view")], axis=1)
             out.write(img)
     return Path(path)
+
+
+#: RGB of the frame drawn round a video frame to review
+REVIEW_RGB = (230, 40, 40)
+
+
+def _flag(img: np.ndarray, text: str) -> np.ndarray:
+    """``img`` with a red frame round it and ``text`` at the bottom left, white on red."""
+    import cv2
+
+    img = np.ascontiguousarray(img)
+    t = max(2, round(min(img.shape[:2]) / 120))
+    cv2.rectangle(img, (t // 2, t // 2), (img.shape[1] - 1 - t // 2, img.shape[0] - 1 - t // 2), REVIEW_RGB, t)
+    scale = max(0.35, min(0.7, img.shape[0] / 700))
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x, y = t, img.shape[0] - t - base - 4
+    cv2.rectangle(img, (x, y - h - 4), (x + w + 8, img.shape[0] - t), REVIEW_RGB, -1)
+    cv2.putText(img, text, (x + 4, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
