@@ -281,7 +281,7 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     assert ("depth_smoothed_s" in run["lifter_refit"]) == smooth
     # the sources' disagreement is written with the motion and read back by the API
     np.testing.assert_array_equal(got["disagreement"], refit["disagreement"])
-    assert run["lifter_refit"]["disagreement_median_mm"] > 0
+    assert run["lifter_refit"]["disagreement_median_mm"] > 0 and run["lifter_refit"]["review_frames"]
     assert pipeline.Result(out, got, run).disagreement.shape == (T, 24)
 
 
@@ -475,6 +475,7 @@ def test_the_refit_flags_the_joint_where_its_sources_part(tmp_path, with_detecto
     rest = [j for j in EVAL_JOINTS if j not in (wrist, JOINT_INDEX["right_elbow"])]
     assert (d[:3, rest] < 0.35 * d[:3, wrist, None]).all()
     assert info["disagreement_p90_mm"] >= info["disagreement_median_mm"] > 0
+    assert info["review_frames"] and all(a <= b <= 2 for a, b in info["review_frames"])  # frames with sources
 
 
 def test_the_vote_reads_no_detector_3d_where_there_is_none(tmp_path):

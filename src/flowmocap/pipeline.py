@@ -887,9 +887,12 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
            f" saw them the other way ({_runs_text(info.get('limb_runs_voted', []))})"
            if info.get("limb_frames_voted") else ""))
     if info.get("disagreement_median_mm") is not None:
+        stretches = info.get("review_frames", [])
+        shown = ", ".join(f"{a}-{b}" if b > a else str(a) for a, b in stretches[:4])
         say(f"the 3D sources (fit, lifter, detector) part by {info['disagreement_median_mm'] / 10:.1f} cm at the "
-            f"median joint, {info['disagreement_p90_mm'] / 10:.1f} cm at the 90th percentile: motion.npz's "
-            "'disagreement' flags the joints and frames to review")
+            f"median joint, {info['disagreement_p90_mm'] / 10:.1f} cm at the 90th percentile; review frames {shown}"
+            + (f" and {len(stretches) - 4} more stretches" if len(stretches) > 4 else "")
+            + " (run.json 'lifter_refit', motion.npz 'disagreement')")
     return run
 
 

@@ -219,7 +219,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         numbers, both ends included), ``mean_move_mm`` (mean
         distance the 24 joints moved), ``mean_move_px`` (in the image),
         ``disagreement_median_mm`` and ``disagreement_p90_mm`` (the median and 90th
-        percentile of ``disagreement`` over the joint-frames that have one; None if none).
+        percentile of ``disagreement`` over the joint-frames that have one; None if none),
+        ``review_frames`` (``[[first, last], ...]`` input frame numbers, both ends included:
+        the stretches of the tenth of frames where the sources part most,
+        :func:`~flowmocap.fit.disagreement.review_frames`).
         The arrays gain ``disagreement (T, 24)`` float32, metres: per frame and joint, how far
         the fit (after the vote), the lifter and the detector's own 3D part
         (:func:`~flowmocap.fit.disagreement.source_disagreement`), for the 13 scored joints
@@ -318,7 +321,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         voted_runs = [{"limb": limb_name(limb), "frames": [int(idx[a]), int(idx[b])]} for limb, a, b in runs]
     # where the three 3D sources part (the fit as voted, the lifter, the detector's own 3D):
     # a per-joint flag for the user (flowmocap.fit.disagreement), not used by the refit
-    from flowmocap.fit.disagreement import source_disagreement, to_body_joints
+    from flowmocap.fit.disagreement import review_frames, source_disagreement, to_body_joints
+    from flowmocap.vision.auto import frame_runs
 
     disagreement = source_disagreement(fit_cam, [lifted, _detector_cam(track, idx, camera, pts2, exchanged,
                                                                        gate=False)])
@@ -373,7 +377,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean()),
             "disagreement_median_mm": float(1000 * np.median(known)) if known.size else None,
-            "disagreement_p90_mm": float(1000 * np.quantile(known, 0.9)) if known.size else None}
+            "disagreement_p90_mm": float(1000 * np.quantile(known, 0.9)) if known.size else None,
+            "review_frames": frame_runs(idx[review_frames(disagreement)[1]])}
     return out, info
 
 
