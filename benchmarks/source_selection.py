@@ -24,7 +24,10 @@ What it reports, per suite:
    for diverse the same over the 13 points of every frame where the lifter and MediaPipe
    give them: not the bench's local error over 24 joints). Rules: one share everywhere;
    shares gated by keypoint confidence; a share that falls with the lifter's spread; the
-   three sources mixed; a random pick among the shares 0, 0.5 and 1 per point; and an
+   three sources mixed; a random pick among the shares 0, 0.5 and 1 per point; limb by limb,
+   the fit's limb where the lifter's bones are off their usual length (:func:`bone_deviation`);
+   with ``--plausibility``, limb by limb the source whose limb lies nearest a real one of the
+   mocap train clips in the torso's frame (:class:`LimbPlausibility`); and an
   **oracle** that picks for every point and frame the best of
    the shares 0, 0.5 and 1 of the lifter by the reference (a bound no rule can pass;
    it also profits from picking among noisy candidates, so it is loose).
@@ -32,7 +35,8 @@ What it reports, per suite:
 The blends are not methods (the result is no longer a body with fixed bones); as with
 ``benchmarks/fusion_bound.py`` they bound what a refit towards such targets could reach.
 
-Usage: python benchmarks/source_selection.py [--real3d DIR] [--diverse DIR] [--mc 16] [--out PREFIX]
+Usage: python benchmarks/source_selection.py [--real3d DIR] [--diverse DIR] [--mc 16] [--plausibility
+       [--poses-cache FILE]] [--out PREFIX]
   DIR: a ``flowmocap bench --suite real3d`` folder, or a diverse ``tracker_only.py`` folder
   (post-pass off). Writes PREFIX.json and PREFIX.md.
 """
@@ -110,6 +114,8 @@ def blend3(fit, lift, mp, a, b):
     return (1.0 - a - b) * fit + a * lift + b * mp
 
 
+#: the rule the others are compared with
+BASE_RULE = "share 0.5 everywhere (today's refit targets)"
 #: the rules scored, as (name, function of one run's dict -> (T, P, 3))
 RULES = (
     ("fit alone", lambda r: r["fit"]),
@@ -128,6 +134,153 @@ RULES = (
         r["fit"], r["lift"])),
     ("oracle: best of lifter shares 0 / 0.5 / 1 per point", lambda r: oracle_blend(r["fit"], r["lift"], r["ref"], r["valid"])),
 )
+
+# ------------------------------------------------ limb by limb: plausibility and bone lengths (twenty-third session)
+
+#: each limb of the 13 points (order of EVAL_JOINTS: head, shoulders, elbows, wrists, hips,
+#: knees, ankles, left before right) as (root, middle, end); a limb rule replaces the middle
+#: and end points
+LIMBS = {"left arm": (1, 3, 5), "right arm": (2, 4, 6), "left leg": (7, 9, 11), "right leg": (8, 10, 12)}
+#: a limb whose bones differ from their median over the run by more than this share (the
+#: largest of its two bones) is "off" in :func:`bone_deviation`'s rule
+BONE_TOLERANCES = (0.15, 0.2)
+
+
+def torso_frame(x: np.ndarray) -> np.ndarray:
+    """``(..., 13, 3)`` points in the torso's own frame: origin at the middle of the hips, y
+    towards the middle of the shoulders, x along hips and shoulders from right to left (made
+    perpendicular to y), z = x cross y; divided by the hips-to-shoulders length. Unchanged by
+    any similarity of the input (a rotation, a scale, a translation)."""
+    x = np.asarray(x, np.float64)
+    mh = 0.5 * (x[..., 7, :] + x[..., 8, :])
+    up = 0.5 * (x[..., 1, :] + x[..., 2, :]) - mh
+    size = np.linalg.norm(up, axis=-1, keepdims=True)
+    y = up / size
+    a = (x[..., 7, :] - x[..., 8, :]) + (x[..., 1, :] - x[..., 2, :])
+    a = a - (a * y).sum(-1, keepdims=True) * y
+    ax = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    rows = np.stack([ax, y, np.cross(ax, y)], -2)
+    return np.einsum("...ij,...kj->...ki", rows, x - mh[..., None, :]) / size[..., None]
+
+
+def limb_features(x: np.ndarray) -> dict[str, np.ndarray]:
+    """Per limb of :data:`LIMBS`, ``(..., 6)``: its middle and end points relative to its root
+    in :func:`torso_frame`."""
+    c = torso_frame(x)
+    return {name: np.concatenate([c[..., m, :] - c[..., r, :], c[..., e, :] - c[..., r, :]], -1)
+            for name, (r, m, e) in LIMBS.items()}
+
+
+class LimbPlausibility:
+    """How far each limb of a pose is from the nearest limb of a set of real poses
+    (:func:`limb_features`, nearest neighbour): small for a limb placed as people place
+    theirs relative to the torso, large for one that is not.
+
+    Args:
+        points: ``(N, 13, 3)`` real poses (e.g. :func:`mocap_points`), metres, any axes.
+    """
+
+    def __init__(self, points: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.size = len(points)
+        self.trees = {k: cKDTree(v) for k, v in limb_features(points).items()}
+
+    def distance(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """Per limb ``(T,)``: the distance to the nearest real limb (torso lengths) of ``x (T, 13, 3)``."""
+        return {k: self.trees[k].query(np.nan_to_num(f), k=1)[0] for k, f in limb_features(x).items()}
+
+
+def mocap_points(cache: Path | None = None, step: int = 2, bodies: int = 2, seed: int = 0) -> np.ndarray:
+    """``(N, 13, 3)`` the detector's 13 points (learned keypoint offsets, head at the middle of
+    the ears) on every ``step``-th frame of the ``train`` clips of ``mocap/prior``, each on
+    ``bodies`` random bodies and also mirrored left for right, as ``tools/train_lifter.py``
+    makes its training data (no test subject: the held-out suite's clips are not among them).
+    ``cache``: the retargeted poses' ``.npz`` of ``tools/train_pose_prior.py --cache``."""
+    tools = Path(__file__).resolve().parents[1] / "tools"
+    sys.path.insert(0, str(tools))
+    from train_lifter import keypoint_points
+    from train_pose_prior import DEFAULT_DATA, read_index, retarget_all
+
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.pose_prior import mirror_pose
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+
+    model = load_body_model("default", gender="neutral")
+    every = read_index(DEFAULT_DATA)
+    poses = retarget_all(every, DEFAULT_DATA, model, cache)  # all clips, as the tools keep the cache
+    rows = [r for r in every if r["split"] == "train"]
+    kmap, rng, out = load_keypoint_map(), np.random.default_rng(seed), []
+    for r in rows:
+        P = poses[r["file"]][::step]
+        for _ in range(bodies):
+            betas = rng.normal(0, 1, 10)
+            out += [keypoint_points(P, betas, model, kmap), keypoint_points(mirror_pose(P), betas, model, kmap)]
+    return np.concatenate(out)
+
+
+def bone_deviation(x: np.ndarray) -> dict[str, np.ndarray]:
+    """Per limb ``(T,)``: the larger of its two bones' relative difference from that bone's
+    median length over the run (0.2: a bone 20 % longer or shorter than usual). The fit's
+    bones have fixed lengths; the lifter's and MediaPipe's do not, and a bone of the wrong
+    length is a sign of a point in the wrong place."""
+    out = {}
+    for name, (r, m, e) in LIMBS.items():
+        L = np.stack([np.linalg.norm(x[:, r] - x[:, m], axis=-1), np.linalg.norm(x[:, m] - x[:, e], axis=-1)], 1)
+        with np.errstate(all="ignore"):
+            out[name] = np.nanmax(np.abs(L / np.nanmedian(L, 0) - 1.0), 1)
+    return out
+
+
+def limb_composite(base: np.ndarray, candidates: dict[str, np.ndarray], pick: dict[str, np.ndarray]) -> np.ndarray:
+    """``(T, 13, 3)``: ``base`` with each limb's middle and end points taken, frame by frame,
+    from the candidate ``pick[limb] (T,)`` names (a name not among ``candidates`` keeps ``base``)."""
+    out = np.array(base, np.float64)
+    for name, (_, m, e) in LIMBS.items():
+        for key, cand in candidates.items():
+            sel = np.asarray(pick[name]) == key
+            out[np.ix_(sel, [m, e])] = np.asarray(cand, np.float64)[np.ix_(sel, [m, e])]
+    return out
+
+
+def _half(r):
+    return blend3(r["fit"], r["lift"], r["mp"], 0.5, 0.0)
+
+
+def bone_rule(tolerance: float):
+    """Share 0.5, but the fit's points for a limb where the lifter's bones are off by more
+    than ``tolerance`` (:func:`bone_deviation`)."""
+    def rule(r):
+        dev = bone_deviation(r["lift"])
+        return limb_composite(_half(r), {"fit": r["fit"]}, {k: np.where(v > tolerance, "fit", "") for k, v in dev.items()})
+    return rule
+
+
+def plausibility_rule(db: LimbPlausibility, margin: float):
+    """Share 0.5, but per limb and frame the candidate (fit, lifter, MediaPipe) whose limb is
+    nearest a real one, where it is nearer by more than ``margin`` times than the share 0.5's."""
+    def rule(r):
+        cands = {"fit": r["fit"], "lift": r["lift"], "mp": r["mp"]}
+        base = _half(r)
+        d0 = db.distance(base)
+        d = {k: db.distance(v) for k, v in cands.items()}
+        pick = {}
+        for limb in LIMBS:
+            D = np.stack([d[k][limb] for k in cands])
+            best = D.argmin(0)
+            better = D.min(0) * margin < d0[limb]
+            pick[limb] = np.where(better, np.asarray(list(cands))[best], "")
+        return limb_composite(base, cands, pick)
+    return rule
+
+
+RULES = RULES + tuple((f"the lifter's limb bones off by more than {int(100 * t)} %: the fit's limb", bone_rule(t))
+                      for t in BONE_TOLERANCES)
+
+
+def plausibility_rules(db: LimbPlausibility) -> tuple:
+    return tuple((f"per limb the most plausible of fit / lifter / MediaPipe where {m:g}x nearer a mocap limb than "
+                  "the share 0.5's", plausibility_rule(db, m)) for m in (1.0, 2.0))
 
 
 def _mc(lift_once, lifter, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -250,7 +403,7 @@ def rule_table(runs: list[dict]) -> dict:
     scores = {}
     for name, rule in RULES:
         scores[name] = [1000 * float(np.nanmean(frame_errors(rule(r), r["ref"], r["valid"]))) for r in runs]
-    base = np.array(scores[RULES[2][0]])
+    base = np.array(scores[BASE_RULE])
     out = {}
     for name, s in scores.items():
         s = np.array(s)
@@ -293,8 +446,17 @@ def main() -> int:
     ap.add_argument("--real3d", type=Path, help="a flowmocap bench --suite real3d folder")
     ap.add_argument("--diverse", type=Path, help="a diverse tracker_only folder (post-pass off)")
     ap.add_argument("--mc", type=int, default=16, help="lifts with dropout on for the lifter's spread")
+    ap.add_argument("--plausibility", action="store_true",
+                    help="also the limb plausibility rules (a nearest-neighbour table of the train clips of "
+                         "../shared/data/mocap/prior; retargeting them takes minutes without --poses-cache)")
+    ap.add_argument("--poses-cache", type=Path, help="tools/train_pose_prior.py --cache's file of retargeted poses")
     ap.add_argument("--out", help="write PREFIX.json and PREFIX.md")
     a = ap.parse_args()
+    global RULES
+    if a.plausibility:
+        db = LimbPlausibility(mocap_points(a.poses_cache))
+        print(f"limb plausibility: {db.size} poses of the train clips", flush=True)
+        RULES = RULES + plausibility_rules(db)
     if a.real3d is None and a.diverse is None:
         ap.error("give --real3d and/or --diverse")
     result, md = {"mc": a.mc, "oracle_shares": list(ORACLE_SHARES)}, ["# Choosing the 3D source per joint\n"]

@@ -144,6 +144,69 @@ def test_point_errors_favour_no_source_and_blend3_mixes_per_point(selection):
     assert np.allclose(selection.blend3(ref, a, b, 0.25, 0.25), 0.5 * ref + 0.25 * (a + b))
 
 
+def _body_points(rng, T=5, noise=0.03):
+    """(T, 13, 3) rough people: shoulders above hips, limbs hanging, a little noise."""
+    base = np.array([[0, 1.7, 0], [0.2, 1.45, 0], [-0.2, 1.45, 0], [0.25, 1.15, 0], [-0.25, 1.15, 0],
+                     [0.27, 0.9, 0.05], [-0.27, 0.9, 0.05], [0.1, 0.95, 0], [-0.1, 0.95, 0], [0.1, 0.5, 0.02],
+                     [-0.1, 0.5, 0.02], [0.1, 0.08, 0], [-0.1, 0.08, 0]], float)
+    return base + rng.normal(scale=noise, size=(T, 13, 3))
+
+
+def test_the_torso_frame_ignores_a_similarity_and_puts_the_torso_on_its_axes(selection):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    x = _body_points(rng)
+    moved = 2.3 * Rotation.from_rotvec([0.4, 1.1, -0.3]).apply(x.reshape(-1, 3)).reshape(x.shape) + (1.0, -2.0, 5.0)
+    a, b = selection.torso_frame(x), selection.torso_frame(moved)
+    assert np.allclose(a, b, atol=1e-9)
+    mid_hips, mid_shoulders = 0.5 * (a[:, 7] + a[:, 8]), 0.5 * (a[:, 1] + a[:, 2])
+    assert np.allclose(mid_hips, 0.0, atol=1e-12)
+    assert np.allclose(mid_shoulders, [[0.0, 1.0, 0.0]] * len(x), atol=1e-12)
+    assert (a[:, 7, 0] > a[:, 8, 0]).all() and (a[:, 1, 0] > a[:, 2, 0]).all()  # left on +x
+    feats = selection.limb_features(x)
+    r, m, e = selection.LIMBS["left arm"]
+    assert np.allclose(feats["left arm"], np.concatenate([a[:, m] - a[:, r], a[:, e] - a[:, r]], -1))
+
+
+def test_limb_plausibility_finds_the_limb_unlike_the_examples(selection):
+    rng = np.random.default_rng(5)
+    db = selection.LimbPlausibility(_body_points(rng, T=200))
+    people = _body_points(rng, T=3)
+    odd = people.copy()
+    odd[1, 5] = odd[1, 1] + (0.0, 0.6, 0.0)  # a left wrist above the shoulder: no example has that
+    d_ok, d_odd = db.distance(people), db.distance(odd)
+    assert d_odd["left arm"][1] > 5 * d_ok["left arm"][1]
+    for limb in ("right arm", "left leg", "right leg"):
+        assert d_odd[limb] == pytest.approx(d_ok[limb])
+    # the rule takes, limb by limb, the candidate nearest an example where it is 2x nearer than the share 0.5's
+    r = {"fit": people, "lift": odd, "mp": odd}
+    out = selection.plausibility_rule(db, 2.0)(r)
+    half = 0.5 * (people + odd)
+    assert np.allclose(out[1, [3, 5]], people[1, [3, 5]])  # the odd arm's frame: the fit's arm
+    assert np.allclose(np.delete(out, 1, 0), np.delete(half, 1, 0))  # elsewhere the share 0.5
+
+
+def test_bone_deviation_and_the_bone_rule(selection):
+    rng = np.random.default_rng(6)
+    x = _body_points(rng, T=7, noise=0.003)
+    x[:, 5] = x[:, 3] + (0.0, -0.25, 0.0)  # left forearm 0.25 m in every frame
+    x[2, 5] = x[2, 3] + (0.0, -0.35, 0.0)  # ... but 0.35 m in frame 2: 40 % too long
+    dev = selection.bone_deviation(x)
+    assert dev["left arm"][2] == pytest.approx(0.4)
+    assert dev["left arm"][0] < 0.2
+    fit = x + 0.01
+    r = {"fit": fit, "lift": x, "mp": x}
+    out = selection.bone_rule(0.2)(r)
+    half = 0.5 * (fit + x)
+    assert np.allclose(out[2, [3, 5]], fit[2, [3, 5]])
+    out[2, [3, 5]] = half[2, [3, 5]]
+    assert np.allclose(out, half)
+    # limb_composite leaves a limb alone where the pick names no candidate
+    same = selection.limb_composite(half, {"fit": fit}, {k: np.full(7, "") for k in selection.LIMBS})
+    assert np.allclose(same, half)
+
+
 def test_the_mean_lifter_of_benchmarks_lifter_refit_averages_its_lifters():
     from flowmocap.vision.lifter import load_lifter
 
