@@ -267,21 +267,34 @@ def peak_rss_mb() -> tuple[float, str]:
     return (r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0), "ru_maxrss"
 
 
+#: What ``as_video`` changes (recorded in bench.json as the protocol).
+AS_VIDEO = ("synthetic sequences tracked as a user's video: flowmocap track FRAMES_DIR with automatic masks, 2D "
+            "and 3D joints and starting pose from the detector, the video profile, the rendered camera given (as "
+            "with --camera) and the body's gender; no rough pose, no rendered masks. The baseline as in the "
+            "protocol: per-frame keypoint fit on GT 2D joints + 3 px noise + 5 % outliers of 20-60 px")
+
+
 def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_seed: int = 0,
                record_memory: bool = True, progress: bool = False, tracker_config: dict | None = None,
-               baseline_config: dict | None = None) -> None:
+               baseline_config: dict | None = None, as_video: bool = False) -> None:
     """Run one method on one sequence into ``res_dir`` (resuming an unfinished run).
 
     With ``record_memory`` the process's peak resident memory is added to ``run.json``
     as ``peak_rss_mb`` (meaningful when the method had the process to itself). The
     observed flows are not kept (2.5 MB a frame: a diverse suite's would take 4 GB; a
-    resumed run computes the rest again, the same).
+    resumed run computes the rest again, the same). With ``as_video`` flowmocap tracks
+    the sequence's ``frames/`` as a user's frames (:data:`AS_VIDEO`); ``init`` then
+    serves the baseline only.
     """
     seq = load_sequence(seq_dir)
     res = Path(res_dir)
     resume = has_result(res)
     gender = str(seq.meta.get("gender", "neutral"))
-    if method == "flowmocap":
+    if method == "flowmocap" and as_video:
+        track(str(Path(seq_dir) / "frames"), res, init="auto", masks="auto", camera=str(Path(seq_dir) / "camera.json"),
+              config=tracker_config or None, resume=resume, progress=progress, gender=gender, log=None,
+              keep_flow=False)
+    elif method == "flowmocap":
         track(seq_dir, res, init=init, config=tracker_config or None, resume=resume, progress=progress,
               gender=gender, log=None, keep_flow=False)
     elif method == "baseline":
@@ -331,8 +344,10 @@ def _run_isolated(isolate: bool, **kw) -> None:
 
 
 def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, progress: bool = True,
-                  log=print, tracker_config: dict | None = None, baseline_config: dict | None = None) -> dict:
-    """Synthesise (unless present), run both methods (unless finished), score both."""
+                  log=print, tracker_config: dict | None = None, baseline_config: dict | None = None,
+                  as_video: bool = False) -> dict:
+    """Synthesise (unless present), run both methods (unless finished), score both
+    (``as_video``: :func:`run_method`)."""
     d = out_dir / spec.name
     seq_dir = d / "sequence"
     if spec.motion != "builtin:walk" and not Path(spec.motion).exists():
@@ -363,7 +378,7 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
             t0 = time.perf_counter()
             _run_isolated(isolate, method=method, seq_dir=str(seq_dir), res_dir=str(res), init=init,
                           baseline_seed=spec.seed + 1, progress=progress, tracker_config=tracker_config,
-                          baseline_config=baseline_config)
+                          baseline_config=baseline_config, as_video=as_video)
             log(f"[{spec.name}] {method} done in {time.perf_counter() - t0:.0f} s")
         scores = score_result(res, seq)
         scores.pop("local_cm_per_frame", None)
@@ -428,7 +443,8 @@ def run_real(spec: RealSpec, out_dir: Path, progress: bool = True, log=print,
 
 
 def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool = True, progress: bool = True,
-              log=print, tracker_config: dict | None = None, baseline_config: dict | None = None) -> dict:
+              log=print, tracker_config: dict | None = None, baseline_config: dict | None = None,
+              as_video: bool = False) -> dict:
     """Run the benchmark and write ``out_dir/bench.json`` and ``out_dir/bench.md``.
 
     Args:
@@ -439,19 +455,36 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
         isolate: run each method in a fresh process (peak memory per method).
         tracker_config, baseline_config: overrides of :class:`TrackerConfig` /
             :class:`~flowmocap.eval.baseline.BaselineConfig` fields.
+        as_video: track the synthetic sequences as a user's video (:data:`AS_VIDEO`)
+            instead of by the paper's protocol.
 
     Returns:
         the contents of bench.json.
+
+    Raises:
+        InputError: ``out_dir`` holds a bench of the other kind (protocol or as a video),
+            whose finished runs would be taken for this one's.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        before = json.loads((out_dir / "bench.json").read_text()).get("settings", {}).get("as_video", False)
+    except (OSError, json.JSONDecodeError):
+        before = as_video
+    if bool(before) != bool(as_video):
+        raise InputError(f"{out_dir} holds a bench run {'as a video' if before else 'by the protocol'}; its finished "
+                         f"results would be reused for a run {'as a video' if as_video else 'by the protocol'}. "
+                         "Give another --out.")
     result = {
         "commit": commit(), "suite": suite_name, "flowmocap": __version__, "torch": torch.__version__,
         "settings": {
-            "protocol": ("synthetic: random body shape (seeded), tracker init from noisy_init (frame-0 GT 2D "
+            "protocol": AS_VIDEO if as_video else
+                        ("synthetic: random body shape (seeded), tracker init from noisy_init (frame-0 GT 2D "
                          "joints + 3 px noise, rough pose with 15 deg noise, mean shape); baseline: per-frame "
                          "keypoint fit on GT 2D joints + 3 px noise + 5 % outliers of 20-60 px"),
-            "tracker": TrackerConfig.load(None, **(tracker_config or {})).to_dict(),
+            "as_video": bool(as_video),
+            "tracker": TrackerConfig.load(None, profile="video" if as_video else "synthetic",
+                                          **(tracker_config or {})).to_dict(),
             "baseline": BaselineConfig(**(baseline_config or {})).to_dict(),
             "baseline_keypoint_seed": "sequence seed + 1 (the seed field above is not used)",
             "isolated_processes": isolate,
@@ -468,7 +501,7 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
             entry = run_real(spec, out_dir, progress=progress, log=log, tracker_config=tracker_config)
         else:
             entry = run_synthetic(spec, out_dir, isolate=isolate, progress=progress, log=log,
-                                  tracker_config=tracker_config, baseline_config=baseline_config)
+                                  tracker_config=tracker_config, baseline_config=baseline_config, as_video=as_video)
         entry["wall_s"] = round(time.perf_counter() - t0, 1)
         result["sequences"][spec.name] = entry
         result["summary"] = summarise(result)
@@ -562,7 +595,11 @@ def _fmt(v, key) -> str:
 
 def format_table(result: dict) -> str:
     """bench.json as Markdown: one table per sequence (rows: methods), plus skips."""
-    lines = [f"# flowmocap bench: suite `{result['suite']}`, commit `{result['commit']}`", ""]
+    as_video = (result.get("settings") or {}).get("as_video")
+    lines = [f"# flowmocap bench: suite `{result['suite']}`{', tracked as a video' if as_video else ''}, "
+             f"commit `{result['commit']}`", ""]
+    if as_video:
+        lines += [f"Protocol: {result['settings']['protocol']}.", ""]
     lines += format_summary(result.get("summary") or {})
     for name, entry in result["sequences"].items():
         s = entry.get("settings", {})
