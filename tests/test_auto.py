@@ -116,6 +116,22 @@ def test_facing_guess():
     assert front[0] > 0.9
 
 
+def test_facing_guess_in_the_world_of_a_turned_camera(tmp_path):
+    """With a camera of rotation R the orientation is the world's: seen through the camera
+    (R times it) it is the guess for an unturned camera, upright and facing it."""
+    kp = stick_keypoints(40, 20, 80, 120)
+    conf = np.full(len(kp), 0.9)
+    R = Rotation.from_euler("xyz", [170.0, 40.0, -5.0], degrees=True).as_matrix()  # world y up, tilted, turned
+    G = Rotation.from_rotvec(facing_rotvec(kp, conf, camera_R=R)).as_matrix()
+    assert np.allclose(R @ G, Rotation.from_rotvec(facing_rotvec(kp, conf)).as_matrix(), atol=1e-9)
+    assert (R @ G @ [0.0, 1.0, 0.0])[1] < -0.99  # the body's up is the image's up
+    assert np.allclose(facing_rotvec(kp, conf, camera_R=np.eye(3)), facing_rotvec(kp, conf))
+    track = detect_sequence(Frames(3), tmp_path, FakeDetector({i: (30, 20, 60, 110) for i in range(3)}),
+                            progress=False)
+    init = auto_init(track, 1, camera_R=R)
+    assert np.allclose(init["pose"]["pelvis"], facing_rotvec(track.keypoints[1], track.confidence[1], camera_R=R))
+
+
 def test_auto_init_schema(tmp_path):
     from flowmocap.fit.init import parse_init
 

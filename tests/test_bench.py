@@ -6,6 +6,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from flowmocap.cli import main
@@ -40,6 +41,42 @@ def test_bench_quick_on_a_tiny_clip_writes_table_and_json(tmp_path, capsys):
     # re-running resumes: nothing is recomputed
     main(["bench", "--suite", "quick", "--out", str(out), "--config", str(cfg), *FAST])
     assert "not recomputed" in capsys.readouterr().out
+
+
+def test_bench_as_a_video_tracks_the_renders_with_automatic_masks_joints_and_start(tmp_path, capsys):
+    out = tmp_path / "v"
+    cfg = tmp_path / "fast.json"
+    cfg.write_text(json.dumps({"init_iterations": 20, "init_flow_iterations": 8, "iterations": 8}))
+    tiny = ["--num-frames", "4", "--size", "320x240", "--quiet", "--no-isolate", "--baseline-iterations", "8"]
+    assert main(["bench", "--suite", "quick", "--as-video", "--out", str(out), "--config", str(cfg), *tiny]) == 0
+    data = json.loads((out / "bench.json").read_text())
+    assert data["settings"]["as_video"] is True and data["settings"]["protocol"] == bench.AS_VIDEO
+    assert data["settings"]["tracker"]["silhouette_model"] == "mesh"  # the video profile's settings recorded
+    run = json.loads((out / "walk-quick" / "flowmocap" / "run.json").read_text())
+    assert run["profile"] == "video" and run["masks"] == "automatic" and run["init"] == "automatic"
+    assert "camera.json" in run["camera_source"]
+    # the rendered camera is turned (world y up): the automatic start must stand upright in the image
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(run["camera"]["R"])
+    start = json.loads((out / "walk-quick" / "flowmocap" / "init_auto.json").read_text())
+    G = Rotation.from_rotvec(start["pose"]["pelvis"]).as_matrix()
+    assert not np.allclose(R, np.eye(3)) and (R @ G @ [0.0, 1.0, 0.0])[1] < -0.9
+    row = data["sequences"]["walk-quick"]["flowmocap"]
+    assert row["frames"] == 4 and row["local_cm"] < 30
+    assert "tracked as a video" in (out / "bench.md").read_text()
+    # a folder of the other kind is refused before anything runs: its finished results would be reused
+    with pytest.raises(InputError, match="as a video"):
+        bench.run_bench(bench.suite("quick", frames=4, size="320x240"), out, "quick", isolate=False,
+                        log=lambda *a: None)
+    proto = tmp_path / "p"
+    proto.mkdir()
+    (proto / "bench.json").write_text(json.dumps({"settings": {"protocol": "synthetic"}}))
+    with pytest.raises(InputError, match="by the protocol"):
+        bench.run_bench([], proto, "quick", as_video=True, log=lambda *a: None)
+    capsys.readouterr()
+    assert main(["bench", "--suite", "real3d", "--as-video", "--out", str(tmp_path / "r")]) != 0
+    assert "real3d is tracked as a video already" in capsys.readouterr().err
 
 
 def test_davis_entry_is_skipped_without_its_frames(tmp_path):

@@ -397,7 +397,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                                                           else str(init) if not isinstance(init, dict) else "given"),
                    "profile": profile}
     if auto_init:
-        spec, (a, b), notes["frame_range"] = _auto_start(detections, frames, len(seq), out, seq.size)
+        spec, (a, b), notes["frame_range"] = _auto_start(detections, frames, len(seq), out, seq.size, cam.R)
     if detections is not None:
         notes["detections"] = {k: detections.info[k] for k in ("detector", "frames_with_person", "no_person",
                                                                "ignored_people")}
@@ -646,8 +646,9 @@ def _camera(camera, seq: Sequence, src: Path) -> tuple[PinholeCamera, str]:
     return cam, note
 
 
-def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size) -> tuple:
-    """Automatic initialisation: the InitSpec, the frame range and a sentence about it."""
+def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera_R=None) -> tuple:
+    """Automatic initialisation: the InitSpec, the frame range and a sentence about it
+    (``camera_R``: the camera's rotation, for the start's orientation in the world's axes)."""
     if frames:
         a, b = parse_frame_range(frames, n)
     else:
@@ -658,7 +659,7 @@ def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size) -> tup
         raise NoPersonError(f"no frame in {a}:{b} shows a whole enough person to start on (hips, shoulders and "
                             "at least 8 of the 12 main joints, each with confidence >= 0.5) before the last frame; "
                             "give --init init.json with the 2D joints of the first frame.")
-    init = auto_init(detections, first)
+    init = auto_init(detections, first, camera_R=camera_R)
     (out / "init_auto.json").write_text(json.dumps(init, indent=2))
     note = f"frames {first}:{b}"
     if first > a:

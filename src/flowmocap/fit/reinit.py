@@ -311,7 +311,8 @@ class ReinitMonitor:
         if in3d or _lost(before, self.max_joint_error):  # also from an upright body facing the way the keypoints say
             fresh = np.zeros(72)
             kp, kc = self.track.keypoints[i], self.track.confidence[i]
-            fresh[:3] = facing_rotvec(*(exchanged_keypoints(kp, kc) if i in self.exchanged else (kp, kc)))
+            fresh[:3] = facing_rotvec(*(exchanged_keypoints(kp, kc) if i in self.exchanged else (kp, kc)),
+                                      camera_R=scene.camera.R)
             spec = InitSpec(i, j2d, conf, fresh, None, scene.betas[0].numpy().astype(np.float64))
             starts.append((torch.as_tensor(fresh, dtype=torch.float32), guess_translation(scene.model, scene.camera, spec)))
         best = None

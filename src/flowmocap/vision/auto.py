@@ -1145,15 +1145,22 @@ def first_person_frame(track: PersonTrack, start: int = 0, min_joints: int = MIN
     return None
 
 
-def facing_rotvec(keypoints: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+def facing_rotvec(keypoints: np.ndarray, confidence: np.ndarray, camera_R=None) -> np.ndarray:
     """A rough global orientation ``(3,)`` axis-angle (radians) of an upright person
-    with the given keypoints, for a camera with the identity rotation (OpenCV axes).
+    with the given keypoints.
 
     The body stands upright (its up is the image's up) and turns about the vertical by
     the yaw whose cosine is the signed left-right spread of shoulders and hips relative
     to the torso length (a person facing the camera has their left on the image's right);
     which way a side-on person faces comes from the nose against the ears (or the
     shoulders). Yaw 0 faces the camera.
+
+    Args:
+        keypoints: ``(K, 2)`` the detector's keypoints, pixels; confidence: ``(K,)``.
+        camera_R: ``(3, 3)`` the camera's world-to-camera rotation (``x_cam = R x + t``),
+            or None for the identity (OpenCV axes). The orientation is found in the
+            camera's axes and returned in the world's (``R^T`` times it), as the body
+            model's global orientation is.
     """
     from scipy.spatial.transform import Rotation
 
@@ -1173,13 +1180,16 @@ def facing_rotvec(keypoints: np.ndarray, confidence: np.ndarray) -> np.ndarray:
     s = -math.copysign(math.sqrt(max(0.0, 1.0 - c * c)), side) if side != 0.0 else 0.0
     yaw = math.atan2(s, c)
     R = Rotation.from_euler("y", yaw) * Rotation.from_euler("x", math.pi)
+    if camera_R is not None:
+        R = Rotation.from_matrix(np.asarray(camera_R, np.float64).T) * R
     return R.as_rotvec()
 
 
-def auto_init(track: PersonTrack, frame: int, min_confidence: float = 0.3) -> dict:
+def auto_init(track: PersonTrack, frame: int, min_confidence: float = 0.3, camera_R=None) -> dict:
     """An ``init.json`` dict (schema of :mod:`flowmocap.fit.init`) from frame ``frame``'s
     keypoints: the confident SMPL joints with their confidences, and the rough global
-    orientation of :func:`facing_rotvec`.
+    orientation of :func:`facing_rotvec` (in the world's axes of a camera of rotation
+    ``camera_R``; None: the identity).
 
     Raises:
         NoPersonError: the frame has fewer than 4 confident joints.
@@ -1194,5 +1204,5 @@ def auto_init(track: PersonTrack, frame: int, min_confidence: float = 0.3) -> di
         raise NoPersonError(f"frame {frame}: the detector found fewer than 4 joints of the person; "
                             "give --init init.json with the joints of a frame instead.")
     return {"frame": int(frame), "joints2d": joints, "confidence": conf,
-            "pose": {"pelvis": facing_rotvec(kp, cf).tolist()}, "joints_from": "detector",
+            "pose": {"pelvis": facing_rotvec(kp, cf, camera_R).tolist()}, "joints_from": "detector",
             "note": f"automatic: {track.info.get('detector', 'detector')} keypoints of frame {frame}"}
