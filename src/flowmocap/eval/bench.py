@@ -290,13 +290,12 @@ def run_method(method: str, seq_dir: str, res_dir: str, init: dict, baseline_see
     res = Path(res_dir)
     resume = has_result(res)
     gender = str(seq.meta.get("gender", "neutral"))
-    if method == "flowmocap" and as_video:
-        track(str(Path(seq_dir) / "frames"), res, init="auto", masks="auto", camera=str(Path(seq_dir) / "camera.json"),
-              config=tracker_config or None, resume=resume, progress=progress, gender=gender, log=None,
-              keep_flow=False)
-    elif method == "flowmocap":
-        track(seq_dir, res, init=init, config=tracker_config or None, resume=resume, progress=progress,
-              gender=gender, log=None, keep_flow=False)
+    if method == "flowmocap":
+        source, given = ((str(Path(seq_dir) / "frames"),
+                          {"init": "auto", "masks": "auto", "camera": str(Path(seq_dir) / "camera.json")})
+                         if as_video else (seq_dir, {"init": init}))
+        track(source, res, config=tracker_config or None, resume=resume, progress=progress, gender=gender, log=None,
+              keep_flow=False, **given)
     elif method == "baseline":
         spec = parse_init(init, *seq.size)
         model = load_body_model("default", gender=gender)
