@@ -65,6 +65,18 @@ def test_bench_as_a_video_tracks_the_renders_with_automatic_masks_joints_and_sta
     row = data["sequences"]["walk-quick"]["flowmocap"]
     assert row["frames"] == 4 and row["local_cm"] < 30
     assert "tracked as a video" in (out / "bench.md").read_text()
+    # benchmarks/auto_start.py repeats the start on the stored detections and scores it
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("auto_start", Path(__file__).resolve().parents[1] / "benchmarks"
+                                                  / "auto_start.py")
+    auto_start = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(auto_start)
+    assert auto_start.main([str(out), "--out", str(tmp_path / "start")]) == 0
+    starts = json.loads((tmp_path / "start.json").read_text())
+    errors = starts["clips"]["walk-quick"]
+    assert set(errors) == set(auto_start.DEFAULT_VARIANTS) and all(0 < e < 30 for e in errors.values())
+    assert "| walk-quick |" in (tmp_path / "start.md").read_text()
     # a folder of the other kind is refused before anything runs: its finished results would be reused
     with pytest.raises(InputError, match="as a video"):
         bench.run_bench(bench.suite("quick", frames=4, size="320x240"), out, "quick", isolate=False,
