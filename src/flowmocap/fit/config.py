@@ -235,7 +235,8 @@ class TrackerConfig:
     # --- initialisation ----------------------------------------------------------------
     init_keypoint_weight: float = 1.0     # robust 2D joints of frame 0 (px^2 scale)
     init_keypoint_sigma: float = 50.0     # their Geman-McClure scale, px
-    init_pose_prior_weight: float = 200.0  # towards the start pose when the init states no pose
+    init_pose_prior_weight: float = 20.0  # towards the start pose when the init states no pose (200 before
+    #                                    2026-11-28: it held the automatic start near the rest pose)
     init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
     init_detector3d_weight: float = 3e4   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
