@@ -29,7 +29,7 @@ def _start_error(cfg: TrackerConfig) -> float:
     cam = PinholeCamera.from_focal(480, 640, 560.0, R, t)
     pose = torch.zeros(72)
     pose[:3] = torch.tensor([0.0, 0.5, 0.0])  # turned a little away from the camera
-    for side, s in (("left", 1.0), ("right", -1.0)):
+    for side in ("left", "right"):
         pose[3 * J[f"{side}_hip"]] -= 1.2  # thighs raised
         pose[3 * J[f"{side}_knee"]] += 1.7  # knees bent: a crouch
     pose[3 * J["left_shoulder"] + 2] += 1.3  # the left arm raised sideways

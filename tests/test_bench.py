@@ -66,12 +66,9 @@ def test_bench_as_a_video_tracks_the_renders_with_automatic_masks_joints_and_sta
     assert row["frames"] == 4 and row["local_cm"] < 30
     assert "tracked as a video" in (out / "bench.md").read_text()
     # benchmarks/auto_start.py repeats the start on the stored detections and scores it
-    import importlib.util
+    from test_check_scripts import _load
 
-    spec = importlib.util.spec_from_file_location("auto_start", Path(__file__).resolve().parents[1] / "benchmarks"
-                                                  / "auto_start.py")
-    auto_start = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(auto_start)
+    auto_start = _load("auto_start")
     assert auto_start.main([str(out), "--out", str(tmp_path / "start")]) == 0
     starts = json.loads((tmp_path / "start.json").read_text())
     errors = starts["clips"]["walk-quick"]
