@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from flowmocap.errors import InputError
 from flowmocap.fit.smooth import (DEPTH_ORDER, DEPTH_WINDOW_S, depth_smoothed_motion, savgol_weights,
-                                  smooth_motion, smooth_root_depth, smooth_rotations, smooth_translations,
-                                  window_frames)
+                                  seam_blend, smooth_motion, smooth_root_depth, smooth_rotations,
+                                  smooth_translations, window_frames)
 from flowmocap.geometry.camera import PinholeCamera
 
 
@@ -133,6 +133,73 @@ def test_breaks_start_a_new_run():
     np.testing.assert_allclose(same, smooth_motion(poses, trans, 30.0)[0], atol=1e-12)
     with pytest.raises(InputError, match="NaN"):
         smooth_motion(np.where(np.arange(30)[:, None] == 3, np.nan, poses), trans, 30.0)
+
+
+def _stepped_motion(T=30, seam=20, seed=11):
+    """Every joint turning and the body moving at constant velocity, and from row ``seam`` on
+    a jump: each joint's rotation turned by one fixed rotation ``D`` more, the translation
+    moved by ``d`` more. Returns ``poses (T, 72)``, ``trans (T, 3)``, ``D (24, 3)``, ``d (3,)``."""
+    rng = np.random.default_rng(seed)
+    base = Rotation.from_rotvec(rng.normal(0, 0.4, (24, 3)))
+    omega = rng.normal(0, 0.03, (24, 3))
+    D, d = rng.normal(0, 0.3, (24, 3)), np.array([0.1, -0.05, 0.4])
+    poses, trans = np.empty((T, 72)), np.empty((T, 3))
+    for t in range(T):
+        R = Rotation.from_rotvec(t * omega) * base
+        if t >= seam:
+            R = Rotation.from_rotvec(D) * R
+        poses[t] = R.as_rotvec().reshape(72)
+        trans[t] = (0.2, 0.9, 4.0) + t * np.array([0.01, 0.0, -0.02]) + (d if t >= seam else 0)
+    return poses, trans, D, d
+
+
+def test_seam_blend_spreads_the_jump_over_the_frames_before_the_seam():
+    """Closed form: at constant velocity the jump is exactly ``D`` and ``d``, and frame ``t``
+    of the ``k`` before the seam takes the smoothstep share ``w_t`` of it; the frames before
+    them and from the seam on stay as they were, and the step becomes a ramp."""
+    poses, trans, D, d = _stepped_motion()
+    p, t, eased = seam_blend(poses, trans, np.arange(100, 130), [120], 30.0, 0.2)  # k = 6 frames, rows 14-19
+    assert eased == [120]
+    np.testing.assert_array_equal(p[:14], poses[:14])
+    np.testing.assert_array_equal(p[20:], poses[20:])
+    np.testing.assert_array_equal(t[:14], trans[:14])
+    np.testing.assert_array_equal(t[20:], trans[20:])
+    for row in range(14, 20):
+        x = (row - 14 + 1) / 7
+        w = x * x * (3 - 2 * x)
+        want = Rotation.from_rotvec(w * D) * Rotation.from_rotvec(poses[row].reshape(24, 3))
+        got = Rotation.from_rotvec(p[row].reshape(24, 3))
+        assert (got.inv() * want).magnitude().max() < 1e-9
+        np.testing.assert_allclose(t[row], trans[row] + w * d, atol=1e-12)
+    # the step of |d| between rows 19 and 20 is gone; no second difference is larger than the step's share
+    acc = np.linalg.norm(t[2:] - 2 * t[1:-1] + t[:-2], axis=1)
+    acc0 = np.linalg.norm(trans[2:] - 2 * trans[1:-1] + trans[:-2], axis=1)
+    assert acc0.max() > 0.99 * np.linalg.norm(d) and acc.max() < 0.35 * np.linalg.norm(d)
+    assert np.linalg.norm(t[20] - t[19]) < 0.25 * np.linalg.norm(d)
+
+
+def test_seam_blend_stops_at_earlier_seams_and_gaps_and_eases_only_what_it_is_asked():
+    poses, trans, _, _ = _stepped_motion()
+    # an earlier seam 3 rows before: only rows 17-19 eased
+    p, _, eased = seam_blend(poses, trans, None, [17, 20], 30.0, 0.2, ease=[20])
+    assert eased == [20]
+    np.testing.assert_array_equal(p[:17], poses[:17])
+    assert np.abs(p[17:20] - poses[17:20]).max() > 1e-3
+    # a gap in the frame numbers before row 17: the same rows
+    index = np.r_[np.arange(17), np.arange(30, 43)]
+    q, _, _ = seam_blend(poses, trans, index, [index[20]], 30.0, 0.2)
+    np.testing.assert_allclose(q, p, atol=1e-12)
+    # a seam with fewer than two frames before it, a seam not in the motion, one not asked for: untouched
+    r, u, eased = seam_blend(poses, trans, None, [1, 500, 20], 30.0, 0.2, ease=[1, 500])
+    assert eased == []
+    np.testing.assert_array_equal(r, poses)
+    np.testing.assert_array_equal(u, trans)
+    with pytest.raises(InputError, match="seconds"):
+        seam_blend(poses, trans, None, [20], 30.0, 0.0)
+    with pytest.raises(InputError, match="shape"):
+        seam_blend(poses[:, :71], trans, None, [20], 30.0, 0.2)
+    with pytest.raises(InputError, match="frame_index"):
+        seam_blend(poses, trans, np.arange(5), [20], 30.0, 0.2)
 
 
 def _body_motion(body, cam, poses, trans):

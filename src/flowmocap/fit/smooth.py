@@ -27,7 +27,7 @@ from flowmocap.errors import InputError
 
 __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
            "smooth_root_depth", "depth_smoothed_motion", "pose_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
-           "DEPTH_ORDER", "FOOT_JOINTS", "stance_depth_shift", "stance_depth_motion"]
+           "DEPTH_ORDER", "FOOT_JOINTS", "stance_depth_shift", "stance_depth_motion", "seam_blend"]
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
 #: CMU 35_01 protocol runs (8 seeds, 60 fps), the same on the held-out diverse suite;
@@ -216,6 +216,77 @@ def _runs(frame_index, T: int, ok: np.ndarray, breaks=()) -> list[tuple[int, int
         if i < T and bool(ok[i]) and a is None:
             a = i
     return out
+
+
+def seam_blend(poses: np.ndarray, trans: np.ndarray, frame_index, seams, fps: float,
+               window_s: float, ease=None) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """The frames before each seam (a re-initialisation) eased into the pose it restarts from.
+
+    Where the tracker re-initialises at frame ``s`` the motion jumps: the frames before
+    ``s`` come from a track that drifted, the frames from ``s`` on from the refit. Let
+    ``J`` be the jump, the difference at ``s`` between the motion and the motion
+    extrapolated at constant velocity from the two frames before it: per joint the
+    rotation ``D = R_s (V R_{s-1})^T`` with ``V = R_{s-1} R_{s-2}^T``, and the translation
+    ``d = t_s - (2 t_{s-1} - t_{s-2})``. The frames ``s - k .. s - 1`` (``k`` = ``window_s``
+    times ``fps``, rounded; fewer where the previous seam or the start of the run of
+    consecutive frames is nearer) take a growing part of it, ``R_t <- exp(w_t log D) R_t``
+    and ``t_t <- t_t + w_t d``, with ``w_t`` the smoothstep ``3x^2 - 2x^3`` of ``x = (t - a +
+    1) / (s - a + 1)`` (``a`` the first frame eased): 0 before the ramp, nearly 1 at the
+    seam, with no kink at either end. So the motion has no jump at the seam (a step of
+    size ``J`` becomes a ramp over ``k`` frames), and the frames from the seam on are
+    unchanged. A seam with fewer than two consecutive frames before it is left as it is.
+
+    Args:
+        poses: ``(T, 72)`` axis-angle, radians, SMPL joint order (each joint relative to
+            its parent). trans: ``(T, 3)`` metres.
+        frame_index: ``(T,)`` the input's frame numbers, or None (consecutive from 0).
+        seams: input frame numbers of the re-initialisations.
+        fps: frames per second (Hz). window_s: seconds eased before each seam (> 0).
+        ease: the seams to ease (input frame numbers), or None: all; the others still
+            end the frames eased before a later seam.
+
+    Returns:
+        ``poses (T, 72)``, ``trans (T, 3)``, float64 (copies), and the input frame
+        numbers of the seams eased (in order).
+    """
+    from scipy.spatial.transform import Rotation
+
+    poses = np.array(poses, np.float64)
+    trans = np.array(trans, np.float64)
+    T = poses.shape[0]
+    if poses.ndim != 2 or poses.shape[1] != 72 or trans.shape != (T, 3):
+        raise InputError(f"poses must have shape (T, 72) and trans (T, 3); got {poses.shape} and {trans.shape}.")
+    if not np.isfinite(window_s) or window_s <= 0:
+        raise InputError(f"the window eased before a seam must be a positive number of seconds, got {window_s}.")
+    if not np.isfinite(fps) or fps <= 0:
+        raise InputError(f"fps must be positive, got {fps}.")
+    idx = np.arange(T) if frame_index is None else np.asarray(frame_index).reshape(-1)
+    if idx.shape != (T,):
+        raise InputError(f"frame_index must have {T} entries, one per frame; got {idx.shape}.")
+    at = {int(f): i for i, f in enumerate(idx)}
+    starts = sorted({at[int(f)] for f in seams if int(f) in at})
+    k = max(int(round(window_s * fps)), 1)
+    eased_at = None if ease is None else {at[int(f)] for f in ease if int(f) in at}
+    done: list[int] = []
+    for n, s in enumerate(starts):
+        if eased_at is not None and s not in eased_at:
+            continue
+        a = max(s - k, starts[n - 1] if n else 0)
+        while a < s and np.any(np.diff(idx[a:s + 1]) != 1):  # only the consecutive frames before the seam
+            a += 1
+        if s - a < 2:
+            continue
+        R = Rotation.from_rotvec(poses[s - 2:s + 1].reshape(-1, 3)).as_matrix().reshape(3, 24, 3, 3)
+        pred = R[1] @ np.swapaxes(R[0], -1, -2) @ R[1]
+        jump = Rotation.from_matrix(R[2] @ np.swapaxes(pred, -1, -2)).as_rotvec()  # (24, 3)
+        d = trans[s] - (2 * trans[s - 1] - trans[s - 2])
+        x = (np.arange(a, s) - a + 1) / (s - a + 1)
+        w = x * x * (3 - 2 * x)  # (s - a,)
+        eased = Rotation.from_rotvec((w[:, None, None] * jump[None]).reshape(-1, 3))
+        poses[a:s] = (eased * Rotation.from_rotvec(poses[a:s].reshape(-1, 3))).as_rotvec().reshape(s - a, 72)
+        trans[a:s] += w[:, None] * d
+        done.append(int(idx[s]))
+    return poses, trans, done
 
 
 def smooth_root_depth(root: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray, fps: float,
