@@ -59,23 +59,27 @@ class TruthLifter:
         return out
 
 
-def _setup(tmp_path, fit_pose, truth=TRUTH, image=None):
-    """``image``: the pose whose keypoints the detection's 2D are (default ``truth``)."""
-    truth_kp, _ = _bodies([truth] * T)
-    fit_kp, fit_joints = _bodies([fit_pose] * T)
-    image_kp = truth_kp if image is None else _bodies([image] * T)[0]
-    px = np.asarray(CAM.project(image_kp.reshape(-1, 3))).reshape(T, 13, 2)
-    kp = np.zeros((T, len(KEYPOINT_NAMES), 2))
+def _setup(tmp_path, fit_pose, truth=TRUTH, image=None, frames=T):
+    """``image``: the pose whose keypoints the detection's 2D are (default ``truth``);
+    ``fit_pose``: one pose for every frame, or ``(frames, 72)``. With the default 4 frames
+    the last has no person."""
+    fit_poses = np.asarray(fit_pose, np.float64)
+    fit_poses = np.tile(fit_poses, (frames, 1)) if fit_poses.ndim == 1 else fit_poses.copy()
+    truth_kp, _ = _bodies([truth] * frames)
+    fit_kp, fit_joints = _bodies(fit_poses)
+    image_kp = truth_kp if image is None else _bodies([image] * frames)[0]
+    px = np.asarray(CAM.project(image_kp.reshape(-1, 3))).reshape(frames, 13, 2)
+    kp = np.zeros((frames, len(KEYPOINT_NAMES), 2))
     for k, name in enumerate(POINTS):
         for n in (("left_ear", "right_ear", "nose") if name == "head" else (name,)):
             kp[:, KEYPOINT_NAMES.index(n)] = px[:, k]
-    found = np.ones(T, bool)
-    found[3] = False  # no person in the last frame: its body stays
-    track = PersonTrack(kp, np.ones((T, len(KEYPOINT_NAMES))), found, [tmp_path / "m.png"] * T, {})
-    motion = {"poses": np.array([fit_pose] * T, np.float32), "trans": np.zeros((T, 3), np.float32),
+    found = np.ones(frames, bool)
+    found[3] = frames != T  # no person in the last of 4 frames: its body stays
+    track = PersonTrack(kp, np.ones((frames, len(KEYPOINT_NAMES))), found, [tmp_path / "m.png"] * frames, {})
+    motion = {"poses": fit_poses.astype(np.float32), "trans": np.zeros((frames, 3), np.float32),
               "betas": np.zeros(10, np.float32), "joints3d": fit_joints.astype(np.float32),
-              "joints2d": np.asarray(CAM.project(fit_joints.reshape(-1, 3))).reshape(T, 24, 2).astype(np.float32),
-              "camera": json.dumps(CAM.to_dict()), "frame_index": np.arange(T), "fps": 30.0}
+              "joints2d": np.asarray(CAM.project(fit_joints.reshape(-1, 3))).reshape(frames, 24, 2).astype(np.float32),
+              "camera": json.dumps(CAM.to_dict()), "frame_index": np.arange(frames), "fps": 30.0}
     return motion, track, truth_kp, fit_kp
 
 
@@ -176,6 +180,34 @@ def test_the_hold_lets_a_wrong_forearm_turn(tmp_path, blend, sigma, turns):
     before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
     after = np.linalg.norm(kp[:, wrist] - truth_kp[:3, wrist], axis=-1)
     assert ((after < 0.35 * before).all() if turns else (after > 0.5 * before).all()), (before, after)
+
+
+def test_a_seam_is_eased_before_the_refit_and_the_tracked_image_still_holds(tmp_path):
+    """A 3D re-initialisation at frame 6: before it the forearm reaches away from the camera
+    (the image nearly the truth's), from it on as the truth. Eased over 0.2 s (6 frames), the
+    refit starts the frames before the seam part of the way to the restarted pose: their
+    forearm comes nearer the truth than without the easing, their image stays where the
+    tracker put it, and the frames from the seam on are as without it."""
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    frames = 10
+    poses = np.array([wrong] * 6 + [TRUTH] * 4)
+    motion, track, truth_kp, _ = _setup(tmp_path, poses, frames=frames)
+    model, lifter = load_body_model("default"), TruthLifter(truth_kp)
+    kw = dict(weight=0.5, lifter=lifter, pixel_sigma=4.0, seams=[6])
+    plain, info0 = lifter_refit_motion(motion, track, model, **kw)
+    eased, info = lifter_refit_motion(motion, track, model, seam_s=0.2, **kw)
+    assert info0["seams_eased"] == [] and info["seams_eased"] == [6] and info["seam_s"] == 0.2
+    wrist = POINTS.index("right_wrist")
+    err = {name: np.linalg.norm(_bodies(m["poses"].astype(np.float64))[0][:, wrist] - truth_kp[:, wrist], axis=-1)
+           for name, m in (("plain", plain), ("eased", eased))}
+    assert (err["eased"][3:6] < err["plain"][3:6] - 0.02).all(), err  # the last frames before the seam
+    np.testing.assert_allclose(eased["joints3d"][6:], plain["joints3d"][6:], atol=2e-3)
+    np.testing.assert_array_equal(eased["poses_tracked"], motion["poses"])  # the tracker's own poses are kept
+    move = np.linalg.norm(eased["joints2d"][:6] - motion["joints2d"][:6], axis=-1)  # the image hold
+    assert move.mean() < 3.0, move.mean()
+    with pytest.raises(InputError, match="seconds"):
+        lifter_refit_motion(motion, track, model, seam_s=float("inf"), **kw)
 
 
 def test_weight_zero_and_bad_input(tmp_path):
@@ -283,6 +315,55 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     np.testing.assert_array_equal(got["disagreement"], refit["disagreement"])
     assert run["lifter_refit"]["disagreement_median_mm"] > 0 and run["lifter_refit"]["review_frames"]
     assert pipeline.Result(out, got, run).disagreement.shape == (T, 24)
+
+
+def test_reinit_frames_say_which_seams_the_smoothing_steps_still_start_again_at():
+    from flowmocap import pipeline
+
+    events = [{"event": "re-initialised", "frame": 5, "criterion": "image", "why": "1 bad frames in a row"},
+              {"event": "re-initialised", "frame": 9, "criterion": "3d", "why": "..."},
+              {"event": "limb flipped in depth", "frame": 10},
+              # a run written before the field: its reason tells
+              {"event": "re-initialised", "frame": 14, "why": "3 frames in a row with the 3D joints more than ..."}]
+    run = {"events": events}
+    assert pipeline._reinit_frames_3d(run) == [9, 14]
+    assert pipeline._reinit_frames(run) == [5, 9, 14]
+    eased = {**run, "lifter_refit": {"seams_eased": [9]}}
+    assert pipeline._reinit_frames(eased) == [5, 14] and pipeline._reinit_frames(eased, eased=True) == [5, 9, 14]
+
+
+@pytest.mark.parametrize("seam_s", [0.2, 0.0])
+def test_pipeline_eases_a_3d_seam_and_smooths_the_depth_across_it(tmp_path, seam_s):
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.fit.smooth import depth_smoothed_motion
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-80)
+    motion, track, truth_kp, _ = _setup(tmp_path, np.array([wrong] * 6 + [TRUTH] * 4), frames=10)
+    motion["trans"][6:] += np.float32([0, 0, 0.3])  # the refit restarted deeper too
+    motion["joints3d"] = motion["joints3d"] + motion["trans"][:, None]
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    run = {"status": "finished", "events": [{"event": "re-initialised", "frame": 6, "criterion": "3d"}]}
+    write_run(out, run)
+    model, cfg = load_body_model("default"), TrackerConfig(lifter_refit_seam_s=seam_s)
+    said = []
+    run = pipeline._lifter_refit(out, track, model, cfg, run, said.append)
+    got, _ = read_result(out)
+    refit, _ = lifter_refit_motion(motion, track, model, weight=cfg.lifter_refit_weight,
+                                   pixel_sigma=cfg.lifter_refit_pixel_sigma, blend=cfg.lifter_refit_blend,
+                                   seams=[6], seam_s=seam_s)
+    # an eased seam has no jump left: the depth is smoothed across it; otherwise it starts again there
+    want = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=[] if seam_s else [6])
+    np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-5)
+    assert run["lifter_refit"]["seams_eased"] == ([6] if seam_s else [])
+    assert ("eased" in said[0]) == bool(seam_s)
+    jump = np.abs(np.diff(got["trans"][:, 2]))[5]
+    assert (jump < 0.1) if seam_s else (jump > 0.25), got["trans"][:, 2]
+    assert pipeline._reinit_frames(run) == ([] if seam_s else [6])  # what the later steps start again at
 
 
 def test_the_lifter_can_read_the_fits_own_keypoints(tmp_path):

@@ -838,10 +838,22 @@ def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:
     return "poses_unsmoothed" not in motion
 
 
-def _reinit_frames(run: dict) -> list[int]:
+def _reinit_frames(run: dict, eased: bool = False) -> list[int]:
     """The input frame numbers where the tracker re-initialised (``run["events"]``): the
-    depth smoothing starts again there."""
-    return [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
+    smoothing steps start again there, except at the seams the lifter refit eased
+    (``run["lifter_refit"]["seams_eased"]``), which have no jump left; ``eased=True``: all."""
+    frames = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
+    if eased:
+        return frames
+    smooth = set((run.get("lifter_refit") or {}).get("seams_eased", []))
+    return [f for f in frames if f not in smooth]
+
+
+def _reinit_frames_3d(run: dict) -> list[int]:
+    """The input frame numbers where the tracker re-initialised on 3D disagreement (the
+    event's ``criterion``; a run written before the field existed: its ``why``)."""
+    return [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e
+            and e.get("criterion", "3d" if "3D joints" in str(e.get("why", "")) else "image") == "3d"]
 
 
 def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
@@ -865,7 +877,9 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           exchanged=exchanged_frames(run.get("events", [])),
                                           vote_min_frames=cfg.lifter_refit_vote_frames,
                                           vote_min_reach=cfg.lifter_refit_vote_reach,
-                                          vote_sources=cfg.lifter_refit_vote_sources)
+                                          vote_sources=cfg.lifter_refit_vote_sources,
+                                          seams=_reinit_frames(run, eased=True), seam_s=cfg.lifter_refit_seam_s,
+                                          ease=_reinit_frames_3d(run))
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}
@@ -873,7 +887,7 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         return run
     if cfg.lifter_refit_smooth_depth and cfg.depth_smoothing_s > 0:  # the refit moved each frame's depth again
         tracked = refit.get("trans_tracked")
-        refit = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=_reinit_frames(run))
+        refit = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=_reinit_frames({**run, "lifter_refit": info}))
         if tracked is not None:
             refit["trans_tracked"] = tracked  # the tracker's own translation, as before the refit
         info["depth_smoothed_s"] = cfg.depth_smoothing_s
@@ -886,7 +900,9 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         f"joints moved {info['mean_move_mm']:.0f} mm, {info['mean_move_px']:.1f} px in the image on average"
         + (f"; {info['limb_frames_voted']} limb-frames mirrored in depth where the {cfg.lifter_refit_vote_sources}"
            f" saw them the other way ({_runs_text(info.get('limb_runs_voted', []))})"
-           if info.get("limb_frames_voted") else ""))
+           if info.get("limb_frames_voted") else "")
+        + (f"; the jump at {len(info['seams_eased'])} re-initialisation(s) on 3D disagreement eased into the "
+           f"{cfg.lifter_refit_seam_s:g} s before" if info.get("seams_eased") else ""))
     if info.get("disagreement_median_mm") is not None:
         stretches = info.get("review_frames", [])
         shown = ", ".join(f"{a}-{b}" if b > a else str(a) for a, b in stretches[:4])

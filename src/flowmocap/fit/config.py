@@ -90,7 +90,7 @@ _RANGES: dict[str, str] = {
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
-    "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0,
+    "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -198,6 +198,11 @@ class TrackerConfig:
     #                                    other way (fit.lift_refit.vote_flip_frames; docs/experiments.md); 0: off
     lifter_refit_vote_reach: float = 0.08  # m: ... where both reach further than this along the camera's axis
     lifter_refit_vote_sources: str = "detector"  # who votes: the "detector"'s 3D, the "lifter"'s, or "both"
+    lifter_refit_seam_s: float = 0.3  # s: before the refit, the tracked frames before each re-initialisation on
+    #                                    3D disagreement eased into the pose it restarted from over this long
+    #                                    (fit.smooth.seam_blend; the refit still holds the tracked image); the
+    #                                    smoothing steps after it then run across that seam instead of starting
+    #                                    again there (docs/experiments.md, twenty-fifth session); 0: off
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by

@@ -176,7 +176,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         pixel_sigma: float | None = None, blend: str = "depth",
                         lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
-                        vote_check_2d: bool = True) -> tuple[dict, dict]:
+                        vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
+                        ease=None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -205,6 +206,12 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             frames without all 13 at confidence 0.5 do not count), ``"lifter"`` or ``"both"``.
         vote_check_2d: an upper arm or thigh is mirrored over a run only if its wrist or
             ankle then lies no further from the detected one, summed over the run.
+        seams: input frame numbers where the tracker re-initialised. With ``seam_s`` > 0
+            the tracked frames before each (of those in ``ease``, None: all) are first
+            eased into the pose it restarts from over ``seam_s`` seconds
+            (:func:`~flowmocap.fit.smooth.seam_blend`; never past an earlier seam); the
+            refit starts from, and is held to, the eased poses, while its image term
+            (``pixel_sigma``) still holds the tracked body's image.
         iterations: L-BFGS iterations per chunk of ``chunk`` frames (60: about converged;
             ``TrackerConfig.lifter_refit_iterations``).
         pixel_sigma: pixels, or None: the scale of a term that holds the 24 joints' image
@@ -213,7 +220,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         progress: optional callable ``(done_frames, total)``.
 
     Returns:
-        ``(motion, info)``: the new arrays, and ``frames_refit``, ``limb_frames_voted``
+        ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
+        frame numbers of the seams eased), ``limb_frames_voted``
         (limbs mirrored before the refit, counted once per frame), ``limb_runs_voted``
         (``[{"limb": "left_elbow->left_wrist", "frames": [first, last]}]``, input frame
         numbers, both ends included), ``mean_move_mm`` (mean
@@ -247,7 +255,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"vote_min_frames must be a whole number >= 0 and vote_min_reach >= 0 metres; got "
                          f"{vote_min_frames!r} and {vote_min_reach!r}.")
     if weight == 0:
-        return dict(motion), {"frames_refit": 0, "limb_frames_voted": 0, "limb_runs_voted": [],
+        return dict(motion), {"frames_refit": 0, "limb_frames_voted": 0, "limb_runs_voted": [], "seams_eased": [],
                               "mean_move_mm": 0.0, "mean_move_px": 0.0}
     lifter = load_lifter() if lifter is None else lifter
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
@@ -261,9 +269,18 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
     betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)
 
-    trans_new = trans0.clone()
     with torch.no_grad():
         fit_world, joints_before = keypoints13(body, kmap, poses0, betas, trans0)
+    seams_eased: list[int] = []
+    if seam_s > 0 and len(seams):  # the jumps at re-initialisations eased into the frames before them
+        from flowmocap.fit.smooth import seam_blend
+
+        p_eased, t_eased, seams_eased = seam_blend(poses0.numpy(), trans0.numpy(), idx, seams,
+                                                   float(np.asarray(motion.get("fps", 30.0))), seam_s, ease=ease)
+        poses0, trans0 = torch.as_tensor(p_eased), torch.as_tensor(t_eased)
+        with torch.no_grad():
+            fit_world, _ = keypoints13(body, kmap, poses0, betas, trans0)
+    trans_new = trans0.clone()
     fit_cam = fit_world.numpy() @ R.T + t
     fps = float(motion.get("fps", 30.0))
     n_exchanged = 0
@@ -372,6 +389,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     before2d = np.asarray(motion["joints2d"], np.float64)
     known = disagreement[np.isfinite(disagreement)]
     info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "limb_runs_voted": voted_runs,
+            "seams_eased": seams_eased, "seam_s": seam_s,
             "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),

@@ -339,7 +339,8 @@ class ReinitMonitor:
         else:
             why = (f"{self.patience} bad frames in a row (silhouette IoU < {self.min_iou} or joint error > "
                    f"{self.max_joint_error} of the person's height)")
-        info = {"why": why, "before": _rounded(before), "after": _rounded(after)}
+        info = {"why": why, "criterion": "3d" if in3d else "image", "before": _rounded(before),
+                "after": _rounded(after)}
         return FrameState(best[0], best[1]), info
 
 
