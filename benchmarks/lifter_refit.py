@@ -17,7 +17,7 @@ Usage: python benchmarks/lifter_refit.py [--real3d DIR] [--diverse DIR] [--seeds
        [--weight 0.5] [--pixel-sigma PX] [--lifter FILE] [--blend full|depth]
        [--lifter-input detector|fit|agree|unswap] [--iterations 60] [--smooth-after S]
        [--smooth-poses S] [--stance SHARE] [--raw-detections] [--lifter-flip] [--reg RAD] [--sigma M]
-       [--out PREFIX]
+       [--seam-s S] [--out PREFIX]
 
 ``--smooth-after 0.5`` smooths the refitted root depth again, as the pipeline's defaults do
 (``lifter_refit_smooth_depth``); without it the table is the refit alone. ``--smooth-poses
@@ -49,6 +49,7 @@ from flowmocap.fit.lift_refit import lifter_refit_motion
 from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion, stance_depth_motion
 from flowmocap.fit.swap import exchanged_frames
 from flowmocap.io.results import read_result
+from flowmocap.pipeline import _reinit_frames, _reinit_frames_3d
 from flowmocap.vision.auto import load_detections
 
 E = list(EVAL_JOINTS)
@@ -97,8 +98,9 @@ def _refit(res: Path, weight: float, track=None):
         raise SystemExit(f"{res} holds no detections: the refit needs the detector's 2D keypoints")
     run = json.loads((res / "run.json").read_text())
     exchanged = exchanged_frames(run.get("events", [])) if EXCHANGED else None
-    refit, info = lifter_refit_motion(motion, track, model, weight=weight, exchanged=exchanged, **OPTIONS)
-    reinits = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
+    refit, info = lifter_refit_motion(motion, track, model, weight=weight, exchanged=exchanged,
+                                      seams=_reinit_frames(run, eased=True), ease=_reinit_frames_3d(run), **OPTIONS)
+    reinits = _reinit_frames({**run, "lifter_refit": info})  # as the pipeline: not at the seams eased
     if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
         refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)
     if STANCE:  # as the pipeline does next (stance_depth_share, its other settings the defaults)
@@ -215,10 +217,13 @@ def main() -> int:
     ap.add_argument("--vote-no-2d", action="store_true",
                     help="mirror an upper arm or thigh even where its wrist or ankle then lies further from the "
                          "detected one (vote_check_2d false)")
+    ap.add_argument("--seam-s", type=float, default=0.0,
+                    help="ease the jump at each re-initialisation on 3D disagreement into this many seconds before "
+                         "it and smooth across it afterwards, as the pipeline's lifter_refit_seam_s (0.3); 0: not")
     ap.add_argument("--out")
     a = ap.parse_args()
     OPTIONS.update(vote_min_frames=a.vote_frames, vote_min_reach=a.vote_reach, vote_sources=a.vote_sources,
-                   vote_check_2d=not a.vote_no_2d)
+                   vote_check_2d=not a.vote_no_2d, seam_s=a.seam_s)
     OPTIONS["reg"], OPTIONS["sigma"] = a.reg, a.sigma
     if not (a.real3d or a.diverse or a.seeds):
         ap.error("give at least one of --real3d, --diverse, --seeds")

@@ -74,6 +74,17 @@ def test_bench_as_a_video_tracks_the_renders_with_automatic_masks_joints_and_sta
     errors = starts["clips"]["walk-quick"]
     assert set(errors) == set(auto_start.DEFAULT_VARIANTS) and all(0 < e < 30 for e in errors.values())
     assert "| walk-quick |" in (tmp_path / "start.md").read_text()
+    # benchmarks/post_steps.py redoes the steps after tracking on the finished run: with the run's own
+    # settings it gives the stored result back
+    post_steps = _load("post_steps")
+    variants = {"as run": {}, "no refit": {"lifter_refit_weight": 0.0, "pose_smoothing_s": 0.0}}
+    assert post_steps.main(["--variants", json.dumps(variants), "--diverse", str(out),
+                            "--out", str(tmp_path / "post")]) == 0
+    post = json.loads((tmp_path / "post.json").read_text())
+    rows = post["suites"][f"diverse {out}"]
+    assert rows["as run"][0]["name"] == "walk-quick"
+    assert rows["as run"][0]["local_cm"] == pytest.approx(row["local_cm"], abs=1e-3)
+    assert rows["no refit"][0]["local_cm"] != pytest.approx(row["local_cm"], abs=1e-3)
     # a folder of the other kind is refused before anything runs: its finished results would be reused
     with pytest.raises(InputError, match="as a video"):
         bench.run_bench(bench.suite("quick", frames=4, size="320x240"), out, "quick", isolate=False,
