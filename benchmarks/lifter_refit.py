@@ -99,7 +99,8 @@ def _refit(res: Path, weight: float, track=None):
     run = json.loads((res / "run.json").read_text())
     exchanged = exchanged_frames(run.get("events", [])) if EXCHANGED else None
     refit, info = lifter_refit_motion(motion, track, model, weight=weight, exchanged=exchanged,
-                                      seams=_reinit_frames(run, eased=True), ease=_reinit_frames_3d(run), **OPTIONS)
+                                      seams=_reinit_frames(run, include_eased=True), ease=_reinit_frames_3d(run),
+                                      **OPTIONS)
     reinits = _reinit_frames({**run, "lifter_refit": info})  # as the pipeline: not at the seams eased
     if SMOOTH_S and "trans_tracked" in motion:  # as the pipeline does (lifter_refit_smooth_depth)
         refit = depth_smoothed_motion(refit, SMOOTH_S, breaks=reinits)

@@ -91,7 +91,7 @@ def tracked_motion(motion: dict, run: dict, body, cfg: TrackerConfig) -> dict:
     m["joints2d"] = np.asarray(camera.project(j.reshape(-1, 3)), np.float64).reshape(j.shape[0], -1, 2).astype(
         np.asarray(motion["joints2d"]).dtype)
     if cfg.depth_smoothing_s > 0:
-        m = depth_smoothed_motion(m, cfg.depth_smoothing_s, breaks=_reinit_frames(run, eased=True))
+        m = depth_smoothed_motion(m, cfg.depth_smoothing_s, breaks=_reinit_frames(run, include_eased=True))
     return m
 
 
@@ -115,7 +115,8 @@ def redo(res: Path, overrides: dict, work: Path) -> Path:
     base = {k: v for k, v in run.items() if k not in RUN_KEYS}
     write_motion(out, tracked_motion(motion, run, body, cfg))
     write_run(out, base)
-    joints3d = (run.get("fingerprint") or {}).get("joints3d", "auto") if isinstance(run.get("fingerprint"), dict) else "auto"
+    fingerprint = run.get("fingerprint")
+    joints3d = fingerprint.get("joints3d", "auto") if isinstance(fingerprint, dict) else "auto"
     _post_steps(out, load_detections(out), body, cfg, base, joints3d, lambda *a, **k: None)
     return out
 
@@ -192,7 +193,8 @@ def _table(title: str, rows: dict) -> str:
     first = rows[names[0]]
     keys = [k for k in first[0] if k != "name"] if first else []
     lines = [f"### {title}", "", "| variant | " + " | ".join(f"{k} median (mean)" for k in keys)
-             + " | better / worse than the first (Wilcoxon p over the runs that moved) |", "|---|" + "---:|" * (len(keys) + 1)]
+             + " | better / worse than the first (Wilcoxon p over the runs that moved) |",
+             "|---|" + "---:|" * (len(keys) + 1)]
     for n in names:
         s = _summary(rows[n], first if n != names[0] else None)
         bw = ", ".join(f"{k} {s[k]['better']}/{s[k]['worse']}"

@@ -329,7 +329,8 @@ def test_reinit_frames_say_which_seams_the_smoothing_steps_still_start_again_at(
     assert pipeline._reinit_frames_3d(run) == [9, 14]
     assert pipeline._reinit_frames(run) == [5, 9, 14]
     eased = {**run, "lifter_refit": {"seams_eased": [9]}}
-    assert pipeline._reinit_frames(eased) == [5, 14] and pipeline._reinit_frames(eased, eased=True) == [5, 9, 14]
+    assert pipeline._reinit_frames(eased) == [5, 14]
+    assert pipeline._reinit_frames(eased, include_eased=True) == [5, 9, 14]
 
 
 @pytest.mark.parametrize("seam_s", [0.2, 0.0])

@@ -838,12 +838,13 @@ def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:
     return "poses_unsmoothed" not in motion
 
 
-def _reinit_frames(run: dict, eased: bool = False) -> list[int]:
+def _reinit_frames(run: dict, include_eased: bool = False) -> list[int]:
     """The input frame numbers where the tracker re-initialised (``run["events"]``): the
     smoothing steps start again there, except at the seams the lifter refit eased
-    (``run["lifter_refit"]["seams_eased"]``), which have no jump left; ``eased=True``: all."""
+    (``run["lifter_refit"]["seams_eased"]``), which have no jump left
+    (``include_eased``: those too)."""
     frames = [e["frame"] for e in run.get("events", []) if e.get("event") == "re-initialised" and "frame" in e]
-    if eased:
+    if include_eased:
         return frames
     smooth = set((run.get("lifter_refit") or {}).get("seams_eased", []))
     return [f for f in frames if f not in smooth]
@@ -878,8 +879,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           vote_min_frames=cfg.lifter_refit_vote_frames,
                                           vote_min_reach=cfg.lifter_refit_vote_reach,
                                           vote_sources=cfg.lifter_refit_vote_sources,
-                                          seams=_reinit_frames(run, eased=True), seam_s=cfg.lifter_refit_seam_s,
-                                          ease=_reinit_frames_3d(run))
+                                          seams=_reinit_frames(run, include_eased=True),
+                                          seam_s=cfg.lifter_refit_seam_s, ease=_reinit_frames_3d(run))
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}
@@ -887,7 +888,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         return run
     if cfg.lifter_refit_smooth_depth and cfg.depth_smoothing_s > 0:  # the refit moved each frame's depth again
         tracked = refit.get("trans_tracked")
-        refit = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=_reinit_frames({**run, "lifter_refit": info}))
+        breaks = _reinit_frames({**run, "lifter_refit": info})  # not at the seams just eased
+        refit = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=breaks)
         if tracked is not None:
             refit["trans_tracked"] = tracked  # the tracker's own translation, as before the refit
         info["depth_smoothed_s"] = cfg.depth_smoothing_s
