@@ -43,7 +43,7 @@ from scipy.stats import wilcoxon
 
 from flowmocap.body import load_body_model
 from flowmocap.fit.config import TrackerConfig
-from flowmocap.fit.smooth import depth_smoothed_motion
+from flowmocap.fit.smooth import depth_smoothed_motion, posed_joints
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.results import read_result, write_motion, write_run
 
@@ -68,8 +68,6 @@ def tracked_motion(motion: dict, run: dict, body, cfg: TrackerConfig) -> dict:
     root depth smoothed over ``cfg.depth_smoothing_s`` as at the end of tracking (breaks at
     every re-initialisation), joints recomputed. A motion without ``poses_tracked`` (the
     refit was off or skipped) is returned with only the later steps' arrays dropped."""
-    import torch
-
     from flowmocap.pipeline import _reinit_frames
 
     m = {k: v for k, v in motion.items() if k not in MOTION_KEYS}
@@ -79,17 +77,12 @@ def tracked_motion(motion: dict, run: dict, body, cfg: TrackerConfig) -> dict:
         return m
     poses = np.asarray(motion["poses_tracked"], np.float64)
     trans = np.asarray(motion["trans_tracked"], np.float64)
-    dt = body.v_template.dtype
-    betas = torch.as_tensor(np.asarray(motion["betas"], np.float64).reshape(1, -1), dtype=dt)
-    with torch.no_grad():
-        j = body(betas=betas.expand(len(poses), -1), pose=torch.as_tensor(poses, dtype=dt),
-                 trans=torch.as_tensor(trans, dtype=dt), with_vertices=False).joints.double().numpy()
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+    j, j2d = posed_joints(body, motion["betas"], poses, trans, camera)
     m["poses"] = poses.astype(np.asarray(motion["poses"]).dtype)
     m["trans"] = trans.astype(np.asarray(motion["trans"]).dtype)
     m["joints3d"] = j.astype(np.asarray(motion["joints3d"]).dtype)
-    m["joints2d"] = np.asarray(camera.project(j.reshape(-1, 3)), np.float64).reshape(j.shape[0], -1, 2).astype(
-        np.asarray(motion["joints2d"]).dtype)
+    m["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
     if cfg.depth_smoothing_s > 0:
         m = depth_smoothed_motion(m, cfg.depth_smoothing_s, breaks=_reinit_frames(run, include_eased=True))
     return m

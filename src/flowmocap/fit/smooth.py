@@ -27,7 +27,7 @@ from flowmocap.errors import InputError
 
 __all__ = ["savgol_weights", "smooth_translations", "smooth_rotations", "smooth_motion", "window_frames",
            "smooth_root_depth", "depth_smoothed_motion", "pose_smoothed_motion", "DEFAULT_WINDOW_S", "DEFAULT_ORDER", "DEPTH_WINDOW_S",
-           "DEPTH_ORDER", "FOOT_JOINTS", "stance_depth_shift", "stance_depth_motion", "seam_blend"]
+           "DEPTH_ORDER", "FOOT_JOINTS", "stance_depth_shift", "stance_depth_motion", "seam_blend", "posed_joints"]
 
 #: Default window length in seconds and polynomial degree: the best order-2 window on the
 #: CMU 35_01 protocol runs (8 seeds, 60 fps), the same on the held-out diverse suite;
@@ -375,6 +375,26 @@ def depth_smoothed_motion(motion: dict, window_s: float = DEPTH_WINDOW_S, order:
     return out
 
 
+def posed_joints(body, betas, poses: np.ndarray, trans: np.ndarray, camera, chunk: int = 64):
+    """The body's 24 joints for ``poses (T, 72)`` radians and ``trans (T, 3)`` metres with
+    shape ``betas (10,)`` (posed ``chunk`` frames at a time, no vertices): ``joints (T, 24,
+    3)`` world metres and their pixels ``(T, 24, 2)`` through ``camera`` (a
+    :class:`~flowmocap.geometry.camera.PinholeCamera`), both float64."""
+    import torch
+
+    dt = body.v_template.dtype
+    b = torch.as_tensor(np.asarray(betas, np.float64).reshape(1, -1), dtype=dt)
+    T = len(poses)
+    joints = np.empty((T, 24, 3))
+    with torch.no_grad():
+        for a in range(0, T, chunk):
+            e = min(a + chunk, T)
+            out = body(betas=b.expand(e - a, -1), pose=torch.as_tensor(np.asarray(poses[a:e]), dtype=dt),
+                       trans=torch.as_tensor(np.asarray(trans[a:e]), dtype=dt), with_vertices=False)
+            joints[a:e] = out.joints.double().numpy()
+    return joints, np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(T, -1, 2)
+
+
 def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S, order: int = DEFAULT_ORDER,
                          breaks=(), chunk: int = 64) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with the poses and translation smoothed over time
@@ -401,8 +421,6 @@ def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S,
     """
     import json
 
-    import torch
-
     from flowmocap.geometry.camera import PinholeCamera
 
     poses0 = np.asarray(motion["poses"], np.float64)
@@ -411,17 +429,8 @@ def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S,
     poses, trans = smooth_motion(poses0, trans0, fps, window_s, order, frame_index=motion.get("frame_index"),
                                  breaks=breaks)
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
-    dt = body.v_template.dtype
-    betas = torch.as_tensor(np.asarray(motion["betas"], np.float64).reshape(1, -1), dtype=dt)
     T = poses.shape[0]
-    joints = np.empty((T, 24, 3))
-    with torch.no_grad():
-        for a in range(0, T, chunk):
-            b = min(a + chunk, T)
-            out = body(betas=betas.expand(b - a, -1), pose=torch.as_tensor(poses[a:b], dtype=dt),
-                       trans=torch.as_tensor(trans[a:b], dtype=dt), with_vertices=False)
-            joints[a:b] = out.joints.double().numpy()
-    j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(T, -1, 2)
+    joints, j2d = posed_joints(body, motion["betas"], poses, trans, camera, chunk)
     before3d = np.asarray(motion["joints3d"], np.float64)
     before2d = np.asarray(motion["joints2d"], np.float64)
     out = dict(motion)
