@@ -252,6 +252,69 @@ def test_a_3d_refit_must_still_fit_the_image():
                           {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.1}, 0.15)
 
 
+def test_why_a_3d_refit_is_turned_down():
+    """Each condition of ``_better_3d`` that fails is named, with the numbers."""
+    from flowmocap.fit.reinit import _refused, _refused_3d
+
+    before = {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.15}
+    assert _refused_3d(before, {"iou": 0.79, "joint_error": 0.06, "joint3d_error": 0.05}, 0.15) is None
+    assert "no closer" in _refused_3d(before, {"iou": 0.8, "joint_error": 0.05, "joint3d_error": 0.16}, 0.15)
+    why = _refused_3d(before, {"iou": 0.70, "joint_error": 0.04, "joint3d_error": 0.05}, 0.15)
+    assert "IoU drops" in why and "0.800 -> 0.700" in why
+    assert "2D joints" in _refused_3d(before, {"iou": 0.85, "joint_error": 0.20, "joint3d_error": 0.05}, 0.15)
+    assert "no 3D joints" in _refused_3d({**before, "joint3d_error": None}, before, 0.15)
+    why = _refused({"iou": 0.78, "joint_error": 0.29}, {"iou": 0.58, "joint_error": None})
+    assert "0.780 -> 0.580" in why and "0.290 -> none" in why
+
+
+def test_a_refit_turned_down_is_recorded_once(setup, monkeypatch):
+    """A 3D refit that does not come closer to the detector's 3D is not kept, and the
+    monitor hands the tracker one event that says why (then none until the next)."""
+    from flowmocap.fit import reinit
+    from flowmocap.fit.reinit import TURNED_DOWN_EVENT
+
+    seq, track, scene = setup
+    truth = {i: (np.asarray(seq.gt["joints3d"][i]) @ np.asarray(seq.camera.R).T, np.full(24, 0.9))
+             for i in range(len(seq))}
+    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None: truth[i])
+    # every fit gives the tracked pose back: the refit's 3D is no closer than the tracked frame's
+    monkeypatch.setattr(reinit, "fit_to_detection", lambda scene_, cfg, j2d, conf, mask, pose0, trans0, **kw:
+                        (pose0, trans0, 1.0))
+    cfg = TrackerConfig(reinit_max_joint3d_error=0.08, reinit_3d_patience=2, reinit_patience=10)
+    mon = ReinitMonitor(track, cfg)
+    assert mon(3, _crouched(seq, 3), scene, seq.mask(3)) is None
+    assert mon.take_events() == []  # one 3D-bad frame: no attempt yet
+    assert mon(4, _crouched(seq, 4), scene, seq.mask(4)) is None  # attempted and turned down
+    events = mon.take_events()
+    assert len(events) == 1 and mon.take_events() == []
+    e = events[0]
+    assert e["event"] == TURNED_DOWN_EVENT and e["frame"] == 4 and e["criterion"] == "3d"
+    assert "no closer" in e["why"] and e["before"]["joint3d_error"] > 0.08
+    assert e["after"]["joint3d_error"] == e["before"]["joint3d_error"]  # the tracked pose won (first, same energy)
+
+
+def test_the_tracker_records_the_refits_turned_down(setup):
+    """SequenceTracker adds what a monitor's ``take_events`` hands it to the frame's events."""
+    from flowmocap.fit.tracker import SequenceTracker
+
+    seq, track, scene = setup
+
+    class Monitor:
+        def __call__(self, i, state, scene_, mask):
+            return None
+
+        def take_events(self):
+            return [{"event": "re-initialisation turned down", "why": "test"}]
+
+    from flowmocap.fit.objective import frame_data
+
+    cfg = TrackerConfig(iterations=2, **DEPTH_CUES_OFF)
+    tr = SequenceTracker(scene, cfg, monitor=Monitor())
+    tr.start(_state(seq, 0), _state(seq, 1), anchored=False)
+    res = tr.step(2, seq.mask(2), frame_data(seq.mask(2), None, cfg, 1.0))
+    assert {"event": "re-initialisation turned down", "why": "test"} in res.events
+
+
 def test_collapsed_detections_are_not_refitted_to():
     import numpy as np
 

@@ -31,6 +31,8 @@ Back-off: a refit that is turned down doubles the wait before the next attempt, 
 the patience up to ``reinit_max_wait`` frames; a refit that is kept, or a frame that is
 neither bad nor 3D-bad, ends the wait (a person whose mask the body never covers well,
 such as a dancer in a wide dress, would otherwise be refitted on every frame, in vain).
+Every attempt turned down is recorded as a ``run.json`` event (:data:`TURNED_DOWN_EVENT`)
+that says why: a drift the output shows, with no refit, is explained in the run's log.
 
 Resuming: :meth:`ReinitMonitor.state_dict` holds the verdicts of the last frames and the
 last refit attempt and the wait (what the next frames' decisions depend on), and the tracker stores
@@ -60,6 +62,8 @@ from flowmocap.vision.detect import KEYPOINT_NAMES
 from flowmocap.vision.keypoint_map import detector_points
 from flowmocap.vision.masks import mask_iou
 
+#: ``run.json`` event of a refit attempt that was not kept (:meth:`ReinitMonitor.take_events`)
+TURNED_DOWN_EVENT = "re-initialisation turned down"
 #: the hips among the track's keypoints (the ray an exchanged detection's 3D is turned about)
 _HIP_KEYPOINTS = (KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip"))
 
@@ -184,6 +188,8 @@ class ReinitMonitor:
         #: frames whose detection the tracker exchanged left for right (``detector_swap_check``):
         #: judged and refitted against the exchanged detection
         self.exchanged: set[int] = set()
+        #: refit attempts not kept, not yet taken by the tracker (:meth:`take_events`)
+        self.turned_down: list[dict] = []
 
     def _unknown(self, i: int) -> np.ndarray | None:
         return self.others(i) if self.others is not None else None
@@ -202,6 +208,22 @@ class ReinitMonitor:
         hips = [self.track.keypoints[i][k] for k in _HIP_KEYPOINTS]
         u, v = np.mean(hips, axis=0)
         return exchanged_3d(*det, camera.ray_rotation(float(u), float(v))[:, 2])
+
+    def _turn_down(self, i: int, in3d: bool, before: dict, after: dict | None, why: str) -> None:
+        """Record a refit attempt that was not kept (:meth:`take_events`)."""
+        e = {"frame": i, "event": TURNED_DOWN_EVENT, "criterion": "3d" if in3d else "image", "why": why,
+             "before": _rounded(before)}
+        if after is not None:
+            e["after"] = _rounded(after)
+        self.turned_down.append(e)
+
+    def take_events(self) -> list[dict]:
+        """The refit attempts turned down since the last call, as ``run.json`` events
+        (``{"frame", "event": TURNED_DOWN_EVENT, "criterion": "3d" | "image", "why", "before",
+        "after"}``, ``after`` absent when no fit was made); the tracker adds them to the
+        frame's events, so a run says why a drift it shows was not refitted."""
+        out, self.turned_down = self.turned_down, []
+        return out
 
     def state_dict(self) -> dict:
         """JSON-serialisable state the next frames' decisions depend on: the verdicts of
@@ -298,8 +320,10 @@ class ReinitMonitor:
 
     def _reinitialise(self, i: int, state, scene, mask, before: dict, in3d: bool = False):
         j2d, conf = self._joints(i)
-        if collapsed_detection(j2d, conf, scene.camera.height):
-            return None  # nothing sound to fit to (a hidden or folded-up person); keep tracking by flow
+        if collapsed_detection(j2d, conf, scene.camera.height):  # a hidden or folded-up person: keep tracking by flow
+            self._turn_down(i, in3d, before, None, "the detection is too small or has too few confident joints "
+                                                   "to fit to")
+            return None
         joints3d = self._joints3d(i, scene.camera)
         distance = None  # the tracked frame's depth, for cfg.reinit_depth_weight (off by default)
         if self.cfg.reinit_depth_weight > 0:
@@ -326,9 +350,12 @@ class ReinitMonitor:
             if math.isfinite(e) and (best is None or e < best[2]):
                 best = (pose, trans, e)
         if best is None:
+            self._turn_down(i, in3d, before, None, "no fit of the detection converged")
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
         if not (_better_3d(before, after, self.max_joint_error) if in3d else _better(before, after)):
+            self._turn_down(i, in3d, before, after,
+                            _refused_3d(before, after, self.max_joint_error) if in3d else _refused(before, after))
             return None
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
@@ -399,15 +426,33 @@ def _better_3d(before: dict, after: dict, max_joint_error: float) -> bool:
     closer to the detector's (``joint3d_error``), at a silhouette IoU at most
     :data:`IOU_TOLERANCE` lower and 2D joints no further than before or than
     ``max_joint_error`` (the refit must still fit the image)."""
-    if after.get("joint3d_error") is None or before.get("joint3d_error") is None:
-        return False
-    if after["joint3d_error"] >= before["joint3d_error"]:
-        return False
+    return _refused_3d(before, after, max_joint_error) is None
+
+
+def _refused_3d(before: dict, after: dict, max_joint_error: float) -> str | None:
+    """Why :func:`_better_3d` turns a refit down, in words; None when it keeps it."""
+    b3, a3 = before.get("joint3d_error"), after.get("joint3d_error")
+    if a3 is None or b3 is None:
+        return "no 3D joints of the detector to compare it with"
+    if a3 >= b3:
+        return f"its 3D joints are no closer to the detector's ({b3:.3f} -> {a3:.3f} m)"
     if after["iou"] is not None and before["iou"] is not None and after["iou"] < before["iou"] - IOU_TOLERANCE:
-        return False
-    if after["joint_error"] is not None and before["joint_error"] is not None:
-        return after["joint_error"] <= max(before["joint_error"], max_joint_error)
-    return True
+        return (f"its silhouette IoU drops by more than {IOU_TOLERANCE} ({before['iou']:.3f} -> {after['iou']:.3f}) "
+                f"although its 3D joints come closer ({b3:.3f} -> {a3:.3f} m)")
+    if (after["joint_error"] is not None and before["joint_error"] is not None
+            and after["joint_error"] > max(before["joint_error"], max_joint_error)):
+        return (f"its 2D joints move away from the detector's ({before['joint_error']:.3f} -> "
+                f"{after['joint_error']:.3f} of the person's height)")
+    return None
+
+
+def _refused(before: dict, after: dict) -> str:
+    """Why :func:`_better` turned a refit down, in words."""
+    def num(v):
+        return "none" if v is None else f"{v:.3f}"
+    return (f"neither a higher silhouette IoU ({num(before['iou'])} -> {num(after['iou'])}) nor closer 2D joints "
+            f"({num(before['joint_error'])} -> {num(after['joint_error'])} of the person's height) at an IoU at "
+            f"most {IOU_TOLERANCE} lower")
 
 
 def _rounded(s: dict) -> dict:

@@ -154,7 +154,10 @@ class SequenceTracker:
             the frame's mask (or None). It returns None to accept the frame, or
             ``(new_state, info)`` to re-initialise: the frame is replaced by ``new_state``,
             the Kalman filters restart from it, ``E_a`` is dropped for the rest of the
-            sequence, and ``{"event": "re-initialised", **info}`` is recorded.
+            sequence, and ``{"event": "re-initialised", **info}`` is recorded. A monitor
+            with a ``take_events()`` method is asked for more events of the frame after
+            each call (:meth:`~flowmocap.fit.reinit.ReinitMonitor.take_events`: the refits
+            it turned down).
 
     Use :meth:`start` (or :meth:`load_state_dict` to resume), then :meth:`step` per frame.
     """
@@ -261,6 +264,8 @@ class SequenceTracker:
             events += votes
             voted = bool(votes)
         reinit = self.monitor(i, state, self.scene, mask) if self.monitor is not None else None
+        if hasattr(self.monitor, "take_events"):  # refit attempts it turned down, and why
+            events += self.monitor.take_events()
         if reinit is not None:
             state, info = reinit
             events.append({"frame": i, "event": "re-initialised", **info})
