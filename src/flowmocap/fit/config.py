@@ -36,10 +36,10 @@ PROFILES: dict[str, dict[str, Any]] = {
     "synthetic": {},
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops or the 3D
-    # joints stay 8 cm from the detector's
+    # joints stay 7 cm from the detector's
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
-              "reinit_max_joint3d_error": 0.08},
+              "reinit_max_joint3d_error": 0.07},
 }
 
 #: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's, faster
