@@ -267,6 +267,22 @@ def test_why_a_3d_refit_is_turned_down():
     assert "0.780 -> 0.580" in why and "0.290 -> none" in why
 
 
+def test_a_3d_refit_kept_above_the_iou_floor():
+    """``reinit_3d_keep_iou``: a 3D refit whose IoU drops by more than the tolerance is
+    kept when its IoU stays at or above the floor, turned down below it or when off."""
+    from flowmocap.fit.reinit import _better_3d, _refused_3d
+
+    before = {"iou": 0.88, "joint_error": 0.05, "joint3d_error": 0.08}
+    after = {"iou": 0.81, "joint_error": 0.05, "joint3d_error": 0.04}
+    assert not _better_3d(before, after, 0.15)  # off: 0.07 lower than the tracked frame
+    assert _better_3d(before, after, 0.15, keep_iou=0.8)
+    why = _refused_3d(before, {**after, "iou": 0.79}, 0.15, keep_iou=0.8)
+    assert "below 0.8" in why and "0.880 -> 0.790" in why
+    # the floor does not excuse a refit that is no closer in 3D or leaves the 2D joints
+    assert "no closer" in _refused_3d(before, {**after, "joint3d_error": 0.09}, 0.15, keep_iou=0.8)
+    assert "2D joints" in _refused_3d(before, {**after, "joint_error": 0.2}, 0.15, keep_iou=0.8)
+
+
 def test_a_refit_turned_down_is_recorded_once(setup, monkeypatch):
     """A 3D refit that does not come closer to the detector's 3D is not kept, and the
     monitor hands the tracker one event that says why (then none until the next)."""

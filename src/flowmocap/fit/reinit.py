@@ -353,9 +353,10 @@ class ReinitMonitor:
             self._turn_down(i, in3d, before, None, "no fit of the detection converged")
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
-        if not (_better_3d(before, after, self.max_joint_error) if in3d else _better(before, after)):
-            self._turn_down(i, in3d, before, after,
-                            _refused_3d(before, after, self.max_joint_error) if in3d else _refused(before, after))
+        keep_iou = float(self.cfg.reinit_3d_keep_iou)
+        if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d else _better(before, after)):
+            self._turn_down(i, in3d, before, after, _refused_3d(before, after, self.max_joint_error, keep_iou)
+                            if in3d else _refused(before, after))
             return None
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
@@ -421,24 +422,27 @@ def _better(before: dict, after: dict) -> bool:
     return joints
 
 
-def _better_3d(before: dict, after: dict, max_joint_error: float) -> bool:
+def _better_3d(before: dict, after: dict, max_joint_error: float, keep_iou: float = 0.0) -> bool:
     """Whether a refit after a run of 3D-bad frames beats the tracked frame: its 3D joints
     closer to the detector's (``joint3d_error``), at a silhouette IoU at most
-    :data:`IOU_TOLERANCE` lower and 2D joints no further than before or than
-    ``max_joint_error`` (the refit must still fit the image)."""
-    return _refused_3d(before, after, max_joint_error) is None
+    :data:`IOU_TOLERANCE` lower (or, with ``keep_iou`` > 0, at least ``keep_iou``) and 2D
+    joints no further than before or than ``max_joint_error`` (the refit must still fit
+    the image)."""
+    return _refused_3d(before, after, max_joint_error, keep_iou) is None
 
 
-def _refused_3d(before: dict, after: dict, max_joint_error: float) -> str | None:
+def _refused_3d(before: dict, after: dict, max_joint_error: float, keep_iou: float = 0.0) -> str | None:
     """Why :func:`_better_3d` turns a refit down, in words; None when it keeps it."""
     b3, a3 = before.get("joint3d_error"), after.get("joint3d_error")
     if a3 is None or b3 is None:
         return "no 3D joints of the detector to compare it with"
     if a3 >= b3:
         return f"its 3D joints are no closer to the detector's ({b3:.3f} -> {a3:.3f} m)"
-    if after["iou"] is not None and before["iou"] is not None and after["iou"] < before["iou"] - IOU_TOLERANCE:
-        return (f"its silhouette IoU drops by more than {IOU_TOLERANCE} ({before['iou']:.3f} -> {after['iou']:.3f}) "
-                f"although its 3D joints come closer ({b3:.3f} -> {a3:.3f} m)")
+    if (after["iou"] is not None and before["iou"] is not None and after["iou"] < before["iou"] - IOU_TOLERANCE
+            and not (keep_iou > 0 and after["iou"] >= keep_iou)):
+        floor = f" and below {keep_iou}" if keep_iou > 0 else ""
+        return (f"its silhouette IoU drops by more than {IOU_TOLERANCE}{floor} ({before['iou']:.3f} -> "
+                f"{after['iou']:.3f}) although its 3D joints come closer ({b3:.3f} -> {a3:.3f} m)")
     if (after["joint_error"] is not None and before["joint_error"] is not None
             and after["joint_error"] > max(before["joint_error"], max_joint_error)):
         return (f"its 2D joints move away from the detector's ({before['joint_error']:.3f} -> "
