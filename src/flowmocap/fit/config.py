@@ -86,7 +86,8 @@ _RANGES: dict[str, str] = {
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "flip_vote_frames": _AT_LEAST_0, "flip_vote_reach": _AT_LEAST_0,
-    "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_3d_keep_iou": _UNIT, "reinit_max_wait": _AT_LEAST_1,
+    "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_3d_keep_iou": _UNIT,
+    "reinit_max_wait": _AT_LEAST_1,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
@@ -228,7 +229,7 @@ class TrackerConfig:
     reinit_3d_patience: int = 3        # 3D-bad frames in a row before a refit
     reinit_3d_keep_iou: float = 0.0    # a refit on 3D disagreement whose silhouette IoU drops by more than
     #                                    reinit.IOU_TOLERANCE is kept all the same at an IoU of at least this;
-    #                                    0: off (docs/settings.md has the measurements)
+    #                                    0: off (0.8 tried: docs/settings.md)
     reinit_max_wait: int = 1           # frames: each refit turned down doubles the wait before the next
     #                                    attempt (from the patience) up to this; 1: no back-off
     # --- observed flow -----------------------------------------------------------------
