@@ -129,14 +129,17 @@ class Result:
 
     @property
     def fps(self) -> float:
+        """Frames per second of the tracked input, as recorded in ``motion.npz``."""
         return float(self.motion["fps"])
 
     @property
     def gender(self) -> str:
+        """The body model's gender: ``neutral``, ``male`` or ``female``."""
         return str(self.motion["gender"])
 
     @property
     def camera(self) -> PinholeCamera:
+        """The camera the result was tracked with (pixels; OpenCV axes, the result's frame)."""
         return PinholeCamera.from_dict(json.loads(str(self.motion["camera"])))
 
     @property

@@ -127,6 +127,15 @@ DEPTH_CUES_OFF: dict = {"detector3d_weight": 0.0, "init_detector3d_weight": 0.0,
 
 @dataclass
 class TrackerConfig:
+    """Every setting of the tracker, its initialisation, re-initialisation and the steps after
+    tracking, with the defaults of the ``synthetic`` profile (:data:`PROFILES` holds the
+    ``video`` profile's overrides). Units are in each field's comment (weights are
+    dimensionless, distances in metres unless marked px, times in seconds); each field is
+    described with its measurements in ``docs/settings.md``. Every value is checked on
+    construction (``__post_init__``: ranges, choices; a bad one raises ``InputError``), and
+    :meth:`from_dict` refuses unknown names.
+    """
+
     # --- per-frame objective (paper Eq. 4) --------------------------------------------
     flow_weight: float = 1.0           # lambda_f, E_f: the rendered flow must match the observed flow
     silhouette_weight: float = 5.0     # lambda_c, E_c: keeps the body inside the person's mask
