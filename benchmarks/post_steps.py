@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 #: the keys the post steps add to ``run.json`` and to ``motion.npz``
 RUN_KEYS = ("lifter_refit", "stance_depth", "pose_smoothing")
-MOTION_KEYS = ("poses_tracked", "trans_tracked", "poses_unsmoothed", "trans_unsmoothed", "disagreement")
+MOTION_KEYS = ("poses_tracked", "trans_tracked", "poses_unsmoothed", "trans_unsmoothed", "disagreement", "betas_tracked")
 _BODIES: dict = {}
 
 
@@ -71,6 +71,8 @@ def tracked_motion(motion: dict, run: dict, body, cfg: TrackerConfig) -> dict:
     from flowmocap.pipeline import _reinit_frames
 
     m = {k: v for k, v in motion.items() if k not in MOTION_KEYS}
+    if "betas_tracked" in motion:  # the refit changed the shape (lifter_refit_shape_share)
+        m["betas"] = motion["betas_tracked"]
     if "poses_tracked" not in motion:
         if "poses_unsmoothed" in motion:
             m["poses"], m["trans"] = motion["poses_unsmoothed"], motion["trans_unsmoothed"]
@@ -78,7 +80,7 @@ def tracked_motion(motion: dict, run: dict, body, cfg: TrackerConfig) -> dict:
     poses = np.asarray(motion["poses_tracked"], np.float64)
     trans = np.asarray(motion["trans_tracked"], np.float64)
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
-    j, j2d = posed_joints(body, motion["betas"], poses, trans, camera)
+    j, j2d = posed_joints(body, m["betas"], poses, trans, camera)
     m["poses"] = poses.astype(np.asarray(motion["poses"]).dtype)
     m["trans"] = trans.astype(np.asarray(motion["trans"]).dtype)
     m["joints3d"] = j.astype(np.asarray(motion["joints3d"]).dtype)

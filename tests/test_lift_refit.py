@@ -596,3 +596,143 @@ def test_an_upper_arm_is_mirrored_only_where_the_detected_wrist_agrees(tmp_path,
     res, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5, lifter=TruthLifter(fit_kp),
                                     iterations=1, vote_min_frames=3, vote_sources="detector", vote_check_2d=check)
     assert info["limb_frames_voted"] == (3 if flips else 0), info
+
+
+# ---------------------------------------------- the body's proportions towards the lifter's (twenty-ninth session)
+
+def test_bone_proportions_closed_form_scale_free_and_alike_in_numpy_and_torch():
+    from flowmocap.fit.lift_refit import PROPORTION_BONES, bone_proportions
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(0, 0.4, (5, 13, 3))
+    got = bone_proportions(pts)
+    lengths = np.stack([np.mean([np.linalg.norm(pts[:, a] - pts[:, b], axis=-1) for a, b in pairs], 0)
+                        for pairs in PROPORTION_BONES], -1)
+    np.testing.assert_allclose(got, lengths / lengths.sum(-1, keepdims=True), atol=1e-12)
+    np.testing.assert_allclose(got.sum(-1), 1.0, atol=1e-12)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    np.testing.assert_allclose(bone_proportions(2.5 * pts @ R.T + (1, 2, 3)), got, atol=1e-12)  # size, turn, place
+    np.testing.assert_allclose(bone_proportions(torch.as_tensor(pts)).numpy(), got, atol=1e-12)
+
+
+def _proportions(model, kmap, betas, poses=None):
+    from flowmocap.fit.lift_refit import posed_proportions
+
+    poses = np.zeros((1, 72)) if poses is None else np.asarray(poses, np.float64)
+    with torch.no_grad():
+        return posed_proportions(model, kmap, torch.as_tensor(np.asarray(betas, np.float64)).reshape(1, -1),
+                                 torch.as_tensor(poses)).numpy()
+
+
+TRUTH_BETAS = np.array([1.0, -1.2, 0.6, 0.0, 0.8, 0.0, -0.5, 0.0, 0.0, 0.3])
+
+
+def test_posed_proportions_are_the_mean_of_each_poses_and_turn_with_the_pose():
+    from flowmocap.fit.lift_refit import bone_proportions
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    poses = np.stack([np.zeros(72), TRUTH])
+    with torch.no_grad():
+        kp, _ = keypoints13(model, kmap, torch.as_tensor(poses), torch.zeros(1, 10, dtype=torch.float64),
+                            torch.zeros(2, 3, dtype=torch.float64))
+    each = bone_proportions(kp.numpy())
+    np.testing.assert_allclose(_proportions(model, kmap, np.zeros(10), poses), each.mean(0), atol=1e-12)
+    assert np.abs(each[0] - each[1]).max() > 1e-3  # the keypoints' offsets turn with the joints
+
+
+def _proportion_energy(model, kmap, b, b0, goal, at):
+    import flowmocap.fit.lift_refit as lr
+
+    poses = torch.zeros(1, 72, dtype=torch.float64) if at is None else torch.as_tensor(at)
+    return ((lr.posed_proportions(model, kmap, b, poses) - torch.as_tensor(goal)) ** 2).sum() / lr.PROPORTION_SIGMA ** 2 \
+        + ((b - b0) ** 2).sum() / lr.SHAPE_SIGMA ** 2
+
+
+@pytest.mark.parametrize("poses", [None, "posed"])
+def test_fit_proportions_minimises_its_energy_and_keeps_a_shape_that_has_them(poses, monkeypatch):
+    import flowmocap.fit.lift_refit as lr
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    at = None if poses is None else np.stack([TRUTH, _pose(left_knee=(60, 0, 0), right_elbow=(0, -40, 0))])
+    at_t = None if at is None else torch.as_tensor(at)
+    goal = _proportions(model, kmap, TRUTH_BETAS, at)
+    start = torch.zeros(1, 10, dtype=torch.float64)
+    before = np.abs(_proportions(model, kmap, start, at) - goal).max()
+    got = lr.fit_proportions(model, kmap, start, goal, poses=at_t)
+    after = np.abs(_proportions(model, kmap, got, at) - goal).max()
+    assert before > 0.005 and after < 0.6 * before, (before, after)
+    # a minimum of the documented energy: its gradient vanishes there, not at the start
+    grads = []
+    for b in (start, got):
+        b = b.clone().requires_grad_(True)
+        _proportion_energy(model, kmap, b, start, goal, at).backward()
+        grads.append(b.grad.norm().item())
+    assert grads[1] < 1e-3 * grads[0], grads
+    # the shape's term only settles what the proportions leave free: with a tight scale they are met
+    monkeypatch.setattr(lr, "PROPORTION_SIGMA", 1e-4)
+    tight = np.abs(_proportions(model, kmap, lr.fit_proportions(model, kmap, start, goal, poses=at_t), at) - goal).max()
+    assert tight < 0.1 * before, (before, tight)
+    kept = lr.fit_proportions(model, kmap, torch.as_tensor(TRUTH_BETAS).reshape(1, -1), goal, poses=at_t)  # already there
+    np.testing.assert_allclose(kept.numpy().ravel(), TRUTH_BETAS, atol=1e-6)
+
+
+@pytest.mark.parametrize("share", [1.0, 0.5, 0.0])
+def test_the_refit_moves_the_bodys_proportions_towards_the_lifters(tmp_path, share):
+    frames = 12
+    model64, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    motion, track, _, _ = _setup(tmp_path, TRUTH, frames=frames)
+    with torch.no_grad():  # the lifter sees a body of other proportions in the same pose
+        truth_kp, _ = keypoints13(model64, kmap, torch.as_tensor(np.tile(TRUTH, (frames, 1))),
+                                  torch.as_tensor(TRUTH_BETAS).reshape(1, -1), torch.zeros(frames, 3, dtype=torch.float64))
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,
+                                    lifter=TruthLifter(truth_kp.numpy()), iterations=20, shape_share=share)
+    own, seen = _proportions(model64, kmap, np.zeros(10), [TRUTH]), _proportions(model64, kmap, TRUTH_BETAS, [TRUTH])
+    if share == 0:
+        assert info["shape"] is None and "betas_tracked" not in out
+        np.testing.assert_array_equal(out["betas"], motion["betas"])
+        return
+    np.testing.assert_array_equal(out["betas_tracked"], motion["betas"])
+    after = _proportions(model64, kmap, out["betas"], [TRUTH])
+    np.testing.assert_allclose(info["shape"]["proportions_before"], own, atol=1e-4)
+    np.testing.assert_allclose(info["shape"]["proportions_lifter"], seen, atol=1e-4)  # the median of the lifted frames
+    np.testing.assert_allclose(info["shape"]["proportions_after"], after, atol=1e-4)
+    goal = own + share * (seen - own)
+    assert np.abs(after - goal).max() < 0.6 * np.abs(own - goal).max(), (own, goal, after)
+    # joints3d are the new body's
+    with torch.no_grad():
+        j = model64(betas=torch.as_tensor(out["betas"], dtype=torch.float64).reshape(1, -1).expand(frames, -1),
+                    pose=torch.as_tensor(out["poses"], dtype=torch.float64),
+                    trans=torch.as_tensor(out["trans"], dtype=torch.float64), with_vertices=False).joints.numpy()
+    np.testing.assert_allclose(out["joints3d"], j, atol=1e-4)
+
+
+def test_too_few_lifted_frames_keep_the_shape(tmp_path):
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)  # 3 frames with a person
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,
+                                    lifter=TruthLifter(truth_kp), iterations=5, shape_share=1.0)
+    assert info["shape"] is None and "betas_tracked" not in out
+
+
+def test_the_proportions_gradient_matches_finite_differences():
+    from flowmocap.fit.lift_refit import posed_proportions
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    poses = torch.as_tensor(np.stack([TRUTH, np.zeros(72)]))
+    w = torch.as_tensor(np.random.default_rng(5).normal(size=7))
+    f = lambda b: (posed_proportions(model, kmap, b, poses) * w).sum()  # noqa: E731
+    b = torch.as_tensor(0.5 * TRUTH_BETAS).reshape(1, -1).requires_grad_(True)
+    f(b).backward()
+    h, num = 1e-6, np.zeros(10)
+    for i in range(10):
+        d = torch.zeros(1, 10, dtype=torch.float64)
+        d[0, i] = h
+        with torch.no_grad():
+            num[i] = (f(b + d) - f(b - d)).item() / (2 * h)
+    np.testing.assert_allclose(b.grad.numpy().ravel(), num, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5])
+def test_a_shape_share_outside_zero_to_one_is_refused(tmp_path, share):
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
+    with pytest.raises(InputError, match="shape_share"):
+        lifter_refit_motion(motion, track, load_body_model("default"), lifter=TruthLifter(truth_kp), shape_share=share)

@@ -52,6 +52,17 @@ test decides by one frame's energy, in which flow and silhouette hardly tell a l
 its mirror image, and a limb once flipped stays so (docs/experiments.md, eighteenth
 session).
 
+With ``shape_share`` > 0 (``TrackerConfig.lifter_refit_shape_share``), the body's shape is
+refitted first, once for the whole motion: the tracker fits the betas on the first frame
+alone, and on real people the fitted legs came out long against the torso (the real
+multi-view recording: shin 0.79 of the torso at the keypoints against the reference's 0.68,
+docs/experiments.md, twenty-ninth session). The lifter reads every frame's 2D, so the
+median of its :func:`bone_proportions` over the lifted frames says what the images show;
+:func:`fit_proportions` moves the betas until the body's proportions, in the tracked poses of
+up to :data:`PROPORTION_FRAMES` of those frames, have moved ``shape_share`` of the way from
+its own towards the lifter's. Steps 1-3 then run with that body (its image term still holds
+the tracked body's image), and the tracker's betas are kept as ``betas_tracked``.
+
 Frames without a lifted pose (no person, too few confident keypoints) keep the tracked
 body. ``joints3d`` and ``joints2d`` are recomputed; the tracked poses are kept as
 ``poses_tracked``. The three 3D sources' disagreement per frame and joint
@@ -73,7 +84,8 @@ from flowmocap.errors import InputError
 from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.vision.lifter import MIRROR
 
-__all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "keypoints13", "lifter_refit_motion", "refit_energy"]
+__all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "bone_proportions", "fit_proportions", "keypoints13",
+           "lifter_refit_motion", "posed_proportions", "refit_energy"]
 
 
 #: the 2D the refit's lifter reads (:func:`lifter_refit_motion`'s ``lifter_input``)
@@ -128,6 +140,65 @@ VOTE_LIMBS = DEPTH_LIMBS
 VOTE_SOURCES = ("detector", "lifter", "both")
 
 
+#: the bones whose lengths :func:`bone_proportions` compares, as pairs of the 13 keypoints
+#: (order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS`), each side's pair averaged with the
+#: other's: upper arm, forearm, thigh, shin, shoulder to hip, and the shoulders' and hips' width
+PROPORTION_BONES = (((1, 3), (2, 4)), ((3, 5), (4, 6)), ((7, 9), (8, 10)), ((9, 11), (10, 12)),
+                    ((1, 7), (2, 8)), ((1, 2),), ((7, 8),))
+
+
+def bone_proportions(points):
+    """``(..., 7)`` each bone of :data:`PROPORTION_BONES` (left and right averaged) as a share
+    of their sum, so a body's size drops out: ``points (..., 13, 3)`` keypoints in the order of
+    :data:`~flowmocap.body.skeleton.EVAL_JOINTS`, metres (numpy or torch)."""
+    lib = torch if isinstance(points, torch.Tensor) else np
+    norm = (lambda x: torch.linalg.norm(x, dim=-1)) if lib is torch else (lambda x: np.linalg.norm(x, axis=-1))
+    lengths = [sum(norm(points[..., a, :] - points[..., b, :]) for a, b in pairs) / len(pairs)
+               for pairs in PROPORTION_BONES]
+    lengths = lib.stack(lengths, -1) if lib is torch else np.stack(lengths, -1)
+    return lengths / lengths.sum(-1, keepdims=True) if lib is np else lengths / lengths.sum(-1, keepdim=True)
+
+
+#: :func:`fit_proportions`: the proportions' scale (a share of the bones' sum) and the shape's
+#: (betas, unit variance) in its energy: the proportions are met closely where the shape space
+#: can reach them, the shape's term only settles what they leave free
+PROPORTION_SIGMA = 0.005
+SHAPE_SIGMA = 1.0
+#: the fewest frames with a lifted pose for the shape to be refitted, and the most frames the
+#: body's own proportions are measured at
+PROPORTION_MIN_FRAMES = 10
+PROPORTION_FRAMES = 32
+
+
+def posed_proportions(model, kmap, betas: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """``(7,)`` the mean over ``poses (B, 72)`` of the body's :func:`bone_proportions` at its
+    13 keypoints (the keypoints' offsets turn with the pose, so a body's proportions are
+    measured in the poses it is compared in); ``betas (1, 10)``."""
+    kp, _ = keypoints13(model, kmap, poses, betas, torch.zeros(len(poses), 3, dtype=poses.dtype))
+    return bone_proportions(kp).mean(0)
+
+
+def fit_proportions(model, kmap, betas: torch.Tensor, target: np.ndarray, poses: torch.Tensor | None = None,
+                    iterations: int = 100) -> torch.Tensor:
+    """``(1, 10)`` betas whose body has the bone proportions ``target (7,)`` (:func:`posed_proportions`
+    over ``poses (B, 72)``, radians; None: the rest pose), starting from and held to ``betas (1, 10)``:
+    L-BFGS on ``sum |p(beta) - target|^2 / PROPORTION_SIGMA^2 + |beta - betas|^2 / SHAPE_SIGMA^2``."""
+    poses = torch.zeros(1, 72, dtype=betas.dtype) if poses is None else poses.to(betas.dtype)
+    goal = torch.as_tensor(np.asarray(target, np.float64), dtype=betas.dtype)
+    b = betas.detach().clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([b], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        e = ((posed_proportions(model, kmap, b, poses) - goal) ** 2).sum() / PROPORTION_SIGMA ** 2 \
+            + ((b - betas) ** 2).sum() / SHAPE_SIGMA ** 2
+        e.backward()
+        return e
+
+    opt.step(closure)
+    return b.detach()
+
+
 def vote_flip_frames(fit_cam: np.ndarray, sources: list[np.ndarray], limb: tuple[int, int],
                      min_reach: float, min_frames: int) -> np.ndarray:
     """``(T,)`` bool: the frames of runs, at least ``min_frames`` long, in which every
@@ -177,7 +248,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
-                        ease=None) -> tuple[dict, dict]:
+                        ease=None, shape_share: float = 0.0) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -218,6 +289,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             where the tracker put it (:func:`refit_energy`); None leaves it out.
         lifter: a :class:`~flowmocap.vision.lifter.Lifter` (default the packaged one).
         progress: optional callable ``(done_frames, total)``.
+        shape_share: in [0, 1]: how far the body's bone proportions move towards the lifter's
+            before the refit (module docstring); 0: the tracked shape stays.
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
@@ -228,7 +301,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         distance the 24 joints moved), ``mean_move_px`` (in the image),
         ``disagreement_median_mm`` and ``disagreement_p90_mm`` (the median and 90th
         percentile of ``disagreement`` over the joint-frames that have one; None if none),
-        ``review_frames`` (``[[first, last], ...]`` input frame numbers, both ends included:
+        ``shape`` (None, or with ``shape_share``: ``share``, ``proportions_before``,
+        ``proportions_lifter``, ``proportions_after`` (each ``(7,)``, :func:`bone_proportions`)
+        and ``betas_tracked``), ``review_frames`` (``[[first, last], ...]`` input frame numbers, both ends included:
         the stretches of the tenth of frames where the sources part most,
         :func:`~flowmocap.fit.disagreement.review_frames`).
         The arrays gain ``disagreement (T, 24)`` float32, metres: per frame and joint, how far
@@ -243,6 +318,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
 
     if not 0.0 <= weight <= 1.0:
         raise InputError(f"weight must lie in [0, 1]; got {weight!r}.")
+    if not 0.0 <= shape_share <= 1.0:
+        raise InputError(f"shape_share must lie in [0, 1]; got {shape_share!r}.")
     if pixel_sigma is not None and not pixel_sigma > 0:
         raise InputError(f"pixel_sigma must be a positive number of pixels or None; got {pixel_sigma!r}.")
     if blend not in BLENDS:
@@ -256,7 +333,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                          f"{vote_min_frames!r} and {vote_min_reach!r}.")
     if weight == 0:
         return dict(motion), {"frames_refit": 0, "limb_frames_voted": 0, "limb_runs_voted": [], "seams_eased": [],
-                              "mean_move_mm": 0.0, "mean_move_px": 0.0}
+                              "mean_move_mm": 0.0, "mean_move_px": 0.0, "shape": None}
     lifter = load_lifter() if lifter is None else lifter
     camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
     R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
@@ -316,6 +393,22 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     for k in np.flatnonzero(ok):
         u, v = pts2[k, list(HIPS)].mean(0)
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
+    shape_info = None
+    if shape_share > 0 and ok.sum() >= PROPORTION_MIN_FRAMES:  # the body's proportions towards the lifter's
+        some = np.flatnonzero(ok)[np.linspace(0, ok.sum() - 1, min(PROPORTION_FRAMES, int(ok.sum()))).round().astype(int)]
+        at = poses0[torch.as_tensor(some)]
+        with torch.no_grad():
+            own = posed_proportions(body, kmap, betas, at).numpy()
+        seen = np.median(bone_proportions(lifted[ok]), axis=0)
+        betas_new = fit_proportions(body, kmap, betas, own + shape_share * (seen - own), poses=at)
+        with torch.no_grad():
+            got = posed_proportions(body, kmap, betas_new, at).numpy()
+            betas = betas_new
+            fit_world, _ = keypoints13(body, kmap, poses0, betas, trans0)
+        fit_cam = fit_world.numpy() @ R.T + t
+        shape_info = {"share": shape_share, "proportions_before": np.round(own, 4).tolist(),
+                      "proportions_lifter": np.round(seen, 4).tolist(), "proportions_after": np.round(got, 4).tolist(),
+                      "betas_tracked": np.asarray(motion["betas"], np.float64).reshape(-1).round(4).tolist()}
     n_voted, voted_runs = 0, []
     if vote_min_frames > 0 and ok.any():
         from flowmocap.fit.flip import limb_name
@@ -381,6 +474,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)  # world points
     out = dict(motion)
     out["poses_tracked"] = np.asarray(motion["poses"]).copy()
+    if shape_info is not None:  # the refitted shape; the tracker's kept as betas_tracked
+        out["betas_tracked"] = np.asarray(motion["betas"]).copy()
+        out["betas"] = betas.numpy().reshape(np.shape(motion["betas"])).astype(np.asarray(motion["betas"]).dtype)
     out["poses"] = poses_new.numpy().astype(np.asarray(motion["poses"]).dtype)
     out["trans"] = trans_new.numpy().astype(np.asarray(motion["trans"]).dtype)
     out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
@@ -389,7 +485,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     before2d = np.asarray(motion["joints2d"], np.float64)
     known = disagreement[np.isfinite(disagreement)]
     info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "limb_runs_voted": voted_runs,
-            "seams_eased": seams_eased, "seam_s": seam_s,
+            "seams_eased": seams_eased, "seam_s": seam_s, "shape": shape_info,
             "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
             "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),

@@ -33,7 +33,8 @@ frame numbers); with ``depth_smoothing_s`` (the default) ``trans``, ``joints3d``
 ``joints2d`` are the depth-smoothed ones and ``trans_tracked (T, 3)`` the tracker's own
 (:func:`flowmocap.fit.smooth.depth_smoothed_motion`), while the progress files, and so
 :func:`read_result` of an unfinished run, hold the tracker's own frames. After the run the
-pipeline may replace ``motion.npz`` again: the lifter refit (``poses_tracked`` added) and
+pipeline may replace ``motion.npz`` again: the lifter refit (``poses_tracked`` added, and
+``betas_tracked`` where it refitted the shape too) and
 the pose smoothing (``poses_unsmoothed`` and ``trans_unsmoothed`` added,
 :func:`flowmocap.fit.smooth.pose_smoothed_motion`). :func:`read_result` gives the same arrays for a run that is still going
 or was killed.
