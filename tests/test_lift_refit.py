@@ -736,3 +736,55 @@ def test_a_shape_share_outside_zero_to_one_is_refused(tmp_path, share):
     motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
     with pytest.raises(InputError, match="shape_share"):
         lifter_refit_motion(motion, track, load_body_model("default"), lifter=TruthLifter(truth_kp), shape_share=share)
+
+
+def test_body_girth_is_each_vertexs_distance_from_its_main_bone():
+    from flowmocap.body.skeleton import PARENTS
+    from flowmocap.fit.lift_refit import body_girth
+
+    model = load_body_model("default", dtype=torch.float64)
+    betas = torch.as_tensor(0.5 * TRUTH_BETAS).reshape(1, -1)
+    got = body_girth(model, betas).numpy()
+    verts, joints = (x[0].numpy() for x in model.shaped(betas))
+    weights = model.weights.numpy()
+    for v in np.random.default_rng(0).choice(len(verts), 200, replace=False):
+        j = int(weights[v].argmax())
+        c = next((k for k, p in enumerate(PARENTS) if p == j), j)
+        a, b = joints[j], joints[c]
+        u = 0.0 if c == j else np.clip(np.dot(verts[v] - a, b - a) / np.dot(b - a, b - a), 0, 1)
+        assert abs(got[v] - np.linalg.norm(verts[v] - (a + u * (b - a)))) < 1e-9
+    assert got.shape == (len(verts),) and (got >= 0).all() and 0.03 < got.mean() < 0.15  # metres
+
+
+def test_the_girth_energy_gradient_matches_finite_differences():
+    from flowmocap.fit.lift_refit import body_girth
+
+    model = load_body_model("default", dtype=torch.float64)
+    g0 = body_girth(model, torch.zeros(1, 10, dtype=torch.float64)).detach()
+    f = lambda b: ((body_girth(model, b) - g0) ** 2).mean()  # noqa: E731
+    b = torch.as_tensor(0.3 * TRUTH_BETAS).reshape(1, -1).requires_grad_(True)
+    f(b).backward()
+    h, num = 1e-6, np.zeros(10)
+    for i in range(10):
+        d = torch.zeros(1, 10, dtype=torch.float64)
+        d[0, i] = h
+        with torch.no_grad():
+            num[i] = (f(b + d) - f(b - d)).item() / (2 * h)
+    np.testing.assert_allclose(b.grad.numpy().ravel(), num, rtol=1e-4, atol=1e-10)
+
+
+def test_holding_the_girth_keeps_the_body_as_wide_while_its_proportions_move():
+    from flowmocap.fit.lift_refit import body_girth, fit_proportions
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    start = torch.zeros(1, 10, dtype=torch.float64)
+    own = _proportions(model, kmap, start)
+    goal = own + np.array([0, 0, 0, -0.01, 0.01, 0, 0])  # shorter shins, a longer torso
+    g0 = body_girth(model, start)
+    moved = {}
+    for sigma in (None, 0.002):
+        b = fit_proportions(model, kmap, start, goal, girth_sigma=sigma)
+        moved[sigma] = (float((body_girth(model, b) - g0).pow(2).mean().sqrt()),
+                        float(np.abs(_proportions(model, kmap, b) - goal).max()))
+    assert moved[0.002][0] < 0.5 * moved[None][0], moved  # the width held
+    assert moved[0.002][1] < 0.6 * np.abs(own - goal).max(), moved  # the proportions still move

@@ -37,10 +37,10 @@ PROFILES: dict[str, dict[str, Any]] = {
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops or the 3D
     # joints stay 7 cm from the detector's; after tracking, the body's proportions half-way
-    # towards the lifter's (the shape was fitted on one frame's automatic mask)
+    # towards the lifter's, its girth held (the shape was fitted on one frame's automatic mask)
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
-              "reinit_max_joint3d_error": 0.07, "lifter_refit_shape_share": 0.5},
+              "reinit_max_joint3d_error": 0.07, "lifter_refit_shape_share": 0.5, "lifter_refit_shape_girth": 0.005},
 }
 
 #: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's, faster
@@ -93,7 +93,7 @@ _RANGES: dict[str, str] = {
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
     "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
-    "lifter_refit_shape_share": _UNIT,
+    "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -219,6 +219,9 @@ class TrackerConfig:
     #                                    way towards the lifter's (median over the frames; fit.lift_refit.fit_proportions),
     #                                    the refit then runs with that shape; 0: the tracked shape stays (the video
     #                                    profile: 0.5; docs/experiments.md, twenty-ninth session)
+    lifter_refit_shape_girth: float = 0.0  # m: with lifter_refit_shape_share, the body's girth along its bones
+    #                                    (fit.lift_refit.body_girth) held at this scale while its proportions move; 0: not held
+    #                                    (the video profile: 0.005)
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by

@@ -84,7 +84,7 @@ from flowmocap.errors import InputError
 from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.vision.lifter import MIRROR
 
-__all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "bone_proportions", "fit_proportions", "keypoints13",
+__all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "body_girth", "bone_proportions", "fit_proportions", "keypoints13",
            "lifter_refit_motion", "posed_proportions", "refit_energy"]
 
 
@@ -178,20 +178,42 @@ def posed_proportions(model, kmap, betas: torch.Tensor, poses: torch.Tensor) -> 
     return bone_proportions(kp).mean(0)
 
 
+def body_girth(model, betas: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` metres: each rest vertex's distance from the bone it mostly follows (the
+    segment from its most-weighted joint to that joint's first child; the joint itself for
+    a joint without children), for ``betas (1, 10)``: the body's girth along its bones,
+    apart from their lengths."""
+    from flowmocap.body.skeleton import PARENTS
+
+    verts, joints = model.shaped(betas)
+    verts, joints = verts[0], joints[0]
+    main = model.weights.argmax(1)
+    child = torch.as_tensor([next((c for c, p in enumerate(PARENTS) if p == j), j) for j in range(len(PARENTS))])
+    a, b = joints[main], joints[child[main]]
+    ab = b - a
+    u = ((verts - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)
+    return torch.linalg.norm(verts - (a + u.clamp(0, 1)[:, None] * ab), dim=-1)
+
+
 def fit_proportions(model, kmap, betas: torch.Tensor, target: np.ndarray, poses: torch.Tensor | None = None,
-                    iterations: int = 100) -> torch.Tensor:
+                    iterations: int = 100, girth_sigma: float | None = None) -> torch.Tensor:
     """``(1, 10)`` betas whose body has the bone proportions ``target (7,)`` (:func:`posed_proportions`
     over ``poses (B, 72)``, radians; None: the rest pose), starting from and held to ``betas (1, 10)``:
-    L-BFGS on ``sum |p(beta) - target|^2 / PROPORTION_SIGMA^2 + |beta - betas|^2 / SHAPE_SIGMA^2``."""
+    L-BFGS on ``sum |p(beta) - target|^2 / PROPORTION_SIGMA^2 + |beta - betas|^2 / SHAPE_SIGMA^2``;
+    with ``girth_sigma`` (metres) also ``mean_v (g_v(beta) - g_v(betas))^2 / girth_sigma^2``, the
+    body's :func:`body_girth` held."""
     poses = torch.zeros(1, 72, dtype=betas.dtype) if poses is None else poses.to(betas.dtype)
     goal = torch.as_tensor(np.asarray(target, np.float64), dtype=betas.dtype)
     b = betas.detach().clone().requires_grad_(True)
+    girth0 = body_girth(model, betas).detach() if girth_sigma else None
     opt = torch.optim.LBFGS([b], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
 
     def closure():
         opt.zero_grad()
         e = ((posed_proportions(model, kmap, b, poses) - goal) ** 2).sum() / PROPORTION_SIGMA ** 2 \
             + ((b - betas) ** 2).sum() / SHAPE_SIGMA ** 2
+        if girth_sigma:
+            e = e + ((body_girth(model, b) - girth0) ** 2).mean() / girth_sigma ** 2
         e.backward()
         return e
 
@@ -248,7 +270,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
-                        ease=None, shape_share: float = 0.0) -> tuple[dict, dict]:
+                        ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -291,6 +313,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         progress: optional callable ``(done_frames, total)``.
         shape_share: in [0, 1]: how far the body's bone proportions move towards the lifter's
             before the refit (module docstring); 0: the tracked shape stays.
+        shape_girth_sigma: metres or None: with ``shape_share``, the body's girth along its
+            bones (:func:`body_girth`) held at this scale (:func:`fit_proportions`).
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
@@ -400,13 +424,14 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         with torch.no_grad():
             own = posed_proportions(body, kmap, betas, at).numpy()
         seen = np.median(bone_proportions(lifted[ok]), axis=0)
-        betas_new = fit_proportions(body, kmap, betas, own + shape_share * (seen - own), poses=at)
+        betas_new = fit_proportions(body, kmap, betas, own + shape_share * (seen - own), poses=at,
+                                    girth_sigma=shape_girth_sigma)
         with torch.no_grad():
             got = posed_proportions(body, kmap, betas_new, at).numpy()
             betas = betas_new
             fit_world, _ = keypoints13(body, kmap, poses0, betas, trans0)
         fit_cam = fit_world.numpy() @ R.T + t
-        shape_info = {"share": shape_share, "proportions_before": np.round(own, 4).tolist(),
+        shape_info = {"share": shape_share, "girth_sigma": shape_girth_sigma, "proportions_before": np.round(own, 4).tolist(),
                       "proportions_lifter": np.round(seen, 4).tolist(), "proportions_after": np.round(got, 4).tolist(),
                       "betas_tracked": np.asarray(motion["betas"], np.float64).reshape(-1).round(4).tolist()}
     n_voted, voted_runs = 0, []
