@@ -719,8 +719,13 @@ def test_the_proportions_gradient_matches_finite_differences():
     model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
     poses = torch.as_tensor(np.stack([TRUTH, np.zeros(72)]))
     w = torch.as_tensor(np.random.default_rng(5).normal(size=7))
-    f = lambda b: (posed_proportions(model, kmap, b, poses) * w).sum()  # noqa: E731
-    b = torch.as_tensor(0.5 * TRUTH_BETAS).reshape(1, -1).requires_grad_(True)
+    _check_betas_gradient(lambda b: (posed_proportions(model, kmap, b, poses) * w).sum(), 0.5 * TRUTH_BETAS,
+                          rtol=1e-5, atol=1e-8)
+
+
+def _check_betas_gradient(f, at, rtol, atol):
+    """Autograd's gradient of the scalar ``f(betas (1, 10))`` at ``at`` against central differences."""
+    b = torch.as_tensor(at).reshape(1, -1).requires_grad_(True)
     f(b).backward()
     h, num = 1e-6, np.zeros(10)
     for i in range(10):
@@ -728,7 +733,7 @@ def test_the_proportions_gradient_matches_finite_differences():
         d[0, i] = h
         with torch.no_grad():
             num[i] = (f(b + d) - f(b - d)).item() / (2 * h)
-    np.testing.assert_allclose(b.grad.numpy().ravel(), num, rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(b.grad.numpy().ravel(), num, rtol=rtol, atol=atol)
 
 
 @pytest.mark.parametrize("share", [-0.1, 1.5])
@@ -761,16 +766,8 @@ def test_the_girth_energy_gradient_matches_finite_differences():
 
     model = load_body_model("default", dtype=torch.float64)
     g0 = body_girth(model, torch.zeros(1, 10, dtype=torch.float64)).detach()
-    f = lambda b: ((body_girth(model, b) - g0) ** 2).mean()  # noqa: E731
-    b = torch.as_tensor(0.3 * TRUTH_BETAS).reshape(1, -1).requires_grad_(True)
-    f(b).backward()
-    h, num = 1e-6, np.zeros(10)
-    for i in range(10):
-        d = torch.zeros(1, 10, dtype=torch.float64)
-        d[0, i] = h
-        with torch.no_grad():
-            num[i] = (f(b + d) - f(b - d)).item() / (2 * h)
-    np.testing.assert_allclose(b.grad.numpy().ravel(), num, rtol=1e-4, atol=1e-10)
+    _check_betas_gradient(lambda b: ((body_girth(model, b) - g0) ** 2).mean(), 0.3 * TRUTH_BETAS,
+                          rtol=1e-4, atol=1e-10)
 
 
 def test_holding_the_girth_keeps_the_body_as_wide_while_its_proportions_move():
