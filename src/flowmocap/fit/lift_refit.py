@@ -152,11 +152,10 @@ def bone_proportions(points):
     of their sum, so a body's size drops out: ``points (..., 13, 3)`` keypoints in the order of
     :data:`~flowmocap.body.skeleton.EVAL_JOINTS`, metres (numpy or torch)."""
     lib = torch if isinstance(points, torch.Tensor) else np
-    norm = (lambda x: torch.linalg.norm(x, dim=-1)) if lib is torch else (lambda x: np.linalg.norm(x, axis=-1))
-    lengths = [sum(norm(points[..., a, :] - points[..., b, :]) for a, b in pairs) / len(pairs)
+    lengths = [sum(((points[..., a, :] - points[..., b, :]) ** 2).sum(-1) ** 0.5 for a, b in pairs) / len(pairs)
                for pairs in PROPORTION_BONES]
-    lengths = lib.stack(lengths, -1) if lib is torch else np.stack(lengths, -1)
-    return lengths / lengths.sum(-1, keepdims=True) if lib is np else lengths / lengths.sum(-1, keepdim=True)
+    total = sum(lengths)
+    return lib.stack([length / total for length in lengths], -1)
 
 
 #: :func:`fit_proportions`: the proportions' scale (a share of the bones' sum) and the shape's
@@ -183,12 +182,12 @@ def body_girth(model, betas: torch.Tensor) -> torch.Tensor:
     segment from its most-weighted joint to that joint's first child; the joint itself for
     a joint without children), for ``betas (1, 10)``: the body's girth along its bones,
     apart from their lengths."""
-    from flowmocap.body.skeleton import PARENTS
+    from flowmocap.body.skeleton import PARENTS, children
 
     verts, joints = model.shaped(betas)
     verts, joints = verts[0], joints[0]
     main = model.weights.argmax(1)
-    child = torch.as_tensor([next((c for c, p in enumerate(PARENTS) if p == j), j) for j in range(len(PARENTS))])
+    child = torch.as_tensor([(children(j) or [j])[0] for j in range(len(PARENTS))])
     a, b = joints[main], joints[child[main]]
     ab = b - a
     u = ((verts - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)
