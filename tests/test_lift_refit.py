@@ -785,3 +785,36 @@ def test_holding_the_girth_keeps_the_body_as_wide_while_its_proportions_move():
                         float(np.abs(_proportions(model, kmap, b) - goal).max()))
     assert moved[0.002][0] < 0.5 * moved[None][0], moved  # the width held
     assert moved[0.002][1] < 0.6 * np.abs(own - goal).max(), moved  # the proportions still move
+
+
+# ------------------------------------------ the same step before tracking: init_shape_share (thirtieth session)
+
+def test_median_proportions_skip_frames_without_3d_and_need_enough_frames():
+    from flowmocap.fit.lift_refit import PROPORTION_MIN_FRAMES, bone_proportions, median_proportions
+
+    rng = np.random.default_rng(7)
+    pts = rng.normal(0, 0.4, (PROPORTION_MIN_FRAMES + 3, 13, 3))
+    pts[2, 5] = np.nan  # a frame without all 13 points is left out
+    keep = np.ones(len(pts), bool)
+    keep[2] = False
+    np.testing.assert_allclose(median_proportions(pts), np.median(bone_proportions(pts[keep]), 0), atol=1e-12)
+    assert median_proportions(pts[:PROPORTION_MIN_FRAMES]) is None  # one frame short of enough
+    assert median_proportions(np.full((30, 13, 3), np.nan)) is None
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_proportions_towards_moves_the_share_asked(share):
+    from flowmocap.fit.lift_refit import proportions_towards
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    at = torch.as_tensor(np.stack([TRUTH]))
+    start = torch.zeros(1, 10, dtype=torch.float64)
+    seen = _proportions(model, kmap, TRUTH_BETAS, at)
+    new, own, got = proportions_towards(model, kmap, start, at, seen, share)
+    np.testing.assert_allclose(own, _proportions(model, kmap, start, at), atol=1e-12)
+    np.testing.assert_allclose(got, _proportions(model, kmap, new, at), atol=1e-12)
+    goal = own + share * (seen - own)
+    if share == 0:
+        np.testing.assert_allclose(new.numpy(), start.numpy(), atol=1e-6)
+    else:
+        assert np.abs(got - goal).max() < 0.6 * np.abs(own - goal).max(), (own, goal, got)

@@ -425,6 +425,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["joints3d_source"] = ("the mean of MediaPipe's 3D keypoints and flowmocap.vision.lifter's" if mix else
                                     "flowmocap.vision.lifter, from the detector's 2D keypoints")
     watch = detections  # the detections the re-initialisation compares each frame with
+    seen2d = detections  # the 2D detections of every frame, where there are any (for init_shape_share)
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         if lift:
@@ -433,6 +434,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
         watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
+        seen2d = watch
         if watch is not None:
             if lift:
                 watch = lifted_track(watch, mix=mix, fps=seq.meta.get("fps", 30.0))
@@ -447,8 +449,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if joints3d == "off":
         j3d = None
     monitor = watch if (watch is not None and reinit) else None
+    seen = _seen_proportions(seen2d, cfg, seq.meta.get("fps", 30.0)) if isinstance(spec, InitSpec) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
-               {"fingerprint": fingerprint, **notes}, keep_flow)
+               {"fingerprint": fingerprint, **notes}, keep_flow, seen)
     run = _post_steps(out, watch, body, cfg, run, joints3d, say)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
@@ -683,21 +686,37 @@ def _append(log: FrameLog, scene: Scene, frame: int, state: FrameState, terms: d
                [terms.get(n, np.nan) for n in log.header["energy_names"]], frame, seconds, events)
 
 
+def _seen_proportions(track: PersonTrack | None, cfg: TrackerConfig, fps: float):
+    """``(7,)`` or None: with ``cfg.init_shape_share`` > 0, the median over the video's frames
+    of the bone proportions of the lifter's 3D of ``track``'s 2D keypoints
+    (:func:`~flowmocap.fit.lift_refit.median_proportions`); None without a track, with the
+    setting off, or with too few lifted frames."""
+    if track is None or cfg.init_shape_share <= 0:
+        return None
+    from flowmocap.fit.lift_refit import median_proportions
+    from flowmocap.vision.lifter import eval_points_2d
+
+    world = lifted_track(track, fps=fps).world
+    return median_proportions(eval_points_2d(world, np.ones(world.shape[:2]))[0])
+
+
 def _run(seq: Sequence, out: Path, model: BodyModel, camera: PinholeCamera, init: InitSpec | KnownStart,
          cfg: TrackerConfig, span: tuple[int, int], resume: bool, progress: bool, detections: PersonTrack | None,
-         keypoints, joints3d, profile: str, notes: dict, keep_flow: bool = True) -> dict:
-    """Initialise (or restore) and track ``span`` of ``seq`` into ``out``; returns run.json's contents."""
+         keypoints, joints3d, profile: str, notes: dict, keep_flow: bool = True, proportions=None) -> dict:
+    """Initialise (or restore) and track ``span`` of ``seq`` into ``out``; returns run.json's contents.
+    ``proportions``: ``(7,)`` or None, the body's bone proportions the video shows
+    (:func:`~flowmocap.fit.init.initialise`)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(int(cfg.torch_threads))
     try:
         return _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints,
-                             joints3d, profile, notes, keep_flow)
+                             joints3d, profile, notes, keep_flow, proportions)
     finally:
         torch.set_num_threads(threads)
 
 
 def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints, joints3d,
-                  profile, notes, keep_flow) -> dict:
+                  profile, notes, keep_flow, proportions=None) -> dict:
     a, b = span
     run = {
         "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
@@ -774,8 +793,10 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
                 m1 = mask_of(a + 1)
                 d1 = frame_data(m1, flow_of(a + 1, m1), cfg, d0.person_pixels, detected(a + 1), others(a + 1))
                 d1.joints3d = detected3d(a + 1)
-                start = initialise(model, camera, init, d0, d1, cfg)
+                start = initialise(model, camera, init, d0, d1, cfg, proportions)
                 scene, s0, s1 = start.scene, start.first, start.second
+                if start.shape is not None:
+                    run["init_shape"] = start.shape
                 terms0, terms1 = start.first_terms, start.second_terms
                 # E_a holds the track only to a start someone vouched for, unless asked otherwise
                 anchored = init.states_rough_pose or cfg.anchor_any_start

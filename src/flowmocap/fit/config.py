@@ -100,6 +100,7 @@ _RANGES: dict[str, str] = {
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
     "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
+    "init_shape_share": _UNIT, "init_shape_girth": _AT_LEAST_0,
     "init_shape_prior_weight": _AT_LEAST_0, "init_detector3d_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
     "init_flow_iterations": _AT_LEAST_1,
 }
@@ -266,6 +267,13 @@ class TrackerConfig:
     #                                    2026-11-28: it held the automatic start near the rest pose)
     init_rough_pose_weight: float = 1000.0  # towards the stated rough pose: trusts a noisy one
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
+    init_shape_share: float = 0.0      # after frame 0's shape fit, before tracking: the body's bone proportions
+    #                                    (in frame 0's pose) moved this share of the way towards the median of the
+    #                                    3D cue's over the video's frames (the lifter's on video; fit.lift_refit.
+    #                                    proportions_towards); 0: frame 0's shape stays (docs/experiments.md,
+    #                                    thirtieth session)
+    init_shape_girth: float = 0.0      # m: with init_shape_share, the body's girth along its bones held at this
+    #                                    scale (fit.lift_refit.body_girth); 0: not held
     init_detector3d_weight: float = 3e4   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
     init_learned_prior_weight: float = 5.0  # E_p in the init's and the refits' joint fits (px^2 scale); 0: off
     init_iterations: int = 60          # L-BFGS iterations per init step

@@ -350,21 +350,55 @@ class Start:
     second: FrameState
     first_terms: dict
     second_terms: dict
+    shape: dict | None = None  # with TrackerConfig.init_shape_share: the proportions before, seen and after
+
+
+def shape_towards_seen(model: BodyModel, betas: torch.Tensor, pose: torch.Tensor, seen: np.ndarray, share: float,
+                       girth_sigma: float | None = None) -> tuple[torch.Tensor, dict]:
+    """``(betas (1, 10) in betas' dtype, info)``: ``betas (1, 10)`` refitted so that the body's
+    bone proportions in ``pose (72,)`` (radians) move ``share`` (in [0, 1]) of the way towards
+    ``seen (7,)`` (:func:`~flowmocap.fit.lift_refit.bone_proportions` of what the images
+    show, e.g. the median of the lifter's over a video), the body's girth held at
+    ``girth_sigma`` metres (None: not held); ``info``: the proportions before, seen and
+    after (:func:`~flowmocap.fit.lift_refit.proportions_towards`)."""
+    import copy
+
+    from flowmocap.fit.lift_refit import proportions_towards
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+
+    body = copy.deepcopy(model).double()
+    b64 = torch.as_tensor(betas, dtype=torch.float64).detach().reshape(1, -1)
+    p64 = torch.as_tensor(pose, dtype=torch.float64).detach().reshape(1, 72)
+    new, own, got = proportions_towards(body, load_keypoint_map(), b64, p64, seen, share, girth_sigma)
+    info = {"share": share, "girth_sigma": girth_sigma, "proportions_before": np.round(own, 4).tolist(),
+            "proportions_seen": np.round(np.asarray(seen, np.float64), 4).tolist(),
+            "proportions_after": np.round(got, 4).tolist(),
+            "betas_frame0": b64.reshape(-1).numpy().round(4).tolist()}
+    return new.to(torch.as_tensor(betas).dtype), info
 
 
 def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: FrameData, d1: FrameData,
-               cfg: TrackerConfig) -> Start:
+               cfg: TrackerConfig, proportions: np.ndarray | None = None) -> Start:
     """The paper's three initialisation steps on the first two frames.
 
     Args:
         spec: the parsed init (2D joints of the first frame, optional rough pose).
         d0, d1: the first two frames' observations (:func:`~flowmocap.fit.objective.frame_data`;
             ``d1`` with the observed flow to the first frame; ``joints3d`` set for ``E_d``).
+        proportions: ``(7,)`` or None: the body's bone proportions the whole video shows
+            (:func:`~flowmocap.fit.lift_refit.median_proportions` of the 3D cue); with
+            ``cfg.init_shape_share`` > 0, the shape fitted on frame 0 moves that share of
+            the way towards them (:func:`shape_towards_seen`, girth held at
+            ``cfg.init_shape_girth``) before step 3.
 
     Returns:
         a :class:`Start`; ``second_terms`` are the energies of frame 1 against frame 0.
     """
     pose0, trans0, betas, first_terms = fit_frame0(model, camera, spec, d0.silhouette, cfg, d0.joints3d)
+    shape = None
+    if proportions is not None and cfg.init_shape_share > 0:
+        betas, shape = shape_towards_seen(model, betas, pose0, proportions, cfg.init_shape_share,
+                                          cfg.init_shape_girth or None)
     scene = Scene(model, betas, camera)
     s0 = FrameState(pose0, trans0)
     j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
@@ -376,4 +410,4 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
                                joints_from_detector=spec.from_detector)
     _, second_terms = frame_energy(scene, s1, d1, cfg, len(cfg.stages) - 1,
                                    scene.forward(s0.pose, s0.trans)[1].detach(), s0.pose)
-    return Start(scene, s0, s1, first_terms, second_terms)
+    return Start(scene, s0, s1, first_terms, second_terms, shape)

@@ -85,7 +85,7 @@ from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.vision.lifter import MIRROR
 
 __all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "body_girth", "bone_proportions", "fit_proportions", "keypoints13",
-           "lifter_refit_motion", "posed_proportions", "refit_energy"]
+           "lifter_refit_motion", "median_proportions", "posed_proportions", "proportions_towards", "refit_energy"]
 
 
 #: the 2D the refit's lifter reads (:func:`lifter_refit_motion`'s ``lifter_input``)
@@ -218,6 +218,33 @@ def fit_proportions(model, kmap, betas: torch.Tensor, target: np.ndarray, poses:
 
     opt.step(closure)
     return b.detach()
+
+
+def median_proportions(points: np.ndarray) -> np.ndarray | None:
+    """``(7,)`` the median over frames of :func:`bone_proportions` of ``points (T, 13, 3)``
+    (metres, :data:`~flowmocap.body.skeleton.EVAL_JOINTS`' order; NaN where a frame has no
+    3D), over the frames with all 13 points; None with fewer than :data:`PROPORTION_MIN_FRAMES`
+    such frames."""
+    pts = np.asarray(points, np.float64)
+    ok = np.isfinite(pts).all((1, 2)) if pts.ndim == 3 else np.zeros(0, bool)
+    if ok.sum() < PROPORTION_MIN_FRAMES:
+        return None
+    return np.median(bone_proportions(pts[ok]), axis=0)
+
+
+def proportions_towards(model, kmap, betas: torch.Tensor, poses: torch.Tensor, seen: np.ndarray, share: float,
+                        girth_sigma: float | None = None) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """``(betas_new (1, 10), own (7,), got (7,))``: the body's :func:`posed_proportions` over
+    ``poses (B, 72)`` (radians) moved ``share`` (in [0, 1]) of the way from its own, ``own``,
+    towards ``seen (7,)`` by :func:`fit_proportions` (``girth_sigma``, metres: the body's girth
+    held), and those it reached, ``got``; ``betas (1, 10)`` and ``model`` of one dtype."""
+    with torch.no_grad():
+        own = posed_proportions(model, kmap, betas, poses).numpy()
+    new = fit_proportions(model, kmap, betas, own + share * (np.asarray(seen, np.float64) - own), poses=poses,
+                          girth_sigma=girth_sigma)
+    with torch.no_grad():
+        got = posed_proportions(model, kmap, new, poses).numpy()
+    return new, own, got
 
 
 def vote_flip_frames(fit_cam: np.ndarray, sources: list[np.ndarray], limb: tuple[int, int],
@@ -417,17 +444,12 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         u, v = pts2[k, list(HIPS)].mean(0)
         lifted[k] = lifted[k] @ camera.ray_rotation(float(u), float(v)).T
     shape_info = None
-    if shape_share > 0 and ok.sum() >= PROPORTION_MIN_FRAMES:  # the body's proportions towards the lifter's
+    seen = median_proportions(lifted) if shape_share > 0 else None
+    if seen is not None:  # the body's proportions towards the lifter's
         some = np.flatnonzero(ok)[np.linspace(0, ok.sum() - 1, min(PROPORTION_FRAMES, int(ok.sum()))).round().astype(int)]
         at = poses0[torch.as_tensor(some)]
+        betas, own, got = proportions_towards(body, kmap, betas, at, seen, shape_share, shape_girth_sigma)
         with torch.no_grad():
-            own = posed_proportions(body, kmap, betas, at).numpy()
-        seen = np.median(bone_proportions(lifted[ok]), axis=0)
-        betas_new = fit_proportions(body, kmap, betas, own + shape_share * (seen - own), poses=at,
-                                    girth_sigma=shape_girth_sigma)
-        with torch.no_grad():
-            got = posed_proportions(body, kmap, betas_new, at).numpy()
-            betas = betas_new
             fit_world, _ = keypoints13(body, kmap, poses0, betas, trans0)
         fit_cam = fit_world.numpy() @ R.T + t
         shape_info = {"share": shape_share, "girth_sigma": shape_girth_sigma, "proportions_before": np.round(own, 4).tolist(),
