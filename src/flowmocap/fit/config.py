@@ -269,9 +269,9 @@ class TrackerConfig:
     init_shape_prior_weight: float = 5.0  # towards the mean shape: 2D joints barely constrain it
     init_shape_share: float = 0.0      # after frame 0's shape fit, before tracking: the body's bone proportions
     #                                    (in frame 0's pose) moved this share of the way towards the median of the
-    #                                    3D cue's over the video's frames (the lifter's on video; fit.lift_refit.
-    #                                    proportions_towards); 0: frame 0's shape stays (docs/experiments.md,
-    #                                    thirtieth session)
+    #                                    lifter's (of the detector's 2D keypoints) over the video's frames
+    #                                    (fit.init.shape_towards_seen); 0: frame 0's shape stays. Tried at 0.5
+    #                                    on video, off (docs/experiments.md, thirtieth session)
     init_shape_girth: float = 0.0      # m: with init_shape_share, the body's girth along its bones held at this
     #                                    scale (fit.lift_refit.body_girth); 0: not held
     init_detector3d_weight: float = 3e4   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off

@@ -386,7 +386,7 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
         d0, d1: the first two frames' observations (:func:`~flowmocap.fit.objective.frame_data`;
             ``d1`` with the observed flow to the first frame; ``joints3d`` set for ``E_d``).
         proportions: ``(7,)`` or None: the body's bone proportions the whole video shows
-            (:func:`~flowmocap.fit.lift_refit.median_proportions` of the 3D cue); with
+            (:func:`~flowmocap.fit.lift_refit.median_proportions` of the lifter's 3D of every frame); with
             ``cfg.init_shape_share`` > 0, the shape fitted on frame 0 moves that share of
             the way towards them (:func:`shape_towards_seen`, girth held at
             ``cfg.init_shape_girth``) before step 3.
