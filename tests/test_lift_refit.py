@@ -9,7 +9,7 @@ import torch
 from flowmocap.body import load_body_model
 from flowmocap.body.skeleton import JOINT_INDEX
 from flowmocap.errors import InputError
-from flowmocap.fit.lift_refit import blend_targets, keypoints13, lifter_refit_motion, refit_energy
+from flowmocap.fit.lift_refit import blend_targets, keypoints13, lifter_refit_motion, posed_joints_only, refit_energy
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.vision.auto import PersonTrack
 from flowmocap.vision.detect import KEYPOINT_NAMES
@@ -260,6 +260,35 @@ def test_refit_energy_gradient_matches_finite_differences(pixel_sigma):
         assert an == pytest.approx(fd, rel=1e-5, abs=1e-4), (which, i, j)
     # frame 1 has no target: only the pose term pulls it
     assert float(gt[1].abs().max()) == 0.0
+
+
+def test_one_shape_for_every_frame_is_shaped_once_and_gives_the_same_joints_and_gradients():
+    """A long motion's refit must not hold a shaped rest mesh per frame (3 GB for a
+    10-minute video): one row of betas is shaped once and shared as a view, with the same
+    joints, transforms and gradients as shaping every frame."""
+    model = load_body_model("default", dtype=torch.float64)
+    rng = np.random.default_rng(3)
+    T = 40
+    poses = torch.as_tensor(rng.normal(0, 0.3, (T, 72)))
+    trans = torch.as_tensor(rng.normal(0, 0.5, (T, 3)))
+    betas = torch.as_tensor(rng.normal(0, 1.0, (1, 10))).requires_grad_(True)
+    shared = posed_joints_only(model, betas, poses, trans)
+    assert shared.vertices is None
+    assert shared.rest_vertices.shape[0] == T and shared.rest_vertices.stride(0) == 0  # one mesh, not T
+    per_frame = model(betas=betas.expand(T, -1), pose=poses, trans=trans, with_vertices=False)
+    assert per_frame.rest_vertices.stride(0) != 0
+    np.testing.assert_allclose(shared.joints.detach().numpy(), per_frame.joints.detach().numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(shared.transforms.detach().numpy(), per_frame.transforms.detach().numpy(), rtol=0,
+                               atol=1e-12)
+    w = torch.as_tensor(rng.normal(0, 1.0, (T, 24, 3)))
+    g_shared = torch.autograd.grad((shared.joints * w).sum(), betas)[0]
+    g_per_frame = torch.autograd.grad((per_frame.joints * w).sum(), betas)[0]
+    np.testing.assert_allclose(g_shared.numpy(), g_per_frame.numpy(), rtol=1e-10, atol=1e-12)
+    # different shapes per row are still shaped row by row
+    several = torch.as_tensor(rng.normal(0, 1.0, (T, 10)))
+    rows = posed_joints_only(model, several, poses, trans)
+    one = model(betas=several[5:6], pose=poses[5:6], trans=trans[5:6], with_vertices=False)
+    np.testing.assert_allclose(rows.joints[5].numpy(), one.joints[0].numpy(), rtol=0, atol=1e-12)
 
 
 def test_pipeline_keeps_the_tracked_motion_when_the_refit_cannot_run(tmp_path):

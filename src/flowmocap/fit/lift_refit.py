@@ -85,6 +85,7 @@ from flowmocap.fit.energies import DEPTH_LIMBS
 from flowmocap.vision.lifter import MIRROR
 
 __all__ = ["BLENDS", "LIFTER_INPUTS", "blend_targets", "body_girth", "bone_proportions", "fit_proportions", "keypoints13",
+           "posed_joints_only",
            "lifter_refit_motion", "median_proportions", "posed_proportions", "proportions_towards", "refit_energy"]
 
 
@@ -94,11 +95,31 @@ LIFTER_INPUTS = ("detector", "fit", "agree", "unswap")
 AGREE_PX = 20.0
 
 
+#: frames posed at a time by the refit's passes over a whole motion without gradients
+NO_GRAD_CHUNK = 1024
+
+
+def posed_joints_only(model, betas: torch.Tensor, poses: torch.Tensor, trans: torch.Tensor):
+    """The body's :class:`~flowmocap.body.model.BodyOutput` without vertices for ``poses
+    (B, 72)`` radians and ``trans (B, 3)`` metres. ``betas`` ``(1, num_betas)`` (one shape for
+    every frame) is shaped once and shared, so the memory does not grow by a shaped rest
+    mesh per frame (about 0.17 MB a frame in float64: 3 GB for a 10-minute video);
+    ``(B, num_betas)`` is shaped per row."""
+    if betas.shape[0] == 1:
+        return model(betas=betas, pose=poses, trans=trans, shaped=model.shaped(betas), with_vertices=False)
+    return model(betas=betas, pose=poses, trans=trans, with_vertices=False)
+
+
 def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: torch.Tensor):
     """``(keypoints (B, 13, 3), joints (B, 24, 3))`` of posed bodies, world axes, metres:
     the 13 points in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS` where the
-    detector puts them (the head at the middle of the ears)."""
-    out = model(betas=betas.expand(len(poses), -1), pose=poses, trans=trans, with_vertices=False)  # joints only
+    detector puts them (the head at the middle of the ears). Without gradients, a long
+    motion is posed :data:`NO_GRAD_CHUNK` frames at a time (the same values, less memory)."""
+    if not torch.is_grad_enabled() and len(poses) > NO_GRAD_CHUNK:
+        parts = [keypoints13(model, kmap, poses[a:a + NO_GRAD_CHUNK], betas, trans[a:a + NO_GRAD_CHUNK])
+                 for a in range(0, len(poses), NO_GRAD_CHUNK)]
+        return torch.cat([k for k, _ in parts]), torch.cat([j for _, j in parts])
+    out = posed_joints_only(model, betas, poses, trans)
     kp = kmap.apply(out.joints, out.transforms)[:, list(EVAL_JOINTS)]
     rot = out.transforms[:, kmap.ears_part, :3, :3]
     ears = torch.as_tensor(np.asarray(kmap.ears_offset), dtype=out.joints.dtype)
@@ -515,8 +536,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError("the refit towards the lifter gave non-finite values; run without it "
                          "(\"lifter_refit_weight\": 0) and report the input.")
     with torch.no_grad():
-        out_b = body(betas=betas.expand(len(idx), -1), pose=poses_new, trans=trans_new, with_vertices=False)
-    joints = out_b.joints.numpy()
+        joints = keypoints13(body, kmap, poses_new, betas, trans_new)[1].numpy()
     j2d = np.asarray(camera.project(joints.reshape(-1, 3)), np.float64).reshape(len(idx), -1, 2)  # world points
     out = dict(motion)
     out["poses_tracked"] = np.asarray(motion["poses"]).copy()
@@ -599,10 +619,15 @@ def _vote_flips(body, kmap, poses, trans, betas, camera, sources, min_reach, min
     done = []
 
     def posed(p):
+        joints, rots, kps = [], [], []
         with torch.no_grad():
-            out = body(betas=betas.expand(len(p), -1), pose=p, trans=trans, with_vertices=False)
-            kp = keypoints13(body, kmap, p, betas, trans)[0].numpy()
-        return out.joints.numpy(), out.transforms[:, :, :3, :3].numpy(), kp
+            for a in range(0, len(p), NO_GRAD_CHUNK):
+                b = a + NO_GRAD_CHUNK
+                out = posed_joints_only(body, betas, p[a:b], trans[a:b])
+                joints.append(out.joints.numpy())
+                rots.append(out.transforms[:, :, :3, :3].numpy())
+                kps.append(keypoints13(body, kmap, p[a:b], betas, trans[a:b])[0].numpy())
+        return np.concatenate(joints), np.concatenate(rots), np.concatenate(kps)
 
     def pixels(kp, j):
         return np.asarray(camera.project(kp[:, j]), np.float64)
