@@ -256,6 +256,35 @@ def test_obj_and_json(posed_result, tmp_path):
     assert np.array(doc["frames"][4]["pose"]).shape == (72,)
 
 
+def test_joints_without_the_mesh_are_the_posed_meshs_and_the_json_has_a_line_per_frame(posed_result, tmp_path):
+    """A 10-minute result's joints are posed without the mesh, the shape made once (25 s and
+    3 GB with the mesh), and its JSON is written frame by frame; neither changes the values."""
+    folder, truth = posed_result
+    m = load_fitted_motion(folder, frame="up")
+    with_mesh = np.concatenate([m.body(s, s + 3)[1] for s in range(0, m.num_frames, 3)])
+    np.testing.assert_allclose(m.joints(), with_mesh, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.joints(chunk=2), with_mesh, rtol=0, atol=1e-12)
+    path = export_result(folder, "json", tmp_path / "m.json", frame="up")
+    lines = path.read_text().splitlines()
+    frames = [ln for ln in lines if ln.startswith('  {"index":')]
+    assert len(frames) == T and json.loads(frames[-1].rstrip(","))["index"] == 3 + T - 1
+    assert not path.with_name("m.json.part").exists()
+
+
+def test_the_floor_does_not_depend_on_how_many_frames_are_posed_at_a_time(posed_result):
+    """The floor's passes pose the mesh a chunk at a time (a long motion's foot vertices are
+    never all held): the chunk changes nothing."""
+    from flowmocap.export.world import world_frame
+
+    folder, truth = posed_result
+    m = load_fitted_motion(folder, frame="world")
+    args = (m.poses, m.trans, m.betas, m.model, m.camera, m.fps)
+    a, b = world_frame(*args), world_frame(*args, chunk=2)
+    np.testing.assert_array_equal(a.contacts, b.contacts)
+    np.testing.assert_allclose(a.rotation, b.rotation, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.offset, b.offset, rtol=0, atol=1e-12)
+
+
 def test_json_carries_the_sources_disagreement_where_the_result_has_it(posed_result, tmp_path):
     import shutil
 

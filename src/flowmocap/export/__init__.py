@@ -66,17 +66,20 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
 
     j3d = motion.joints()
     r = lambda a, n=6: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
-    frames = [{
-        "index": int(motion.frame_index[k]),
-        "time_s": round(float(k / motion.fps), 6),
-        "pose": r(motion.poses[k]),
-        "trans": r(motion.trans[k]),
-        "joints3d": r(j3d[k]),
-        "joints2d": r(motion.joints2d[k], 3),
-        **({"contact": [bool(c) for c in motion.world.contacts[k]]} if motion.world is not None else {}),
-        **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
-           if motion.disagreement is not None else {}),
-    } for k in range(motion.num_frames)]
+
+    def frame(k):
+        return {
+            "index": int(motion.frame_index[k]),
+            "time_s": round(float(k / motion.fps), 6),
+            "pose": r(motion.poses[k]),
+            "trans": r(motion.trans[k]),
+            "joints3d": r(j3d[k]),
+            "joints2d": r(motion.joints2d[k], 3),
+            **({"contact": [bool(c) for c in motion.world.contacts[k]]} if motion.world is not None else {}),
+            **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
+               if motion.disagreement is not None else {}),
+        }
+
     doc = {
         "format": "flowmocap-motion", "version": 1, "fps": motion.fps, "gender": motion.gender,
         "betas": r(motion.betas), "joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
@@ -84,11 +87,18 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
         "rotation": r(motion.rotation, 9), "offset": r(motion.offset, 9), "camera": motion.camera.to_dict(),
         "smoothed": motion.smoothed,
         "units": "metres, radians, pixels (joints2d); y up unless frame is 'world'",
-        "frames": frames,
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1))
+    # written frame by frame, one line each: a 10-minute motion never exists as one string
+    head = json.dumps(doc, indent=1)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w") as f:
+        f.write(head[:-2] + ',\n "frames": [')
+        for k in range(motion.num_frames):
+            f.write(("\n  " if k == 0 else ",\n  ") + json.dumps(frame(k), separators=(",", ":")))
+        f.write("\n ]\n}\n")
+    tmp.replace(path)
     return path
 
 

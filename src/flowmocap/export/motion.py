@@ -112,9 +112,21 @@ class FittedMotion:
                              trans=torch.as_tensor(self.trans[start:stop], dtype=torch.float64))
         return out.vertices.numpy(), out.joints.numpy()
 
-    def joints(self, chunk: int = 128) -> np.ndarray:
-        """``(T, 24, 3)`` float64 posed joints in metres, export frame."""
-        return np.concatenate([self.body(s, s + chunk)[1] for s in range(0, self.num_frames, chunk)])
+    def joints(self, chunk: int = 1024) -> np.ndarray:
+        """``(T, 24, 3)`` float64 posed joints in metres, export frame (posed ``chunk``
+        frames at a time, without the mesh, the shape made once)."""
+        import torch
+
+        dt = torch.float64
+        b = torch.as_tensor(self.betas[None], dtype=dt)
+        out = []
+        with torch.no_grad():
+            shaped = self.model.shaped(b)
+            for s in range(0, self.num_frames, chunk):
+                out.append(self.model(betas=b, pose=torch.as_tensor(self.poses[s:s + chunk], dtype=dt),
+                                      trans=torch.as_tensor(self.trans[s:s + chunk], dtype=dt), shaped=shaped,
+                                      with_vertices=False).joints.numpy())
+        return np.concatenate(out) if out else np.zeros((0, 24, 3))
 
 
 def up_rotation(camera) -> np.ndarray:

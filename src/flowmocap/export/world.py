@@ -157,16 +157,15 @@ def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, 
     left, right = foot_vertex_sets(model.weights.cpu().numpy())
     dt = model.v_template.dtype
     b = torch.as_tensor(np.asarray(betas, np.float64)[None], dtype=dt)
-    foot_pts, joints = [], []
+    shaped = model.shaped(b)  # one shape for every frame: shaped once
     cam_up = _camera_up(camera)
+
+    def posed(s, vertices):
+        return model(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=dt),
+                     trans=torch.as_tensor(trans[s:s + chunk], dtype=dt), shaped=shaped, with_vertices=vertices)
+
     with torch.no_grad():
-        for s in range(0, T, chunk):
-            out = model(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=dt),
-                        trans=torch.as_tensor(trans[s:s + chunk], dtype=dt))
-            foot_pts.append((out.vertices[:, left].double().numpy(), out.vertices[:, right].double().numpy()))
-            joints.append(out.joints.double().numpy())
-    feet_v = [np.concatenate([f[k] for f in foot_pts]) for k in range(2)]  # 2 x (T, n_k, 3)
-    joints = np.concatenate(joints)
+        joints = np.concatenate([posed(s, False).joints.double().numpy() for s in range(0, T, chunk)])
     body_up = joints[:, 12] - 0.5 * (joints[:, 7] + joints[:, 8])
     body_up = body_up / np.linalg.norm(body_up, axis=1, keepdims=True)
     prior = body_up.mean(0)
@@ -175,8 +174,15 @@ def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, 
         prior = cam_up
 
     def lowest(up):  # (T, 2, 3): the lowest vertex of each foot along up
-        return np.stack([np.take_along_axis(f, np.argmin(f @ up, axis=1)[:, None, None], axis=1)[:, 0]
-                         for f in feet_v], 1)
+        # the mesh posed again chunk by chunk: a long motion's foot vertices are never all held
+        out = np.empty((T, 2, 3))
+        with torch.no_grad():
+            for s in range(0, T, chunk):
+                v = posed(s, True).vertices
+                for k, feet in enumerate((left, right)):
+                    f = v[:, feet].double().numpy()
+                    out[s:s + chunk, k] = np.take_along_axis(f, np.argmin(f @ up, axis=1)[:, None, None], axis=1)[:, 0]
+        return out
 
     low = lowest(prior)  # (T, 2, 3)
     still = foot_contacts(low, fps, prior)
