@@ -93,12 +93,15 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     # written frame by frame, one line each: a 10-minute motion never exists as one string
     head = json.dumps(doc, indent=1)
     tmp = path.with_name(path.name + ".part")
-    with open(tmp, "w") as f:
-        f.write(head[:-2] + ',\n "frames": [')
-        for k in range(motion.num_frames):
-            f.write(("\n  " if k == 0 else ",\n  ") + json.dumps(frame(k), separators=(",", ":")))
-        f.write("\n ]\n}\n")
-    tmp.replace(path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(head[:-2] + ',\n "frames": [')
+            for k in range(motion.num_frames):
+                f.write(("\n  " if k == 0 else ",\n  ") + json.dumps(frame(k), separators=(",", ":")))
+            f.write("\n ]\n}\n")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)  # an interrupted write leaves no partial file behind
     return path
 
 

@@ -125,7 +125,7 @@ class FittedMotion:
             for s in range(0, self.num_frames, chunk):
                 out.append(self.model(betas=b, pose=torch.as_tensor(self.poses[s:s + chunk], dtype=dt),
                                       trans=torch.as_tensor(self.trans[s:s + chunk], dtype=dt), shaped=shaped,
-                                      with_vertices=False).joints.numpy())
+                                      with_vertices=False).joints.double().numpy())
         return np.concatenate(out) if out else np.zeros((0, 24, 3))
 
 
