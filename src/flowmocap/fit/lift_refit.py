@@ -120,11 +120,16 @@ def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: to
                  for a in range(0, len(poses), NO_GRAD_CHUNK)]
         return torch.cat([k for k, _ in parts]), torch.cat([j for _, j in parts])
     out = posed_joints_only(model, betas, poses, trans)
+    return _keypoints_of(kmap, out), out.joints
+
+
+def _keypoints_of(kmap, out) -> torch.Tensor:
+    """``(B, 13, 3)`` :func:`keypoints13`'s points of a posed body ``out`` (its joints and transforms)."""
     kp = kmap.apply(out.joints, out.transforms)[:, list(EVAL_JOINTS)]
     rot = out.transforms[:, kmap.ears_part, :3, :3]
     ears = torch.as_tensor(np.asarray(kmap.ears_offset), dtype=out.joints.dtype)
     head = out.joints[:, JOINT_INDEX["head"]] + (rot @ ears[:, None])[..., 0]
-    return torch.cat([head[:, None], kp[:, 1:]], 1), out.joints
+    return torch.cat([head[:, None], kp[:, 1:]], 1)
 
 
 #: How the targets blend the fit with the lifter (:func:`blend_targets`).
@@ -623,10 +628,10 @@ def _vote_flips(body, kmap, poses, trans, betas, camera, sources, min_reach, min
         with torch.no_grad():
             for a in range(0, len(p), NO_GRAD_CHUNK):
                 b = a + NO_GRAD_CHUNK
-                out = posed_joints_only(body, betas, p[a:b], trans[a:b])
+                out = posed_joints_only(body, betas, p[a:b], trans[a:b])  # posed once for all three
                 joints.append(out.joints.numpy())
                 rots.append(out.transforms[:, :, :3, :3].numpy())
-                kps.append(keypoints13(body, kmap, p[a:b], betas, trans[a:b])[0].numpy())
+                kps.append(_keypoints_of(kmap, out).numpy())
         return np.concatenate(joints), np.concatenate(rots), np.concatenate(kps)
 
     def pixels(kp, j):
