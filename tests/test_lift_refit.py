@@ -51,6 +51,7 @@ class TruthLifter:
         assert fps is not None and fps > 0  # the refit passes the result's frame rate (a temporal lifter needs it)
         assert points.shape == (len(self.truth_cam), len(POINTS), 2) and mask.shape == points.shape[:2]
         self.seen = np.asarray(points, np.float64).copy()
+        self.mask = np.asarray(mask, bool).copy()
         out = np.full((len(points), len(POINTS), 3), np.nan)
         for f in range(len(points)):
             hip = points[f, list(HIPS)].mean(0)
@@ -485,6 +486,32 @@ def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkey
     pipeline._lifter_refit(out, track_sw, model, TrackerConfig(), {"status": "finished", "events": events},
                            lambda s: None)
     assert seen["exchanged"] == [2]
+
+
+@pytest.mark.parametrize("bridge_s", [0.0, 0.1, 0.05])
+def test_a_point_the_detector_lost_for_a_moment_is_bridged_before_lifting(tmp_path, bridge_s):
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH, frames=8)
+    model = load_body_model("default")
+    px = np.asarray(CAM.project(truth_kp.reshape(-1, 3))).reshape(8, 13, 2)
+    kp, conf, found = track.keypoints.copy(), track.confidence.copy(), track.found.copy()
+    w = KEYPOINT_NAMES.index("left_wrist")
+    kp[:, w] += np.arange(8)[:, None] * (2.0, -1.0)  # the wrist moves along a line in the image
+    kp[[3, 4, 5], w] = (0.0, 0.0)  # lost for 3 frames (at 30 fps, 0.1 s) ...
+    conf[[3, 4, 5], w] = 0.1
+    found[4] = False  # ... one of them without the person: never filled
+    lifter = TruthLifter(truth_kp)
+    lifter_refit_motion(motion, PersonTrack(kp, conf, found, track.mask_paths, {}), model, weight=0.5,
+                        lifter=lifter, iterations=2, bridge_s=bridge_s)
+    k = POINTS.index("left_wrist")
+    filled = bridge_s >= 0.1
+    np.testing.assert_array_equal(lifter.mask[[3, 4, 5], k], [filled, False, filled])
+    others = np.ones((8, 13), bool)
+    others[[3, 4, 5], k] = False
+    assert lifter.mask[others].all()  # every other point as the detection gave it
+    if filled:  # the line between frames 2 and 6
+        np.testing.assert_allclose(lifter.seen[[3, 5], k], px[[3, 5], k] + np.array([[6.0, -3.0], [10.0, -5.0]]))
+    with pytest.raises(InputError, match="bridge_s"):
+        lifter_refit_motion(motion, track, model, weight=0.5, lifter=lifter, bridge_s=-1.0)
 
 
 def test_vote_flip_frames_finds_runs_where_every_source_reaches_the_other_way():

@@ -452,3 +452,36 @@ def test_detection_pairs_target_the_truth_as_the_detection_labels_it(tmp_path):
     np.testing.assert_allclose(vs[k][0, 0].numpy(), v[0, 0][list(MIRROR)].numpy() * [-1, 1], atol=1e-6)
     train, held = pairs.split(2)  # clip 0 ("a") held back
     assert len(held) == 2 and len(train) == 1
+
+
+def test_bridge_gaps_fills_short_runs_by_a_straight_line_and_leaves_the_rest():
+    from flowmocap.vision.lifter import bridge_gaps
+
+    T = 12
+    t = np.arange(T, dtype=np.float64)
+    pts = np.stack([np.stack([3.0 * t + 1.0, -2.0 * t], -1), np.stack([t ** 2, t], -1)], 1)  # (T, 2, 2)
+    given = np.ones((T, 2), bool)
+    given[[4, 5], 0] = False  # a run of 2 with both ends seen
+    given[[0, 1], 1] = False  # at the start: no frame before it
+    given[[6, 7, 8], 1] = False  # a run of 3
+    given[11, 1] = False  # at the end
+    noisy = pts.copy()
+    noisy[~given] = 1e6  # what a missing point holds is never read
+    noisy[9, 0] = np.nan  # a NaN point counts as missing (a run of 1)
+    out, ok = bridge_gaps(noisy, given, max_frames=2)
+    np.testing.assert_allclose(out[[4, 5], 0], pts[[4, 5], 0])  # a straight line in time: exact on a line
+    np.testing.assert_allclose(out[9, 0], pts[9, 0])
+    assert ok[:, 0].all()
+    assert not ok[[0, 1, 6, 7, 8, 11], 1].any() and ok[[2, 3, 4, 5, 9, 10], 1].all()  # too long, or open-ended
+    np.testing.assert_array_equal(out[[6, 7, 8], 1], noisy[[6, 7, 8], 1])
+    out3, ok3 = bridge_gaps(noisy, given, max_frames=3)
+    # the run of 3 filled on the line between frames 5 and 9: (t^2, t) at 5 and 9, so 25 + 14 (t - 5)
+    np.testing.assert_allclose(out3[[6, 7, 8], 1], [[39.0, 6.0], [53.0, 7.0], [67.0, 8.0]])
+    assert ok3[[6, 7, 8], 1].all()
+    same, ok0 = bridge_gaps(noisy, given, max_frames=0)
+    np.testing.assert_array_equal(ok0, given & np.isfinite(noisy).all(-1))
+    assert same is not noisy and np.array_equal(same, noisy, equal_nan=True)  # a copy, unchanged
+    with pytest.raises(InputError, match="max_frames"):
+        bridge_gaps(noisy, given, max_frames=-1)
+    with pytest.raises(InputError, match="given"):
+        bridge_gaps(noisy, given[:, :1], max_frames=2)

@@ -906,7 +906,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           seams=_reinit_frames(run, include_eased=True),
                                           seam_s=cfg.lifter_refit_seam_s, ease=_reinit_frames_3d(run),
                                           shape_share=cfg.lifter_refit_shape_share,
-                                          shape_girth_sigma=cfg.lifter_refit_shape_girth or None)
+                                          shape_girth_sigma=cfg.lifter_refit_shape_girth or None,
+                                          bridge_s=cfg.lifter_refit_bridge_s)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

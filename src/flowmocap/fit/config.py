@@ -93,7 +93,7 @@ _RANGES: dict[str, str] = {
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
     "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
-    "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0,
+    "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _AT_LEAST_0,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -223,6 +223,9 @@ class TrackerConfig:
     lifter_refit_shape_girth: float = 0.0  # m: with lifter_refit_shape_share, the body's girth along its bones
     #                                    (fit.lift_refit.body_girth) held at this scale while its proportions move; 0: not held
     #                                    (the video profile: 0.005)
+    lifter_refit_bridge_s: float = 0.0  # s: a detected point missing for at most this long between two frames that
+    #                                    have it is filled by a straight line before the refit's lifter reads the
+    #                                    2D (vision.lifter.bridge_gaps); 0: the lifter guesses it
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by

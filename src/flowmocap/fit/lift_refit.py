@@ -322,7 +322,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         lifter_input: str = "detector", exchanged=None, vote_min_frames: int = 0,
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
-                        ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None) -> tuple[dict, dict]:
+                        ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
+                        bridge_s: float = 0.0) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -367,6 +368,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             before the refit (module docstring); 0: the tracked shape stays.
         shape_girth_sigma: metres or None: with ``shape_share``, the body's girth along its
             bones (:func:`body_girth`) held at this scale (:func:`fit_proportions`).
+        bridge_s: seconds: with ``lifter_input`` ``"detector"`` or ``"unswap"``, a detected
+            point missing (confidence below 0.5) for at most this long between two frames
+            that have it is filled by a straight line between them before lifting
+            (:func:`~flowmocap.vision.lifter.bridge_gaps`); 0: the lifter guesses it.
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
@@ -390,7 +395,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     """
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.vision.keypoint_map import load_keypoint_map
-    from flowmocap.vision.lifter import HIPS, eval_points_2d, load_lifter
+    from flowmocap.vision.lifter import HIPS, bridge_gaps, eval_points_2d, load_lifter
 
     if not 0.0 <= weight <= 1.0:
         raise InputError(f"weight must lie in [0, 1]; got {weight!r}.")
@@ -404,6 +409,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"lifter_input must be one of {LIFTER_INPUTS}; got {lifter_input!r}.")
     if vote_sources not in VOTE_SOURCES:
         raise InputError(f"vote_sources must be one of {VOTE_SOURCES}; got {vote_sources!r}.")
+    if not bridge_s >= 0:
+        raise InputError(f"bridge_s must be >= 0 seconds; got {bridge_s!r}.")
     if not (int(vote_min_frames) == vote_min_frames and vote_min_frames >= 0 and vote_min_reach >= 0):
         raise InputError(f"vote_min_frames must be a whole number >= 0 and vote_min_reach >= 0 metres; got "
                          f"{vote_min_frames!r} and {vote_min_reach!r}.")
@@ -455,6 +462,11 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             swap[idx[d1 < 0.5 * d0]] = True
             pts_all[swap] = pts_all[swap][:, list(MIRROR)]
             given_all[swap] = given_all[swap][:, list(MIRROR)]
+        if bridge_s > 0:  # a point lost for a moment: the line between where it was seen (frames with the person)
+            found = np.asarray(track.found, bool)[:, None]
+            pts_b, given_b = bridge_gaps(pts_all, given_all & found, int(round(bridge_s * fps)))
+            fill = given_b & ~given_all & found
+            pts_all, given_all = np.where(fill[..., None], pts_b, pts_all), given_all | fill
         lifted = lifter.lift_points(pts_all, given_all, fps=fps)[idx]
         pts2 = pts_all[idx]
     else:  # the fit's own keypoints in the image (or where the detection is far from them)

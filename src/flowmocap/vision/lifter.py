@@ -37,7 +37,8 @@ import torch
 
 from flowmocap.errors import InputError, ModelFileError
 
-__all__ = ["LIFTER_FILE", "LIFTER_KIND", "MIRROR", "WINDOW_FPS", "Lifter", "LifterNet", "eval_points_2d", "lifted_track",
+__all__ = ["LIFTER_FILE", "LIFTER_KIND", "MIRROR", "WINDOW_FPS", "Lifter", "LifterNet", "bridge_gaps", "eval_points_2d",
+           "lifted_track",
            "load_lifter", "normalise_2d", "window_indices"]
 
 LIFTER_KIND = "flowmocap-keypoint-lifter"
@@ -105,6 +106,44 @@ def eval_points_2d(keypoints: np.ndarray, confidence: np.ndarray) -> tuple[np.nd
     pts = np.concatenate([kp[:, ears].mean(1, keepdims=True), kp[:, idx]], 1)
     conf = np.concatenate([cf[:, ears].min(1, keepdims=True), cf[:, idx]], 1)
     return pts, conf
+
+
+def bridge_gaps(points: np.ndarray, given: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's runs of frames not given, of at most ``max_frames`` frames and with a
+    given frame on both sides, filled by straight-line interpolation in time between
+    those two frames, and marked given.
+
+    A lifter told a point is missing guesses it from the rest of the pose; where the
+    detector loses a limb for a moment (hidden behind the body, blurred), the line
+    between where it was last and first seen is the better guess (docs/experiments.md,
+    thirty-third session). Runs at the start or end of the sequence stay missing.
+
+    Args:
+        points: ``(T, N, d)`` positions (pixels, or any unit), frames in order.
+        given: ``(T, N)`` bool, the points to trust; the others' values are ignored.
+        max_frames: the longest run to fill; 0 fills none.
+
+    Returns:
+        ``(points, given)``: new arrays of the same shapes.
+    """
+    pts = np.array(points, np.float64)
+    ok = np.array(given, bool)
+    if pts.ndim != 3 or ok.shape != pts.shape[:2]:
+        raise InputError(f"points must be (T, N, d) and given (T, N); got {pts.shape} and {np.shape(given)}.")
+    if not (int(max_frames) == max_frames and max_frames >= 0):
+        raise InputError(f"max_frames must be a whole number >= 0; got {max_frames!r}.")
+    ok &= np.isfinite(pts).all(-1)
+    out_ok = ok.copy()
+    if max_frames == 0:
+        return pts, out_ok
+    for j in range(pts.shape[1]):
+        seen = np.flatnonzero(ok[:, j])
+        for a, b in zip(seen[:-1], seen[1:]):
+            if 1 < b - a <= max_frames + 1:
+                f = ((np.arange(a + 1, b) - a) / (b - a))[:, None]
+                pts[a + 1:b, j] = (1.0 - f) * pts[a, j] + f * pts[b, j]
+                out_ok[a + 1:b, j] = True
+    return pts, out_ok
 
 
 def window_indices(frames: int, offsets, fps: float) -> tuple[np.ndarray, np.ndarray]:
