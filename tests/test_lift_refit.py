@@ -228,8 +228,9 @@ def test_weight_zero_and_bad_input(tmp_path):
     np.testing.assert_allclose(out["joints3d"], motion["joints3d"], atol=2e-3)
 
 
-@pytest.mark.parametrize("pixel_sigma", [None, 3.0], ids=["3d-only", "with-image-term"])
-def test_refit_energy_gradient_matches_finite_differences(pixel_sigma):
+@pytest.mark.parametrize("pixel_sigma,some_let_go", [(None, False), (3.0, False), (3.0, True)],
+                         ids=["3d-only", "with-image-term", "image-term-weighted"])
+def test_refit_energy_gradient_matches_finite_differences(pixel_sigma, some_let_go):
     model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
     rng = np.random.default_rng(1)
     poses0 = torch.as_tensor(np.stack([TRUTH, TRUTH]) + rng.normal(0, 0.05, (2, 72)))
@@ -239,9 +240,11 @@ def test_refit_energy_gradient_matches_finite_differences(pixel_sigma):
         pixels = CAM.project(keypoints13(model, kmap, poses0, torch.zeros(1, 10), torch.zeros(2, 3))[1])
     pixels = pixels + torch.as_tensor(rng.normal(0, 5.0, (2, 24, 2)))
 
+    pixel_use = torch.as_tensor(rng.uniform(0, 1, (2, 24)) > 0.5, dtype=torch.float64) if some_let_go else None
+
     def energy(pose, trans):
         return refit_energy(model, kmap, pose, trans, torch.zeros(1, 10), targets, use, poses0, 0.02, 0.3,
-                            CAM, pixels, pixel_sigma)
+                            CAM, pixels, pixel_sigma, pixel_use)
 
     pose = (poses0 + torch.as_tensor(rng.normal(0, 0.1, (2, 72)))).requires_grad_(True)
     trans = torch.as_tensor(rng.normal(0, 0.1, (2, 3))).requires_grad_(True)
@@ -479,13 +482,14 @@ def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkey
     real = lift_refit.lifter_refit_motion
 
     def spy(*a, **k):
-        seen["exchanged"] = k.get("exchanged")
+        seen.update(k)
         return real(*a, **{**k, "lifter": TruthLifter(truth_kp), "iterations": 2})
 
     monkeypatch.setattr(lift_refit, "lifter_refit_motion", spy)
-    pipeline._lifter_refit(out, track_sw, model, TrackerConfig(), {"status": "finished", "events": events},
-                           lambda s: None)
+    cfg = TrackerConfig(lifter_refit_hidden_share=0.25, lifter_refit_bridge_s=0.2)
+    pipeline._lifter_refit(out, track_sw, model, cfg, {"status": "finished", "events": events}, lambda s: None)
     assert seen["exchanged"] == [2]
+    assert seen["hidden_share"] == 0.25 and seen["bridge_s"] == 0.2  # the settings reach the refit
 
 
 @pytest.mark.parametrize("bridge_s", [0.0, 0.1, 0.05])
@@ -555,6 +559,41 @@ def _give_world(track, kp13):
             for n in (("left_ear", "right_ear") if name == "head" else (name,)):
                 world[f, KEYPOINT_NAMES.index(n)] = x[k]
     track.world = world
+
+
+@pytest.mark.parametrize("share", [0.0, 1.0])
+def test_a_limb_the_detector_cannot_see_moves_towards_its_3d_and_leaves_the_tracked_image(tmp_path, share):
+    wrong = TRUTH.copy()
+    wrong[3 * JOINT_INDEX["right_elbow"] + 1] = np.radians(-40)  # the tracked forearm elsewhere, in the image too
+    motion, track, truth_kp, fit_kp = _setup(tmp_path, wrong)
+    _give_world(track, truth_kp)  # the detector's own 3D: the truth
+    conf = track.confidence.copy()
+    hidden = [KEYPOINT_NAMES.index("right_wrist")]
+    conf[:3, hidden] = 0.2  # it cannot see the wrist (its 2D: the truth's, unused)
+    track = PersonTrack(track.keypoints, conf, track.found, track.mask_paths, {}, world=track.world)
+    model = load_body_model("default")
+    fit_lifter = TruthLifter(fit_kp)  # a lifter that agrees with the fit: only the new step moves the wrist
+    out, info = lifter_refit_motion(motion, track, model, weight=0.5, lifter=fit_lifter, iterations=60,
+                                    blend="full", pixel_sigma=4.0, hidden_share=share)
+    kp_after, _ = _bodies(out["poses"].astype(np.float64))
+    wrist = POINTS.index("right_wrist")
+    before = np.linalg.norm(fit_kp[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    after = np.linalg.norm(kp_after[:3, wrist] - truth_kp[:3, wrist], axis=-1)
+    px = lambda x: np.asarray(CAM.project(x.reshape(-1, 3))).reshape(x.shape[:-1] + (2,))  # noqa: E731
+    moved_px = np.linalg.norm(px(kp_after[:3, wrist]) - px(fit_kp[:3, wrist]), axis=-1)
+    off_px = lambda k: np.linalg.norm(px(k[:3, wrist]) - px(truth_kp[:3, wrist]), axis=-1)  # noqa: E731
+    assert info["hidden_share"] == share and info["hidden_points"] == (3 if share else 0)
+    assert (before > 0.1).all() and (off_px(fit_kp) > 5).all()
+    if share:  # towards the detector's 3D, in the image too: the tracked image is let go of
+        assert (after < 0.3 * before).all(), (before, after)
+        assert (off_px(kp_after) < 0.6 * off_px(fit_kp)).all(), (off_px(fit_kp), off_px(kp_after))
+    else:  # nothing pulls it: it stays where it was tracked
+        assert (after > 0.9 * before).all() and (moved_px < 3).all()
+    # the other points keep their image
+    others = [k for k in range(13) if k not in (wrist, POINTS.index("right_elbow"))]
+    assert np.abs(px(kp_after[:3, others]) - px(fit_kp[:3, others])).max() < 3.0
+    with pytest.raises(InputError, match="hidden_share"):
+        lifter_refit_motion(motion, track, model, weight=0.5, lifter=fit_lifter, hidden_share=1.5)
 
 
 @pytest.mark.parametrize("min_frames, flips", [(3, True), (4, False), (0, False)])

@@ -907,7 +907,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           seam_s=cfg.lifter_refit_seam_s, ease=_reinit_frames_3d(run),
                                           shape_share=cfg.lifter_refit_shape_share,
                                           shape_girth_sigma=cfg.lifter_refit_shape_girth or None,
-                                          bridge_s=cfg.lifter_refit_bridge_s)
+                                          bridge_s=cfg.lifter_refit_bridge_s,
+                                          hidden_share=cfg.lifter_refit_hidden_share)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

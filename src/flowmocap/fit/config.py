@@ -37,10 +37,12 @@ PROFILES: dict[str, dict[str, Any]] = {
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops or the 3D
     # joints stay 7 cm from the detector's; after tracking, the body's proportions half-way
-    # towards the lifter's, its girth held (the shape was fitted on one frame's automatic mask)
+    # towards the lifter's, its girth held (the shape was fitted on one frame's automatic mask),
+    # and the limbs the detector cannot see half-way towards its own 3D in the refit
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
-              "reinit_max_joint3d_error": 0.07, "lifter_refit_shape_share": 0.5, "lifter_refit_shape_girth": 0.005},
+              "reinit_max_joint3d_error": 0.07, "lifter_refit_shape_share": 0.5, "lifter_refit_shape_girth": 0.005,
+              "lifter_refit_hidden_share": 0.5},
 }
 
 #: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's, faster
@@ -94,6 +96,7 @@ _RANGES: dict[str, str] = {
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
     "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
     "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _AT_LEAST_0,
+    "lifter_refit_hidden_share": _UNIT,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -226,6 +229,10 @@ class TrackerConfig:
     lifter_refit_bridge_s: float = 0.0  # s: a detected point missing for at most this long between two frames that
     #                                    have it is filled by a straight line before the refit's lifter reads the
     #                                    2D (vision.lifter.bridge_gaps); 0: the lifter guesses it
+    lifter_refit_hidden_share: float = 0.0  # share, in [0, 1]: a keypoint the detector gives below confidence 0.5 (a
+    #                                    limb it cannot see) has its refit target moved this share of the way to the
+    #                                    detector's own 3D point, and the refit's image hold lets go of it; 0: off
+    #                                    (the video profile: 0.5; docs/experiments.md, thirty-third session)
     lifter_refit_smooth_depth: bool = True  # the refitted motion's root depth smoothed again (the window of
     #                                    depth_smoothing_s; the refit moves each frame's depth on its own)
     stance_depth_share: float = 0.5    # after the refit: each frame moved along the ray through its root by

@@ -304,15 +304,19 @@ def vote_flip_frames(fit_cam: np.ndarray, sources: list[np.ndarray], limb: tuple
 
 
 def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, sigma: float, reg: float,
-                 camera=None, pixels=None, pixel_sigma: float | None = None):
+                 camera=None, pixels=None, pixel_sigma: float | None = None, pixel_use=None):
     """The refit's energy (step 3 of the module docstring), a scalar: ``targets (B, 13, 3)``
     in world axes, ``use (B,)`` the frames that have one (0 / 1). With ``pixel_sigma``
-    (pixels) it adds ``sum_j |camera.project(J_j) - pixels_j|^2 / pixel_sigma^2`` over the
-    24 joints of the frames used, ``pixels (B, 24, 2)``: the tracked body's image held."""
+    (pixels) it adds ``sum_j w_j |camera.project(J_j) - pixels_j|^2 / pixel_sigma^2`` over the
+    24 joints of the frames used, ``pixels (B, 24, 2)``: the tracked body's image held;
+    ``pixel_use (B, 24)`` the weights ``w_j`` (default 1: every joint held)."""
     kp, joints = keypoints13(model, kmap, poses, betas, trans)
     fit = (((kp - targets) ** 2).sum(-1).sum(-1) * use).sum() / sigma ** 2
     if pixel_sigma:
-        fit = fit + (((camera.project(joints) - pixels) ** 2).sum(-1).sum(-1) * use).sum() / pixel_sigma ** 2
+        d2 = ((camera.project(joints) - pixels) ** 2).sum(-1)
+        if pixel_use is not None:
+            d2 = d2 * pixel_use
+        fit = fit + (d2.sum(-1) * use).sum() / pixel_sigma ** 2
     return fit + ((poses[:, 3:] - poses_tracked[:, 3:]) ** 2).sum() / reg ** 2
 
 
@@ -323,7 +327,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
                         ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
-                        bridge_s: float = 0.0) -> tuple[dict, dict]:
+                        bridge_s: float = 0.0, hidden_share: float = 0.0) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -372,6 +376,11 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             point missing (confidence below 0.5) for at most this long between two frames
             that have it is filled by a straight line between them before lifting
             (:func:`~flowmocap.vision.lifter.bridge_gaps`); 0: the lifter guesses it.
+        hidden_share: in [0, 1]: for a keypoint the detector gives below confidence 0.5 (a
+            limb it cannot see), the target moves this share of the way towards the
+            detector's own 3D point (aligned onto the fit by a similarity per frame on the
+            confident points), and the image term (``pixel_sigma``) lets go of its joint
+            (and of the hand or foot below a wrist or ankle); 0: off.
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
@@ -409,6 +418,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         raise InputError(f"lifter_input must be one of {LIFTER_INPUTS}; got {lifter_input!r}.")
     if vote_sources not in VOTE_SOURCES:
         raise InputError(f"vote_sources must be one of {VOTE_SOURCES}; got {vote_sources!r}.")
+    if not 0.0 <= hidden_share <= 1.0:
+        raise InputError(f"hidden_share must lie in [0, 1]; got {hidden_share!r}.")
     if not bridge_s >= 0:
         raise InputError(f"bridge_s must be >= 0 seconds; got {bridge_s!r}.")
     if not (int(vote_min_frames) == vote_min_frames and vote_min_frames >= 0 and vote_min_reach >= 0):
@@ -524,6 +535,11 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     targets_cam = fit_cam.copy()
     if ok.any():
         targets_cam[ok] = blend_targets(fit_cam[ok], lifted[ok], weight, blend)
+    pixel_use = None
+    n_hidden = 0
+    if hidden_share > 0:  # limbs the detector cannot see: towards its own 3D, the tracked image let go
+        targets_cam, pixel_use, n_hidden = _hidden_towards_detector(
+            targets_cam, fit_cam, track, idx, camera, pts2, exchanged, hidden_share, joints_before.shape[1])
     targets = torch.as_tensor((targets_cam - t) @ R)
     with torch.no_grad():
         pixels0 = camera.project(joints_before) if pixel_sigma else None
@@ -539,7 +555,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         def closure(pose=pose, tr=tr, a=a, b=b):
             opt.zero_grad()
             e = refit_energy(body, kmap, pose, tr, betas, targets[a:b], use[a:b], poses0[a:b], sigma, reg,
-                             camera, None if pixels0 is None else pixels0[a:b], pixel_sigma)
+                             camera, None if pixels0 is None else pixels0[a:b], pixel_sigma,
+                             None if pixel_use is None else pixel_use[a:b])
             e.backward()
             return e
 
@@ -570,7 +587,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     info = {"frames_refit": int(ok.sum()), "limb_frames_voted": n_voted, "limb_runs_voted": voted_runs,
             "seams_eased": seams_eased, "seam_s": seam_s, "shape": shape_info,
             "weight": weight, "pixel_sigma": pixel_sigma, "blend": blend,
-            "lifter_input": lifter_input, "frames_exchanged": n_exchanged,
+            "lifter_input": lifter_input, "frames_exchanged": n_exchanged, "hidden_share": hidden_share,
+            "hidden_points": n_hidden,
             "mean_move_mm": float(1000 * np.linalg.norm(joints - joints_before.numpy(), axis=-1).mean()),
             "mean_move_px": float(np.linalg.norm(j2d - before2d, axis=-1).mean()),
             "disagreement_median_mm": float(1000 * np.median(known)) if known.size else None,
@@ -611,6 +629,45 @@ def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged, g
         u, v = pts2[k, list(HIPS)].mean(0)
         out[k] = x @ camera.ray_rotation(float(u), float(v)).T
     return out
+
+
+#: the body joints below a keypoint that its image hold lets go of with it (a wrist's hand, an ankle's foot)
+_BELOW = {"left_wrist": ("left_hand",), "right_wrist": ("right_hand",), "left_ankle": ("left_foot",),
+          "right_ankle": ("right_foot",)}
+
+
+def _hidden_towards_detector(targets_cam, fit_cam, track, idx, camera, pts2, exchanged, share: float, n_joints: int):
+    """``(targets_cam, pixel_use, n)``: :func:`lifter_refit_motion`'s ``hidden_share`` step.
+    ``targets_cam``, ``fit_cam`` ``(T, 13, 3)`` camera axes; returns the targets with each
+    hidden point (detected below confidence 0.5, the person found) moved ``share`` of the
+    way to the detector's own 3D point, aligned onto ``fit_cam`` by a similarity per frame
+    fitted on the frame's confident points (at least 4, both hips among them); ``pixel_use
+    (T, n_joints)`` float64 tensor, 0 for the body joints of those points (and the hand or
+    foot below them), 1 elsewhere; ``n`` the number of points moved."""
+    from flowmocap.geometry.procrustes import similarity_procrustes
+    from flowmocap.vision.lifter import HIPS, POINTS, eval_points_2d
+
+    _, conf = eval_points_2d(np.asarray(track.keypoints)[idx], np.asarray(track.confidence)[idx])
+    back = np.isin(idx, [int(f) for f in (exchanged or ())])
+    conf[back] = conf[back][:, list(MIRROR)]  # as the tracker used them
+    det = _detector_cam(track, idx, camera, pts2, exchanged, gate=False)
+    seen = conf >= 0.5
+    hidden = ~seen & np.isfinite(det).all(-1) & np.asarray(track.found, bool)[idx][:, None]
+    frames = hidden.any(1) & (seen.sum(1) >= 4) & seen[:, list(HIPS)].all(1) & np.isfinite(det).all((1, 2))
+    out = targets_cam.copy()
+    use = np.ones((len(idx), n_joints))
+    if not frames.any():
+        return out, torch.as_tensor(use), 0
+    rows = np.flatnonzero(frames)
+    aligned = similarity_procrustes(det[rows], fit_cam[rows], weights=seen[rows].astype(np.float64))[0]
+    hid = hidden[rows]
+    out[rows] = np.where(hid[..., None], (1.0 - share) * targets_cam[rows] + share * aligned, targets_cam[rows])
+    for k, name in enumerate(POINTS):
+        joints = [JOINT_INDEX[name]] + [JOINT_INDEX[n] for n in _BELOW.get(name, ())]
+        for j in joints:
+            if j < n_joints:
+                use[rows, j] = np.where(hid[:, k], 0.0, use[rows, j])
+    return out, torch.as_tensor(use), int(hid.sum())
 
 
 def _runs(frames: np.ndarray) -> list[np.ndarray]:
