@@ -63,6 +63,17 @@ up to :data:`PROPORTION_FRAMES` of those frames, have moved ``shape_share`` of t
 its own towards the lifter's. Steps 1-3 then run with that body (its image term still holds
 the tracked body's image), and the tracker's betas are kept as ``betas_tracked``.
 
+With ``hidden_share`` > 0 (``TrackerConfig.lifter_refit_hidden_share``; the ``video``
+profile's 0.5), a keypoint the detector gives below confidence 0.5 in a frame, a limb it
+cannot see, gets a different target in step 2: the blended one moved ``hidden_share`` of the
+way to the detector's own 3D point (turned into the camera's axes like the vote's, aligned
+onto ``F`` by a similarity fitted on the frame's confident points). And step 3's image term
+lets go of that joint, and of the hand or foot below a wrist or ankle. The tracker had no 2D
+for such a limb and the lifter leaves it out, so the tracked image there is no evidence; on
+the real recording MediaPipe's guess for a hidden arm was the better one (docs/experiments.md,
+thirty-third session). With ``bridge_s`` > 0, a keypoint missing for at most that long is first
+filled by a straight line between the frames that have it (tried, off).
+
 Frames without a lifted pose (no person, too few confident keypoints) keep the tracked
 body. ``joints3d`` and ``joints2d`` are recomputed; the tracked poses are kept as
 ``poses_tracked``. The three 3D sources' disagreement per frame and joint
