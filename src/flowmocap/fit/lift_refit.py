@@ -526,11 +526,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             srcs.append(_detector_cam(track, idx, camera, pts2, exchanged))
         det2 = None
         if vote_check_2d:
-            d2, c2 = eval_points_2d(np.asarray(track.keypoints)[idx], np.asarray(track.confidence)[idx])
-            d2 = np.where((c2 >= 0.5)[..., None], d2, np.nan)
-            back = np.isin(idx, [int(f) for f in (exchanged or ())])
-            d2[back] = d2[back][:, list(MIRROR)]  # as the tracker used them
-            det2 = d2
+            d2, c2 = _detected_as_used(track, idx, exchanged)
+            det2 = np.where((c2 >= 0.5)[..., None], d2, np.nan)
         poses0, fit_cam, runs = _vote_flips(body, kmap, poses0, trans0, betas, camera, srcs,
                                             vote_min_reach, vote_min_frames, det2)
         n_voted = sum(b - a + 1 for _, a, b in runs)
@@ -540,8 +537,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     from flowmocap.fit.disagreement import review_frames, source_disagreement, to_body_joints
     from flowmocap.vision.auto import frame_runs
 
-    disagreement = source_disagreement(fit_cam, [lifted, _detector_cam(track, idx, camera, pts2, exchanged,
-                                                                       gate=False)])
+    det_all = _detector_cam(track, idx, camera, pts2, exchanged, gate=False)  # every point it gives
+    disagreement = source_disagreement(fit_cam, [lifted, det_all])
     poses_new = poses0.clone()
     targets_cam = fit_cam.copy()
     if ok.any():
@@ -550,7 +547,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     n_hidden = 0
     if hidden_share > 0:  # limbs the detector cannot see: towards its own 3D, the tracked image let go
         targets_cam, pixel_use, n_hidden = _hidden_towards_detector(
-            targets_cam, fit_cam, track, idx, camera, pts2, exchanged, hidden_share, joints_before.shape[1])
+            targets_cam, fit_cam, det_all, track, idx, exchanged, hidden_share, joints_before.shape[1])
     targets = torch.as_tensor((targets_cam - t) @ R)
     with torch.no_grad():
         pixels0 = camera.project(joints_before) if pixel_sigma else None
@@ -647,22 +644,30 @@ _BELOW = {"left_wrist": ("left_hand",), "right_wrist": ("right_hand",), "left_an
           "right_ankle": ("right_foot",)}
 
 
-def _hidden_towards_detector(targets_cam, fit_cam, track, idx, camera, pts2, exchanged, share: float, n_joints: int):
+def _detected_as_used(track, idx: np.ndarray, exchanged) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (T, 13, 2) pixels, confidence (T, 13))``: the detection's 13 points of the
+    result's frames ``idx``, exchanged left for right where the tracker did (``exchanged``)."""
+    from flowmocap.vision.lifter import eval_points_2d
+
+    pts, conf = eval_points_2d(np.asarray(track.keypoints)[idx], np.asarray(track.confidence)[idx])
+    back = np.isin(idx, [int(f) for f in (exchanged or ())])
+    pts[back], conf[back] = pts[back][:, list(MIRROR)], conf[back][:, list(MIRROR)]
+    return pts, conf
+
+
+def _hidden_towards_detector(targets_cam, fit_cam, det, track, idx, exchanged, share: float, n_joints: int):
     """``(targets_cam, pixel_use, n)``: :func:`lifter_refit_motion`'s ``hidden_share`` step.
-    ``targets_cam``, ``fit_cam`` ``(T, 13, 3)`` camera axes; returns the targets with each
+    ``targets_cam``, ``fit_cam`` ``(T, 13, 3)`` camera axes, ``det`` the detector's own 3D
+    points there (:func:`_detector_cam` without its gate); returns the targets with each
     hidden point (detected below confidence 0.5, the person found) moved ``share`` of the
     way to the detector's own 3D point, aligned onto ``fit_cam`` by a similarity per frame
     fitted on the frame's confident points (at least 4, both hips among them); ``pixel_use
     (T, n_joints)`` float64 tensor, 0 for the body joints of those points (and the hand or
     foot below them), 1 elsewhere; ``n`` the number of points moved."""
     from flowmocap.geometry.procrustes import similarity_procrustes
-    from flowmocap.vision.lifter import HIPS, POINTS, eval_points_2d
+    from flowmocap.vision.lifter import HIPS, POINTS
 
-    _, conf = eval_points_2d(np.asarray(track.keypoints)[idx], np.asarray(track.confidence)[idx])
-    back = np.isin(idx, [int(f) for f in (exchanged or ())])
-    conf[back] = conf[back][:, list(MIRROR)]  # as the tracker used them
-    det = _detector_cam(track, idx, camera, pts2, exchanged, gate=False)
-    seen = conf >= 0.5
+    seen = _detected_as_used(track, idx, exchanged)[1] >= 0.5
     hidden = ~seen & np.isfinite(det).all(-1) & np.asarray(track.found, bool)[idx][:, None]
     frames = hidden.any(1) & (seen.sum(1) >= 4) & seen[:, list(HIPS)].all(1) & np.isfinite(det).all((1, 2))
     out = targets_cam.copy()
