@@ -1,7 +1,8 @@
 """Closed-form checks of the measures in issue 18's check scripts:
 benchmarks/real3d_torso.py (the torso's yaw), benchmarks/detector_runs_2d.py (the
 detector runs' keypoints combined), benchmarks/source_selection.py and
-benchmarks/disagreement.py (the sources' disagreement as a flag)."""
+benchmarks/disagreement.py (the sources' disagreement as a flag), and
+benchmarks/error_over_time.py (a clip's error by time)."""
 
 import importlib.util
 from pathlib import Path
@@ -255,3 +256,13 @@ def test_disagreement_scripts_measures():
     valid[0, 3:] = False
     err = dis.per_joint_error(pred, ref, valid)
     assert np.isfinite(err[2, :4]).all() and np.isnan(err[0]).all()
+
+
+def test_error_over_time_cuts_the_start_and_thirds():
+    mod = _load("error_over_time")
+    e = np.arange(10, dtype=float)  # frames 0..9
+    # the first 2 frames, then thirds of 4, 3 and 3 frames (array_split gives the first the extra one)
+    assert mod.parts(e, head=2) == pytest.approx([0.5, 1.5, 5.0, 8.0])
+    assert mod.parts(np.full(7, 4.0), head=10) == pytest.approx([4.0] * 4)  # a start longer than the clip: all of it
+    with pytest.raises(ValueError, match="cannot be cut"):
+        mod.parts(np.ones(2), head=1)
