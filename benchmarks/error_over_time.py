@@ -5,7 +5,7 @@ The diverse protocol gives the tracker a noisy true start; a run tracked as a us
 error (a similarity Procrustes per frame on the paper's 13 joints, as ``flowmocap bench``
 scores it) by time: the first ``--head`` frames, then the clip in thirds. It prints, for each
 bench folder given, the part means per clip and their medians over the clips, and writes them
-to JSON. Clips are matched by name; a clip missing from a folder is left out of that folder.
+to JSON. Each folder's median is over its own finished clips; clips are not paired across folders.
 
 Usage: python benchmarks/error_over_time.py DIR [DIR ...] [--labels A,B,...] [--head 10] [--json F]
   DIR: a ``flowmocap bench --suite diverse|tune [--as-video]`` folder (each clip's
@@ -23,14 +23,14 @@ import numpy as np
 PARTS = 3
 
 
-def parts(errors: np.ndarray, head: int = 10, parts: int = PARTS) -> list[float]:
-    """``[mean of the first head frames, mean of each of parts equal stretches]`` of a clip's
+def parts(errors: np.ndarray, head: int = 10, count: int = PARTS) -> list[float]:
+    """``[mean of the first head frames, mean of each of count equal stretches]`` of a clip's
     per-frame errors ``(T,)`` (any unit; :func:`numpy.array_split` cuts the stretches, so
     the first ones take the extra frame)."""
     e = np.asarray(errors, np.float64).reshape(-1)
-    if e.size < max(parts, 1):
-        raise ValueError(f"a clip of {e.size} frames cannot be cut into {parts} parts")
-    return [float(e[:head].mean())] + [float(c.mean()) for c in np.array_split(e, parts)]
+    if e.size < max(count, 1):
+        raise ValueError(f"a clip of {e.size} frames cannot be cut into {count} parts")
+    return [float(e[:head].mean())] + [float(c.mean()) for c in np.array_split(e, count)]
 
 
 def clip_errors(clip_dir: Path) -> np.ndarray:
