@@ -1,8 +1,9 @@
 """Closed-form checks of the measures in issue 18's check scripts:
 benchmarks/real3d_torso.py (the torso's yaw), benchmarks/detector_runs_2d.py (the
 detector runs' keypoints combined), benchmarks/source_selection.py and
-benchmarks/disagreement.py (the sources' disagreement as a flag), and
-benchmarks/error_over_time.py (a clip's error by time)."""
+benchmarks/disagreement.py (the sources' disagreement as a flag),
+benchmarks/error_over_time.py (a clip's error by time), and benchmarks/prior_flip.py (the
+pose prior against a limb mirrored in depth)."""
 
 import importlib.util
 from pathlib import Path
@@ -266,3 +267,44 @@ def test_error_over_time_cuts_the_start_and_thirds():
     assert mod.parts(np.full(7, 4.0), head=10) == pytest.approx([4.0] * 4)  # a start longer than the clip: all of it
     with pytest.raises(ValueError, match="cannot be cut"):
         mod.parts(np.ones(2), head=1)
+
+
+def test_prior_flip_mirrors_keep_the_childs_pixel_and_the_measure_counts_preferences():
+    import torch
+
+    from flowmocap.body import load_body_model
+    from flowmocap.fit.energies import DEPTH_LIMBS
+
+    mod = _load("prior_flip")
+    # the camera looks at its target, x right and y down (image y grows downwards)
+    R, t = mod.look_at(np.array([0.0, 1.0, 4.0]), np.array([0.0, 1.0, 0.0]))
+    assert R @ R.T == pytest.approx(np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+    assert R @ np.array([0.0, 1.0, 0.0]) + t == pytest.approx([0.0, 0.0, 4.0])
+    assert (R @ np.array([0.0, 2.0, 0.0]) + t)[1] < 0  # above the target: up in the image
+
+    model = load_body_model("default", dtype=torch.float64)
+    poses = np.random.default_rng(3).normal(0, 0.3, (3, 72))
+    with torch.no_grad():
+        out = model(pose=torch.as_tensor(poses), with_vertices=False)
+    J, G = out.joints.numpy(), out.transforms[:, :, :3, :3].numpy()
+    index, which, flipped, cams = mod.flip_pairs(J, G, poses, DEPTH_LIMBS, np.random.default_rng(0))
+    assert len(which) > 10 and len(cams) == 3
+    with torch.no_grad():
+        Jf = model(pose=torch.as_tensor(flipped), with_vertices=False).joints.numpy()
+    for m in range(len(which)):
+        (R, t), (p, c) = cams[index[m]], DEPTH_LIMBS[which[m]]
+        a, b = J[index[m]] @ R.T + t, Jf[m] @ R.T + t
+        assert b[c, :2] / b[c, 2] == pytest.approx(a[c, :2] / a[c, 2], abs=1e-9)  # the same pixel
+        assert b[p] == pytest.approx(a[p], abs=1e-9)  # the parent stays
+        assert np.linalg.norm(b[c] - b[p]) == pytest.approx(np.linalg.norm(a[c] - a[p]), abs=1e-9)
+
+    # the measure: real poses at 0, mirrors at +1 (preferred real), -1 or 0 (a tie counts half)
+    e_real = np.zeros(2)
+    e_flip = np.array([1.0, -1.0, 1.0, 0.0, 5.0])
+    idx, limb = np.array([0, 0, 1, 1, 1]), np.array([0, 1, 0, 1, 1])
+    moved = np.array([0.2, 0.2, 0.2, 0.2, 0.05])  # the last is too small a move to count
+    r = mod.discrimination(e_real, e_flip, idx, limb, moved, n_limbs=3)
+    assert r["mirrors"] == 4 and r["accuracy"] == pytest.approx((1 + 0 + 1 + 0.5) / 4)
+    assert r["median_margin"] == pytest.approx(0.5)
+    assert r["per_limb"][0]["accuracy"] == 1.0 and r["per_limb"][1]["accuracy"] == pytest.approx(0.25)
+    assert r["per_limb"][2] == {"accuracy": None, "median_margin": None, "mirrors": 0}
