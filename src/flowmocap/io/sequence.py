@@ -94,6 +94,8 @@ def scaled_size(size: tuple[int, int], max_side: int | None) -> tuple[tuple[int,
 
 
 def list_images(folder: Path) -> list[Path]:
+    """The image files directly in ``folder`` (suffixes :data:`IMAGE_SUFFIXES`, any case),
+    sorted by name: the frame order of a folder of frames."""
     return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 

@@ -319,6 +319,12 @@ class VideoSequence(Sequence):
         self.reader = reader
 
     def frame(self, i: int) -> np.ndarray:
+        """Frame ``i`` (0-based) as uint8 RGB ``(H, W, 3)``, at the sequence's (possibly
+        scaled) size: :meth:`VideoReader.frame` (a shared array: do not modify it).
+
+        Raises:
+            DataError: the frame cannot be decoded.
+        """
         return self.reader.frame(i)
 
 
