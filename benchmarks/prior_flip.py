@@ -44,20 +44,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flowmocap.geometry.camera import look_at
+
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "mocap" / "prior"
-TEST_SUBJECTS = {2, 8, 13, 61}
-
-
-def look_at(centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Extrinsics ``(R (3, 3), t (3,))`` (``x_cam = R x + t``; x right, y down, z forward)
-    of a camera at ``centre`` looking at ``target`` (world axes, y up, metres), level."""
-    f = np.asarray(target, np.float64) - np.asarray(centre, np.float64)
-    f /= np.linalg.norm(f)
-    x = np.cross(f, (0.0, 1.0, 0.0))
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(f, x), f])
-    return R, -R @ np.asarray(centre, np.float64)
+sys.path.insert(0, str(ROOT / "tools"))
+import train_pose_prior as tp  # noqa: E402  (the prior's data, split and retargeting)
 
 
 def flip_pairs(joints: np.ndarray, rotations: np.ndarray, poses: np.ndarray, limbs, rng,
@@ -95,6 +86,19 @@ def flip_pairs(joints: np.ndarray, rotations: np.ndarray, poses: np.ndarray, lim
             which.append(k)
             flipped.append(q)
     return np.array(index, int), np.array(which, int), np.array(flipped).reshape(-1, 72), cams
+
+
+def mirrors(model, poses: np.ndarray, limbs, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`flip_pairs` of ``poses (N, 72)`` posed on ``model`` (a float64
+    :class:`~flowmocap.body.BodyModel`, mean shape), and how far each mirror moved its
+    limb's child joint: ``(index (M,), limb (M,), flipped (M, 72), moved (M,) metres)``."""
+    with torch.no_grad():
+        out = model(pose=torch.as_tensor(poses, dtype=torch.float64), with_vertices=False)
+        J, G = out.joints.numpy(), out.transforms[:, :, :3, :3].numpy()
+        index, which, flipped, _ = flip_pairs(J, G, poses, limbs, rng)
+        Jf = model(pose=torch.as_tensor(flipped), with_vertices=False).joints.numpy()
+    child = np.array([limbs[k][1] for k in which], int)
+    return index, which, flipped, np.linalg.norm(Jf[np.arange(len(which)), child] - J[index, child], axis=-1)
 
 
 def discrimination(e_real: np.ndarray, e_flip: np.ndarray, index: np.ndarray, which: np.ndarray,
@@ -143,7 +147,7 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=int, default=15, help="take every N-th frame of each clip (30 fps)")
     ap.add_argument("--min-move", type=float, default=0.10, help="metres the child joint must move to count")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--data", type=Path, default=tp.DEFAULT_DATA)
     ap.add_argument("--cache", type=Path, default=None, help="retargeted poses (train_pose_prior.py's --cache)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -151,9 +155,6 @@ def main(argv=None) -> int:
         sys.exit("--components fits mixtures on the train subjects; use it with --split train-hold")
     if args.components and args.cache is None:
         sys.exit("--components needs --cache (every clip retargeted once, as train_pose_prior.py keeps them)")
-
-    sys.path.insert(0, str(ROOT / "tools"))
-    import train_pose_prior as tp
 
     from flowmocap.body import load_body_model
     from flowmocap.fit.energies import DEPTH_LIMBS
@@ -163,7 +164,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     rows = tp.read_index(args.data)
     hold = set(args.hold)
-    if hold & TEST_SUBJECTS:
+    if hold & tp.TEST_SUBJECTS:
         sys.exit("--hold must name train subjects")
     if args.split == "test":
         chosen = [r for r in rows if r["split"] == "test"]
@@ -177,14 +178,7 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(args.seed)
     P = np.concatenate([poses_by_file[r["file"]][::args.every] for r in chosen])
     P = P[np.sort(rng.choice(len(P), min(args.poses, len(P)), replace=False))]
-    with torch.no_grad():
-        out = model(pose=torch.as_tensor(P), with_vertices=False)
-    J, G = out.joints.numpy(), out.transforms[:, :, :3, :3].numpy()
-    index, which, flipped, _ = flip_pairs(J, G, P, DEPTH_LIMBS, rng)
-    with torch.no_grad():
-        Jf = model(pose=torch.as_tensor(flipped), with_vertices=False).joints.numpy()
-    child = np.array([DEPTH_LIMBS[k][1] for k in which])
-    moved = np.linalg.norm(Jf[np.arange(len(which)), child] - J[index, child], axis=-1)
+    index, which, flipped, moved = mirrors(model, P, DEPTH_LIMBS, rng)
 
     priors = {}
     for f in args.prior or [default_prior_path()]:
@@ -208,9 +202,9 @@ def main(argv=None) -> int:
               "min_move_m": args.min_move, "seed": args.seed, "limbs": [limb_name(l) for l in DEPTH_LIMBS],
               "priors": {}}
     for name, prior in priors.items():
-        r = discrimination(_energy(prior, P), _energy(prior, flipped), index, which, moved, len(DEPTH_LIMBS),
-                           args.min_move)
-        r["real_energy_median"] = float(np.median(_energy(prior, P)))
+        e_real = _energy(prior, P)
+        r = discrimination(e_real, _energy(prior, flipped), index, which, moved, len(DEPTH_LIMBS), args.min_move)
+        r["real_energy_median"] = float(np.median(e_real))
         result["priors"][name] = r
     result["seconds"] = round(time.perf_counter() - t0, 1)
 

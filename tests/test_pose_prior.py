@@ -278,14 +278,7 @@ def test_held_out_poses_beat_their_limbs_mirrored_in_depth(prior, held_out):
     spec.loader.exec_module(mod)
     poses = np.asarray(held_out[::3], np.float64)
     model = load_body_model("default", dtype=torch.float64)
-    with torch.no_grad():
-        out = model(pose=torch.as_tensor(poses), with_vertices=False)
-    J, G = out.joints.numpy(), out.transforms[:, :, :3, :3].numpy()
-    index, which, flipped, _ = mod.flip_pairs(J, G, poses, DEPTH_LIMBS, np.random.default_rng(0))
-    with torch.no_grad():
-        Jf = model(pose=torch.as_tensor(flipped), with_vertices=False).joints.numpy()
-    child = np.array([DEPTH_LIMBS[k][1] for k in which])
-    moved = np.linalg.norm(Jf[np.arange(len(which)), child] - J[index, child], axis=-1)
+    index, which, flipped, moved = mod.mirrors(model, poses, DEPTH_LIMBS, np.random.default_rng(0))
     r = mod.discrimination(_energy(prior, poses, torch.float64), _energy(prior, flipped, torch.float64), index, which,
                            moved, len(DEPTH_LIMBS))
     assert r["mirrors"] > 300
