@@ -164,6 +164,52 @@ def test_a_refit_must_not_lose_the_silhouette_for_the_joints():
     assert not _better({"iou": None, "joint_error": 0.1}, {"iou": None, "joint_error": 0.2})
 
 
+def test_a_refit_may_cost_more_iou_the_closer_its_joints_come():
+    """``reinit_iou_per_joint_error``: the IoU a refit may lose grows by that much per unit
+    of 2D joint error gained, on top of the 0.02 tolerance; off (0) it is today's rule."""
+    from flowmocap.fit.reinit import IOU_TOLERANCE, _iou_allowance, _refused
+
+    before = {"iou": 0.79, "joint_error": 0.12}
+    after = {"iou": 0.72, "joint_error": 0.02}  # 0.07 IoU lost for joints 0.10 of the height closer
+    assert not _better(before, after)
+    assert not _better(before, after, 0.4)  # may lose 0.02 + 0.04
+    assert _better(before, after, 1.0)  # may lose 0.02 + 0.10
+    assert _iou_allowance(before, after, 1.0) == pytest.approx(IOU_TOLERANCE + 0.10)
+    # a small 2D gain buys little: 0.05 -> 0.04 allows 0.03 at 1.0
+    assert not _better({"iou": 0.79, "joint_error": 0.05}, {"iou": 0.75, "joint_error": 0.04}, 1.0)
+    # joints further away buy nothing (and are no reason to keep a lower IoU at all)
+    assert _iou_allowance({"iou": 0.8, "joint_error": 0.02}, {"iou": 0.8, "joint_error": 0.05}, 1.0) == IOU_TOLERANCE
+    assert not _better({"iou": 0.8, "joint_error": 0.02}, {"iou": 0.79, "joint_error": 0.05}, 1.0)
+    assert _iou_allowance({"iou": 0.8, "joint_error": None}, after, 1.0) == IOU_TOLERANCE
+    assert "at most 0.12 lower" in _refused(before, {"iou": 0.6, "joint_error": 0.02}, 1.0)
+    assert "at most 0.02 lower" in _refused(before, after)
+    with pytest.raises(InputError):
+        TrackerConfig.load(None, reinit_iou_per_joint_error=-1.0)
+
+
+def test_the_monitor_keeps_a_refit_by_the_configured_allowance(setup, monkeypatch):
+    """The monitor judges an image refit with ``reinit_iou_per_joint_error`` from its
+    config: the same scores are turned down at 0 and kept at 1."""
+    from flowmocap.fit import reinit
+
+    seq, track, scene = setup
+    monkeypatch.setattr(reinit, "fit_to_detection", lambda scene_, cfg, j2d, conf, mask, pose0, trans0, **kw:
+                        (pose0, trans0, 1.0))
+    scores = {"tracked": {"iou": 0.79, "joint_error": 0.12, "bad": True},
+              "refit": {"iou": 0.72, "joint_error": 0.02, "bad": True}}
+    kept = {}
+    for k in (0.0, 1.0):
+        mon = ReinitMonitor(track, TrackerConfig(reinit_patience=1, reinit_min_iou=0.8,
+                                                 reinit_max_joint3d_error=0.0, reinit_iou_per_joint_error=k))
+        calls = iter(["tracked", "refit"])
+        monkeypatch.setattr(mon, "judge", lambda *a, **kw: dict(scores[next(calls)]))
+        kept[k] = mon(3, _state(seq, 3, (0.01, 0.0, 0.0)), scene, seq.mask(3))
+        if kept[k] is None:
+            assert "at most 0.02 lower" in mon.take_events()[0]["why"]
+    assert kept[0.0] is None
+    assert kept[1.0] is not None and kept[1.0][1]["after"]["joint_error"] == 0.02
+
+
 # ------------------------------------------------------------- the 3D criterion
 
 

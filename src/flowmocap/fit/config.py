@@ -90,7 +90,7 @@ _RANGES: dict[str, str] = {
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "flip_vote_frames": _AT_LEAST_0, "flip_vote_reach": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_3d_keep_iou": _UNIT,
-    "reinit_max_wait": _AT_LEAST_1,
+    "reinit_max_wait": _AT_LEAST_1, "reinit_iou_per_joint_error": _AT_LEAST_0,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
@@ -259,6 +259,9 @@ class TrackerConfig:
     reinit_3d_keep_iou: float = 0.0    # a refit on 3D disagreement whose silhouette IoU drops by more than
     #                                    reinit.IOU_TOLERANCE is kept all the same at an IoU of at least this;
     #                                    0: off (0.8 tried: docs/settings.md)
+    reinit_iou_per_joint_error: float = 0.0  # a refit on the image criterion may cost this much more silhouette
+    #                                    IoU per unit (of the person's height) its median 2D joint error comes
+    #                                    closer, on top of reinit.IOU_TOLERANCE; 0: off
     reinit_max_wait: int = 1           # frames: each refit turned down doubles the wait before the next
     #                                    attempt (from the patience) up to this; 1: no back-off
     # --- observed flow -----------------------------------------------------------------

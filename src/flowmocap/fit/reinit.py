@@ -354,9 +354,11 @@ class ReinitMonitor:
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
         keep_iou = float(self.cfg.reinit_3d_keep_iou)
-        if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d else _better(before, after)):
+        per_joint = float(self.cfg.reinit_iou_per_joint_error)
+        if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d
+                else _better(before, after, per_joint)):
             self._turn_down(i, in3d, before, after, _refused_3d(before, after, self.max_joint_error, keep_iou)
-                            if in3d else _refused(before, after))
+                            if in3d else _refused(before, after, per_joint))
             return None
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
@@ -408,17 +410,28 @@ def _lost(s: dict, max_joint_error: float) -> bool:
                                                         and s["joint_error"] > max_joint_error)
 
 
-def _better(before: dict, after: dict) -> bool:
+def _iou_allowance(before: dict, after: dict, per_joint: float) -> float:
+    """How much silhouette IoU a refit may cost: :data:`IOU_TOLERANCE`, plus ``per_joint``
+    times how much closer its median 2D joints come (fractions of the person's height)."""
+    gain = 0.0
+    if after["joint_error"] is not None and before["joint_error"] is not None:
+        gain = max(before["joint_error"] - after["joint_error"], 0.0)
+    return IOU_TOLERANCE + per_joint * gain
+
+
+def _better(before: dict, after: dict, per_joint: float = 0.0) -> bool:
     """Whether a re-initialised frame (``after``) beats the tracked one (``before``).
 
     With a mask on both: a higher silhouette IoU, or closer 2D joints at an IoU at most
-    :data:`IOU_TOLERANCE` lower (a detector's glitch, such as swapped or misplaced joints,
-    makes the joints alone mislead: the fit to them would leave the person's silhouette).
-    Without: closer 2D joints."""
+    :func:`_iou_allowance` lower (:data:`IOU_TOLERANCE`, plus ``per_joint`` times the 2D
+    gain; a detector's glitch, such as swapped or misplaced joints, makes the joints alone
+    mislead: the fit to them would leave the person's silhouette). Without: closer 2D
+    joints."""
     joints = (after["joint_error"] is not None and before["joint_error"] is not None
               and after["joint_error"] < before["joint_error"])
     if after["iou"] is not None and before["iou"] is not None:
-        return after["iou"] > before["iou"] or (joints and after["iou"] >= before["iou"] - IOU_TOLERANCE)
+        return after["iou"] > before["iou"] or (
+            joints and after["iou"] >= before["iou"] - _iou_allowance(before, after, per_joint))
     return joints
 
 
@@ -450,13 +463,13 @@ def _refused_3d(before: dict, after: dict, max_joint_error: float, keep_iou: flo
     return None
 
 
-def _refused(before: dict, after: dict) -> str:
+def _refused(before: dict, after: dict, per_joint: float = 0.0) -> str:
     """Why :func:`_better` turned a refit down, in words."""
     def num(v):
         return "none" if v is None else f"{v:.3f}"
     return (f"neither a higher silhouette IoU ({num(before['iou'])} -> {num(after['iou'])}) nor closer 2D joints "
             f"({num(before['joint_error'])} -> {num(after['joint_error'])} of the person's height) at an IoU at "
-            f"most {IOU_TOLERANCE} lower")
+            f"most {_iou_allowance(before, after, per_joint):.3g} lower")
 
 
 def _rounded(s: dict) -> dict:
