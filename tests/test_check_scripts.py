@@ -2,8 +2,9 @@
 benchmarks/real3d_torso.py (the torso's yaw), benchmarks/detector_runs_2d.py (the
 detector runs' keypoints combined), benchmarks/source_selection.py and
 benchmarks/disagreement.py (the sources' disagreement as a flag),
-benchmarks/error_over_time.py (a clip's error by time), and benchmarks/prior_flip.py (the
-pose prior against a limb mirrored in depth)."""
+benchmarks/error_over_time.py (a clip's error by time), benchmarks/prior_flip.py (the
+pose prior against a limb mirrored in depth), and benchmarks/mediapipe_image_depth.py
+(MediaPipe's image-landmark depth)."""
 
 import importlib.util
 from pathlib import Path
@@ -308,3 +309,19 @@ def test_prior_flip_mirrors_keep_the_childs_pixel_and_the_measure_counts_prefere
     assert r["median_margin"] == pytest.approx(0.5)
     assert r["per_limb"][0]["accuracy"] == 1.0 and r["per_limb"][1]["accuracy"] == pytest.approx(0.25)
     assert r["per_limb"][2] == {"accuracy": None, "median_margin": None, "mirrors": 0}
+
+
+def test_mediapipe_image_depth_crop_and_points():
+    """The crop is the keypoints' box grown about its centre and kept inside the image;
+    image landmarks become pixels with z on the width's scale (times ``z_scale``)."""
+    mod = _load("mediapipe_image_depth")
+    kp = np.array([[100.0, 200.0], [140.0, 300.0], [5000.0, 5000.0], [np.nan, 0.0]])
+    conf = np.array([0.9, 0.8, 0.1, 0.9])  # the far point is not confident, the NaN one is not finite
+    # box 40 x 100 centred at (120, 250): side 1.4 * 100 + 40 = 180
+    assert mod.crop_box(kp, conf, (1000, 1000)) == (30, 160, 210, 340)
+    assert mod.crop_box(kp, conf, (150, 1000))[2] == 150  # clipped to the image's width
+    assert mod.crop_box(kp, conf, (1000, 1000), margin=1.0, pad=0.0) == (70, 200, 170, 300)
+    assert mod.crop_box(kp, np.array([0.9, 0.1, 0.1, 0.9]), (1000, 1000)) is None  # one confident point
+    lm = np.array([[0.5, 0.25, -0.1], [0.0, 1.0, 0.2]])
+    assert mod.image_landmarks_3d(lm, 200, 400) == pytest.approx(np.array([[100.0, 100.0, -20.0], [0.0, 400.0, 40.0]]))
+    assert mod.image_landmarks_3d(lm, 200, 400, z_scale=0.5)[:, 2] == pytest.approx([-10.0, 20.0])
