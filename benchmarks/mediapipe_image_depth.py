@@ -41,12 +41,17 @@ def crop_box(keypoints: np.ndarray, confidence: np.ndarray, size: tuple[int, int
              pad: float = 40.0, min_confidence: float = 0.3) -> tuple[int, int, int, int] | None:
     """The square around a detection: ``(x0, y0, x1, y1)`` integer pixels inside an image
     of ``size = (width, height)``, centred on the box of the keypoints ``(K, 2)`` px with
-    ``confidence (K,)`` at least ``min_confidence``, side ``margin`` times the box's longer
+    ``confidence (K,)`` at least ``min_confidence``
+    (:func:`flowmocap.vision.person.person_box`), side ``margin`` times the box's longer
     side plus ``pad`` px; None with fewer than 2 such keypoints."""
-    ok = (np.asarray(confidence) >= min_confidence) & np.isfinite(keypoints).all(-1)
-    if ok.sum() < 2:
+    from flowmocap.vision.person import person_box
+
+    finite = np.isfinite(keypoints).all(-1)
+    box = person_box(np.where(finite[:, None], keypoints, 0.0), np.where(finite, confidence, 0.0),
+                     min_confidence=min_confidence)
+    if box is None:
         return None
-    (x0, y0), (x1, y1) = keypoints[ok].min(0), keypoints[ok].max(0)
+    x0, y0, x1, y1 = box
     cx, cy, half = (x0 + x1) / 2, (y0 + y1) / 2, (max(x1 - x0, y1 - y0) * margin + pad) / 2
     w, h = size
     return (int(max(cx - half, 0)), int(max(cy - half, 0)), int(min(cx + half, w)), int(min(cy + half, h)))
