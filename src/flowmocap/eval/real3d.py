@@ -100,6 +100,10 @@ REFERENCE_VERSION = 4  # 4: the time offsets pinned (PINNED_OFFSETS)
 #: reference changes only with the points it triangulates.
 PINNED_OFFSETS: dict | None = {"cam01": 0, "cam02": 0, "cam03": -2, "cam04": 0}
 METHODS = ("flowmocap", "detector3d", "flowmocap_kp")
+#: frames per block of the ratio intervals' circular block bootstrap (a quarter of a second at 60 fps)
+INTERVAL_BLOCK = 15
+#: bootstrap draws of the ratio intervals
+INTERVAL_DRAWS = 2000
 
 
 # ------------------------------------------------------------------ joints
@@ -809,6 +813,35 @@ def _mean_rows(rows: list[dict]) -> dict:
                   for k in ("per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm", "per_sequence_all_views_mm")}
     out["person_views"] = sum(1 for r in rows if r.get("flowmocap"))
     out["frames_scored"] = int(sum(r.get("frames_scored", 0) for r in rows))
+    out["intervals"] = ratio_intervals(rows)
+    return out
+
+
+def ratio_intervals(rows: list[dict], block: int = INTERVAL_BLOCK, draws: int = INTERVAL_DRAWS) -> dict:
+    """For ``flowmocap`` and ``flowmocap_kp``: the ratio of their mean per-frame error to the
+    detector's, per person-view and over the suite, with a circular block bootstrap
+    interval over the scored frames (:func:`flowmocap.eval.bootstrap.ratio_interval`; blocks
+    of ``block`` frames, the same frames for both methods), from the rows'
+    ``per_frame_curve_mm``. The intervals hold which stretches of motion the views happen
+    to contain, not the tracker's chaos between trackings. Rows without both curves are
+    left out; a method with none gives None.
+
+    Returns:
+        ``{method: None or {"person_views": ["person1@cam01", ...], "block", "draws",
+        "level", "clips": [...], "suite": {...}}}`` (the fields of ``ratio_interval``).
+    """
+    from flowmocap.eval.bootstrap import ratio_interval
+
+    out: dict = {}
+    for m in ("flowmocap", "flowmocap_kp"):
+        use = [r for r in rows if (r.get(m) or {}).get("per_frame_curve_mm") and
+               (r.get("detector3d") or {}).get("per_frame_curve_mm")]
+        if not use:
+            out[m] = None
+            continue
+        got = ratio_interval([r[m]["per_frame_curve_mm"] for r in use],
+                             [r["detector3d"]["per_frame_curve_mm"] for r in use], block=block, draws=draws)
+        out[m] = {"person_views": [f"{r['person']}@{r['view']}" for r in use], **got}
     return out
 
 
@@ -877,6 +910,7 @@ def format_real3d_table(result: dict) -> str:
     for r in result["rows"]:
         if r.get("failed"):
             lines.append(f"\n{r['person']}@{r['view']}: the run failed: {r['failed']}")
+    lines += _interval_lines(m.get("intervals") or {})
     lines += ["", "PA-MPJPE on the 13 joints (head = midpoint of the ears for the reference and the detector, SMPL's "
               "head for flowmocap; 'ours at keypoints': the fitted body's points where the detector puts its "
               "keypoints, by the learned offsets of flowmocap.vision.keypoint_map, head = middle of the ears) against the reference triangulated WITHOUT the run's view; per-frame: a similarity "
@@ -889,6 +923,27 @@ def format_real3d_table(result: dict) -> str:
               f"included): flowmocap {fmt(a['per_frame_all_views_mm'])} / detector3d "
               f"{fmt(b['per_frame_all_views_mm'])} mm per-frame."]
     return "\n".join(lines)
+
+
+def _interval_lines(intervals: dict) -> list[str]:
+    """The ratio intervals of :func:`ratio_intervals` as a paragraph (none: no lines)."""
+    parts = []
+    for m, label in (("flowmocap", "ours / det"), ("flowmocap_kp", "ours at keypoints / det")):
+        iv = intervals.get(m)
+        if not iv:
+            continue
+        s = iv["suite"]
+        views = ", ".join(f"{name} {c['ratio']:.2f} [{c['low']:.2f}, {c['high']:.2f}]"
+                          for name, c in zip(iv["person_views"], iv["clips"]) if c["high"] > 1)
+        parts.append(f"{label}: mean {s['ratio']:.2f} [{s['low']:.2f}, {s['high']:.2f}]"
+                     + (f"; person-views whose interval reaches above 1: {views}" if views else
+                        "; no person-view's interval reaches above 1"))
+    if not parts:
+        return []
+    iv = next(v for v in intervals.values() if v)
+    return ["", f"Ratios with {100 * iv['level']:.0f} % intervals over which frames were scored (circular block "
+            f"bootstrap, blocks of {iv['block']} frames, {iv['draws']} draws, the same frames for both methods; "
+            "they do not hold the tracker's chance between trackings): " + "; ".join(parts) + "."]
 
 
 # ------------------------------------------------------------------ the runner
