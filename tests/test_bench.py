@@ -209,7 +209,30 @@ def test_summary_gives_medians_kinds_and_ratios():
     assert s["median"]["detector3d"]["global_cm"] is None
     md = "\n".join(bench.format_summary(s))
     assert "| walk | 2 | 2.5 |" in md and "0.33" in md
+    assert s["median_interval"] == {"local_cm": None, "global_cm": None}  # three clips: too few for an interval
+    assert "intervals" not in md
     assert bench.summarise({"sequences": {"c0": seqs["c0"]}}) == {}
+
+
+def test_median_interval_over_the_clips():
+    assert bench.median_interval([5.0] * 8) == [5.0, 5.0]  # every draw has the same median
+    assert bench.median_interval([1.0, 2.0, 3.0, 4.0]) is None
+    rng = np.random.default_rng(0)
+    v = rng.normal(5.0, 1.0, 16)
+    low, high = bench.median_interval(v)
+    assert low < np.median(v) < high and v.min() <= low and high <= v.max()
+    assert bench.median_interval(list(v)) == [low, high]  # the same seed: the same interval
+    # a wider spread of clips gives a wider interval, in proportion (the draws are the same)
+    low2, high2 = bench.median_interval(5.0 + 3 * (v - 5.0))
+    assert (high2 - low2) == pytest.approx(3 * (high - low))
+    assert bench.median_interval([*v, None, float("nan")]) == [low, high]  # unscored clips left out
+    seqs = {f"c{i}": {"settings": {"kind": "walk"}, "flowmocap": {"local_cm": float(x), "global_cm": 2 * float(x),
+                                                                   "px2d": 1.0, "accel_mm": 1.0}}
+            for i, x in enumerate(v)}
+    s = bench.summarise({"sequences": seqs})
+    assert s["median_interval"]["local_cm"] == pytest.approx([low, high])
+    md = "\n".join(bench.format_summary(s))
+    assert f"local {np.median(v):.2f} [{low:.2f}, {high:.2f}] cm" in md
 
 
 def test_detector_joints3d_maps_keypoints_and_puts_the_head_between_the_ears():

@@ -512,6 +512,23 @@ def run_bench(specs: list, out_dir: str | Path, suite_name: str, isolate: bool =
 
 #: Metrics summarised over a suite's synthetic sequences.
 SUMMARY_METRICS = ("local_cm", "global_cm", "px2d", "accel_mm")
+#: fewest scored clips for the medians' bootstrap interval (:func:`median_interval`)
+INTERVAL_MIN_CLIPS = 5
+
+
+def median_interval(values, level: float = 0.95, draws: int = 2000, seed: int = 0) -> list[float] | None:
+    """``[low, high]``: a percentile bootstrap interval of the median of per-clip values
+    (``scipy.stats.bootstrap``, the clips drawn with replacement), or None for fewer than
+    :data:`INTERVAL_MIN_CLIPS` values. It holds which clips a suite happens to contain,
+    not the tracker's chance between trackings."""
+    from scipy.stats import bootstrap
+
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], np.float64)
+    if v.size < INTERVAL_MIN_CLIPS:
+        return None
+    res = bootstrap((v,), np.median, confidence_level=level, n_resamples=draws, method="percentile",
+                    random_state=np.random.default_rng(seed), vectorized=True, axis=-1)
+    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
 
 
 def summarise(result: dict) -> dict:
@@ -551,6 +568,7 @@ def summarise(result: dict) -> dict:
         "global_vs_baseline": ratio(med["flowmocap"]["global_cm"], med["baseline"]["global_cm"]),
         "local_vs_detector3d": ratio(med["flowmocap"]["local_cm"], med["detector3d"]["local_cm"]),
     }
+    out["median_interval"] = {k: median_interval(values("flowmocap", k)) for k in ("local_cm", "global_cm")}
     return out
 
 
@@ -570,6 +588,13 @@ def format_summary(summary: dict) -> list[str]:
         lines.append(f"| {method} | {f(md['local_cm'])} | {f(md['global_cm'])} | {f(mn['local_cm'])} | "
                      f"{f(mn['global_cm'])} | {f(md['px2d'])} |")
     r = summary["ratios"]
+    iv = summary.get("median_interval") or {}
+    if iv.get("local_cm") and iv.get("global_cm"):
+        lines += ["", "flowmocap's medians with 95 % intervals over which clips the suite holds (a percentile "
+                  "bootstrap over the clips; not the tracker's chance between trackings): local "
+                  f"{f(summary['median']['flowmocap']['local_cm'], '.2f')} [{iv['local_cm'][0]:.2f}, "
+                  f"{iv['local_cm'][1]:.2f}] cm, global {f(summary['median']['flowmocap']['global_cm'], '.2f')} "
+                  f"[{iv['global_cm'][0]:.2f}, {iv['global_cm'][1]:.2f}] cm"]
     lines += ["", f"ours / baseline, median global: {f(r['global_vs_baseline'], '.2f')}; "
               f"ours / detector-3D, median local: {f(r['local_vs_detector3d'], '.2f')}", "",
               "| kind | clips | flowmocap local | flowmocap global | baseline local | baseline global | "
