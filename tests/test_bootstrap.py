@@ -80,6 +80,8 @@ def test_reproducible_with_the_seed():
     ([np.ones(3)], [np.ones(3)], {"level": 1.0}),
     ([np.ones(3)], [np.ones(3)], {"draws": 0}),
     ([np.ones(3)], [np.ones(3)], {"block": 0}),
+    ([np.ones(3)], [np.array([1.0, 0.0, 1.0])], {}),
+    ([np.array([1.0, -1.0, 1.0])], [np.ones(3)], {}),
 ])
 def test_bad_input_is_refused(pred, base, kw):
     with pytest.raises(InputError):

@@ -57,7 +57,8 @@ def ratio_interval(pred: list, base: list, block: int = 15, draws: int = 2000, l
 
     Args:
         pred, base: lists of ``(T_c,)`` per-frame errors of the same clips in the same
-            order (any unit; equal lengths per clip, ``T_c >= 1``, finite).
+            order (any unit; equal lengths per clip, ``T_c >= 1``, finite; ``pred >= 0``,
+            ``base > 0``).
         block: frames per resampled block (at 60 fps the default is a quarter of a second).
         draws: bootstrap draws; level: the central interval's coverage, in (0, 1).
         seed: the generator's seed (the result is reproducible).
@@ -79,6 +80,9 @@ def ratio_interval(pred: list, base: list, block: int = 15, draws: int = 2000, l
         if x.shape != y.shape or x.size == 0 or not (np.isfinite(x).all() and np.isfinite(y).all()):
             raise InputError(f"clip {k}: pred and base must be finite per-frame errors of the same frames; got "
                              f"{x.size} and {y.size} frames.")
+        if (x < 0).any() or (y <= 0).any():
+            raise InputError(f"clip {k}: errors must be >= 0, and base's > 0 (it divides); got pred from {x.min()!r}, "
+                             f"base from {y.min()!r}.")
     rng = np.random.default_rng(seed)
     means = np.empty((draws, len(p), 2))
     for d in range(draws):
