@@ -425,3 +425,47 @@ def test_bad_state_dict_raises_input_error():
         RotationEKF.from_state_dict([1, 2, 3])
     with pytest.raises(InputError):
         TranslationKF.from_state_dict({"dt": 1.0})
+
+
+def test_rotation_ekf_covariance_uses_the_tested_jacobians():
+    """_ekf_predict builds F inline (a copy of error_transition, which tests/test_kalman.py
+    checks against finite differences) and _ekf_update resets the covariance with
+    G = diag(J_r(dx), I): predict and update against their closed forms with those
+    matrices, and J_r(dx) against central differences of the reset map
+    e -> Log(Exp(dx)^T Exp(dx + e))."""
+    from flowmocap.fit.kalman import RotationEKF, error_transition, so3_exp, so3_log, so3_right_jacobian
+
+    dt, sa, sm = 0.5, 0.3, 0.05
+    f = RotationEKF(np.array([0.4, -1.1, 2.0]), init_omega=np.array([0.2, -0.5, 0.3]), dt=dt, accel_noise=sa,
+                    meas_noise=sm, init_vel_std=0.2)
+    f.update(so3_exp(np.array([0.45, -1.0, 2.05])))  # a full covariance
+    # predict
+    P0, w, R0 = f.covariance, f.omega, f.matrix
+    F = error_transition(w, dt)
+    np.testing.assert_allclose(f.transition_jacobian(), F)
+    f.predict()
+    Jr = so3_right_jacobian(w * dt)
+    G = np.vstack([0.5 * dt * dt * Jr, dt * np.eye(3)])
+    np.testing.assert_allclose(f.covariance, F @ P0 @ F.T + sa ** 2 * G @ G.T, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(f.matrix, R0 @ so3_exp(w * dt), atol=1e-14)
+    # update
+    P, R, w = f.covariance, f.matrix, f.omega
+    Rm = so3_exp(so3_log(R) + np.array([0.03, -0.02, 0.04]))
+    y = so3_log(R.T @ Rm)
+    S = P[:3, :3] + sm ** 2 * np.eye(3)
+    K = P[:, :3] @ np.linalg.inv(S)
+    dx = K @ y
+    IKH = np.eye(6)
+    IKH[:, :3] -= K
+    Pn = IKH @ P @ IKH.T + sm ** 2 * K @ K.T
+    Gr = np.eye(6)
+    Gr[:3, :3] = so3_right_jacobian(dx[:3])
+    f.update(Rm)
+    np.testing.assert_allclose(f.covariance, Gr @ Pn @ Gr.T, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(f.omega, w + dx[3:], atol=1e-14)
+    np.testing.assert_allclose(f.matrix, R @ so3_exp(dx[:3]), atol=1e-12)
+    # the reset Jacobian is that of the reset map
+    reset = lambda e: so3_log(so3_exp(dx[:3]).T @ so3_exp(dx[:3] + e))  # noqa: E731
+    h = 1e-6
+    fd = np.stack([(reset(h * e) - reset(-h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(so3_right_jacobian(dx[:3]), fd, atol=1e-8)

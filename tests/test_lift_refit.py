@@ -913,3 +913,65 @@ def test_proportions_towards_moves_the_share_asked(share):
         np.testing.assert_allclose(new.numpy(), start.numpy(), atol=1e-6)
     else:
         assert np.abs(got - goal).max() < 0.6 * np.abs(own - goal).max(), (own, goal, got)
+
+
+@pytest.mark.parametrize("pixel_sigma,weighted", [(None, False), (3.0, False), (3.0, True)])
+def test_refit_energy_value_closed_form(pixel_sigma, weighted):
+    from flowmocap.vision.keypoint_map import load_keypoint_map
+
+    model, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    R = np.diag([1.0, -1.0, -1.0])
+    t = np.array([0.1, 0.9, 4.0])
+    cam = PinholeCamera(fx=600.0, fy=610.0, cx=320.0, cy=240.0, width=640, height=480, R=R, t=t)
+    rng = np.random.default_rng(2)
+    B = 3
+    poses = torch.tensor(rng.normal(0, 0.2, (B, 72)))
+    tracked = poses + torch.tensor(rng.normal(0, 0.05, (B, 72)))
+    trans = torch.tensor(rng.normal(0, 0.1, (B, 3)))
+    betas = torch.tensor(rng.normal(0, 0.5, (1, 10)))
+    targets = torch.tensor(rng.normal(0, 0.5, (B, 13, 3)))
+    use = torch.tensor([1.0, 0.0, 1.0])
+    pixels = torch.tensor(rng.uniform(200, 400, (B, 24, 2)))
+    pixel_use = torch.tensor((rng.random((B, 24)) > 0.4).astype(float)) if weighted else None
+    sigma, reg = 0.02, 0.3
+    e = refit_energy(model, kmap, poses, trans, betas, targets, use, tracked, sigma, reg,
+                     cam, pixels, pixel_sigma, pixel_use)
+    with torch.no_grad():
+        kp, joints = keypoints13(model, kmap, poses, betas, trans)
+    kp, joints = kp.numpy(), joints.numpy()
+    u = use.numpy()
+    want = (u * ((kp - targets.numpy()) ** 2).sum((1, 2))).sum() / sigma ** 2
+    if pixel_sigma:
+        pc = joints @ R.T + t
+        px = np.stack([600.0 * pc[..., 0] / pc[..., 2] + 320.0, 610.0 * pc[..., 1] / pc[..., 2] + 240.0], -1)
+        d2 = ((px - pixels.numpy()) ** 2).sum(-1)
+        if weighted:
+            d2 = d2 * pixel_use.numpy()
+        want += (u * d2.sum(1)).sum() / pixel_sigma ** 2
+    want += ((poses[:, 3:] - tracked[:, 3:]).numpy() ** 2).sum() / reg ** 2
+    assert float(e) == pytest.approx(want, rel=1e-12)
+
+
+
+
+def test_body_girth_is_each_vertex_distance_to_its_bone():
+    from flowmocap.body import load_body_model
+    from flowmocap.body.skeleton import PARENTS, children
+    from flowmocap.fit.lift_refit import body_girth
+
+    model = load_body_model("default", dtype=torch.float64)
+    betas = torch.tensor(np.random.default_rng(3).normal(0, 0.8, (1, 10)))
+    g = body_girth(model, betas).numpy()
+    with torch.no_grad():
+        v, jt = (x[0].numpy() for x in model.shaped(betas))
+    W = model.weights.numpy()
+    want = np.empty(len(v))
+    for n in range(len(v)):
+        j = int(np.argmax(W[n]))
+        kids = children(j)
+        a, b = jt[j], jt[kids[0] if kids else j]
+        ab = b - a
+        s = 0.0 if ab @ ab == 0 else min(max((v[n] - a) @ ab / (ab @ ab), 0.0), 1.0)
+        want[n] = np.linalg.norm(v[n] - (a + s * ab))
+    assert len(PARENTS) == jt.shape[0]
+    np.testing.assert_allclose(g, want, rtol=1e-10, atol=1e-12)

@@ -288,3 +288,55 @@ def test_held_out_poses_beat_their_limbs_mirrored_in_depth(prior, held_out):
     # a prior that knows nothing (the same energy for every pose) scores a tie, one half
     flat = mod.discrimination(np.zeros(len(poses)), np.zeros(len(which)), index, which, moved, len(DEPTH_LIMBS))
     assert flat["accuracy"] == 0.5
+
+
+def _small_prior():
+    from flowmocap.fit.pose_prior import PosePrior
+
+    rng = np.random.default_rng(0)
+    K, joints = 3, (1, 2)
+    D = 3 * len(joints)
+    means = rng.normal(0, 0.3, (K, D))
+    Ls = []
+    for k in range(K):
+        A = np.tril(rng.normal(0, 0.5, (D, D)), -1) + np.diag(rng.uniform(1.0, 3.0, D))
+        Ls.append(A if k % 2 == 0 else A.T)  # lower and upper triangular factors
+    w = np.array([0.5, 0.3, 0.2])
+    return PosePrior(w, means, np.stack(Ls), joints)
+
+
+@pytest.mark.parametrize("which", ["small", "packaged"])
+def test_mixture_energies_and_likelihood_match_scipys_gaussians(which):
+    """component_energies, energy and log_likelihood against the Gaussian mixture written
+    out with scipy (P_k = L_k L_k^T, weights w_k), including a rotation past pi (wrapped)."""
+    from scipy.stats import multivariate_normal
+
+    from flowmocap.fit.pose_prior import PosePrior
+
+    prior = _small_prior() if which == "small" else PosePrior.load()
+    rng = np.random.default_rng(1)
+    B = 4
+    pose = np.zeros((B, 72))
+    cols = prior.columns
+    pose[:, cols] = prior.means[rng.integers(0, prior.num_components, B)] + rng.normal(0, 0.1, (B, prior.dim))
+    x = pose[:, cols].copy()
+    # one joint given as its equivalent rotation vector with angle 2 pi - theta > pi
+    j = cols[:3]
+    r = pose[0, j]
+    th = np.linalg.norm(r)
+    pose[0, j] = r / th * (th - 2 * math.pi)
+    pt = torch.tensor(pose)
+
+    comps, ll = [], []
+    for k in range(prior.num_components):
+        P = prior.precisions_cholesky[k] @ prior.precisions_cholesky[k].T
+        cov = np.linalg.inv(P)
+        d = x - prior.means[k]
+        comps.append(0.5 * np.einsum("bi,ij,bj->b", d, P, d) + prior.log_normalizers[k])
+        ll.append(np.log(prior.weights[k]) + multivariate_normal(prior.means[k], cov).logpdf(x))
+    comps = np.stack(comps, 1)
+    want_e = comps - prior.log_normalizers.min()
+    np.testing.assert_allclose(prior.component_energies(pt).numpy(), want_e, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(prior.energy(pt).numpy(), want_e.min(1), rtol=1e-9, atol=1e-9)
+    want_ll = np.logaddexp.reduce(np.stack(ll, 1), axis=1)
+    np.testing.assert_allclose(prior.log_likelihood(pt).numpy(), want_ll, rtol=1e-9, atol=1e-8)

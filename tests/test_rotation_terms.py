@@ -93,3 +93,34 @@ def test_a_chart_the_kernel_cannot_use_is_refused():
     charts[4] = "XZX"  # proper Euler angles: no Tait-Bryan decomposition
     with pytest.raises(InputError, match="Tait-Bryan"):
         en.joint_limit_residuals(_poses(1.0, n=1), JointLimits(lim.lower, lim.upper, tuple(charts)))
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e-7])
+def test_joint_limit_kernel_at_gimbal_lock_equals_the_torch_definition(offset, monkeypatch):
+    """The locked branch of rotation_terms._limit_kernel (middle Euler angle at +-pi/2, so
+    far never reached by a test: random poses do not lock) against the torch definition
+    (joint_angles -> matrix_to_euler's locked branch): values, and the vector-Jacobian
+    product inside the lock band."""
+    import math
+
+    from flowmocap.geometry import euler_to_matrix, matrix_to_axis_angle
+
+    pose = torch.zeros(1, 24, 3, dtype=torch.float64)
+    # left knee (XZY), left elbow (YZX), left wrist (ZYX): middle angle pi/2 - offset
+    for joint, order in ((4, "XZY"), (18, "YZX"), (20, "ZYX")):
+        ang = torch.tensor([0.3, math.pi / 2 - offset, -0.2], dtype=torch.float64)
+        pose[0, joint] = matrix_to_axis_angle(euler_to_matrix(ang, order))
+    pose = pose.reshape(1, 72)
+    out = []
+    gvec = torch.tensor(np.random.default_rng(5).normal(size=(1, 69)))
+    for compiled in (True, False):
+        monkeypatch.setattr(en, "_COMPILED", compiled)
+        p = pose.clone().requires_grad_()
+        r = en.joint_limit_residuals(p)
+        (r * gvec).sum().backward()
+        out.append((r.detach(), p.grad))
+    (r1, g1), (r0, g0) = out
+    assert (r0 != 0).sum() >= 3
+    np.testing.assert_allclose(r1.numpy(), r0.numpy(), rtol=1e-9, atol=1e-12)
+    if offset:
+        np.testing.assert_allclose(g1.numpy(), g0.numpy(), rtol=1e-6, atol=1e-6 * float(g0.abs().max()))
