@@ -38,6 +38,10 @@ __all__ = ["LimitCharts", "limit_charts", "limit_residuals_jacobian", "limit_res
            "root_difference_jacobian", "root_difference"]
 
 _SMALL = 1e-6  # theta^2 below which the series are used
+#: float64 machine epsilon: the cosine of the middle Euler angle is floored at it, its derivative
+#: then 0, as :func:`~flowmocap.geometry.rotations.matrix_to_euler` clamps it (at an exact gimbal
+#: lock the cosine is rounding noise, and dividing by it gave gradients of that noise).
+_EPS = 2.220446049250313e-16
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -169,7 +173,8 @@ def _limit_kernel(pose, lo, hi, joints, kinds, axes, lock_eps, out_r, out_j):
                 rot, jr = _rot_and_jr(w)
                 cb2 = rot[i, i] * rot[i, i] + rot[i, j] * rot[i, j]
                 locked = cb2 < lock_eps
-                cb = math.sqrt(max(cb2, 1e-300))
+                floored = cb2 < _EPS * _EPS
+                cb = _EPS if floored else math.sqrt(cb2)
                 th[j] = math.atan2(s * rot[i, k], cb)
                 if locked:
                     th[i] = math.atan2(s * rot[k, j], rot[j, j])
@@ -179,7 +184,7 @@ def _limit_kernel(pose, lo, hi, joints, kinds, axes, lock_eps, out_r, out_j):
                     th[k] = math.atan2(-s * rot[i, j], rot[i, i])
                 for m in range(3):
                     dr = rot @ _skew(jr[:, m])
-                    dcb = (rot[i, i] * dr[i, i] + rot[i, j] * dr[i, j]) / cb
+                    dcb = 0.0 if floored else (rot[i, i] * dr[i, i] + rot[i, j] * dr[i, j]) / cb
                     dth[j, m] = _datan2(s * rot[i, k], cb, s * dr[i, k], dcb)
                     if locked:
                         dth[i, m] = _datan2(s * rot[k, j], rot[j, j], s * dr[k, j], dr[j, j])
