@@ -610,7 +610,8 @@ def test_silhouette_energy_in_one_node_equals_its_torch_composition(body, scene)
     """silhouette_energy runs the projection, window, exact samples and coverage as one
     autograd node (float64 numpy and compiled passes): equal to the composition of the
     torch pieces with the compiled coverage pass, value and gradient, for a batch of two
-    bodies (one partly off the image) and in float32; a capsule behind the camera is refused."""
+    bodies (one partly off the image) and in float32; a capsule behind the camera, and capsules
+    off the CPU, are refused."""
     from flowmocap.body.capsules import Capsules
     from flowmocap.fit.energies import _as_target, _silhouette_energy_composed
 
@@ -633,6 +634,9 @@ def test_silhouette_energy_in_one_node_equals_its_torch_composition(body, scene)
     behind = Capsules(at_the_eye, caps.end, caps.radius)
     with pytest.raises(InputError, match="in front of the camera"):
         silhouette_energy(behind, scene["cam"], scene["target"])
+    off_cpu = Capsules(*(x.detach().to("meta") for x in (caps.start, caps.end, caps.radius)))
+    with pytest.raises(InputError, match="runs on the CPU"):
+        silhouette_energy(off_cpu, scene["cam"], scene["target"])
 
 
 def test_interpenetration_energy_compiled_equals_its_residuals(body):

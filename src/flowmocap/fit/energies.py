@@ -774,11 +774,16 @@ def silhouette_energy(
     computed with its gradient in one compiled pass over the window from the exact
     distance samples (:func:`~flowmocap.render.capsules.capsule_distance_grid`), without
     making the interpolated map or the residuals as tensors: what the tracker evaluates.
+
+    Raises:
+        InputError: the capsules are not on the CPU (the distance samples and the coverage
+            pass are compiled CPU code).
     """
+    if capsules.start.device.type != "cpu":
+        raise InputError(f"silhouette_energy runs on the CPU; the capsules are on {capsules.start.device}: "
+                         "move the body's tensors there with .cpu() first.")
     target = _as_target(target, chamfer, capsules.start.dtype)
     _silhouette_checks(camera, target, a, grid_step, softness)
-    if capsules.start.device.type != "cpu":  # the torch composition (the reference the tests compare with)
-        return _silhouette_energy_composed(capsules, camera, target, a, grid_step, softness)
     return energy_with_gradient(lambda s, e, r: _capsule_silhouette(s, e, r, camera, target, int(grid_step), float(a),
                                                                     float(softness)),
                                 capsules.start, capsules.end, capsules.radius)
