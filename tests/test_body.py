@@ -301,3 +301,55 @@ def test_point_capsule_distance_closed_form():
     pts = torch.tensor([[[0.5, 0.3, 0.0], [-0.4, 0.0, 0.3], [1.0, 0.0, 0.05]]])
     d = point_capsule_distance(pts, caps)[0, :, 0]
     torch.testing.assert_close(d, torch.tensor([0.2, 0.4, -0.05]))
+
+
+class _SparseWithoutIndices:
+    """Pickles as a scipy csc_matrix whose stored state lacks ``indices`` (a damaged file)."""
+
+    def __reduce__(self):
+        import copyreg
+
+        import scipy.sparse as sp
+
+        return (copyreg._reconstructor, (sp.csc_matrix, object, None), {"data": np.zeros(2)})
+
+
+@pytest.mark.parametrize("damage", ["posedirs_size", "scalar_regressor", "nan_template", "truncated_object_member",
+                                    "sparse_without_indices"])
+def test_damaged_model_files_are_refused_with_a_model_file_error(damage, tmp_path, toy_arrays):
+    """Model files of the right kind but damaged: posedirs of the wrong size, a scalar
+    J_regressor, NaN in v_template, a truncated object-array member in an .npz, a sparse
+    matrix whose pickled state lacks a field. Each is refused with ModelFileError naming the
+    file (before, each raised a bare numpy/zipfile/scipy error, or NaN was accepted and
+    failed later with a message about the camera)."""
+    import io
+    import pickle
+    import zipfile
+
+    p = tmp_path / "model.npz"
+    if damage == "posedirs_size":
+        np.savez(p, **dict(toy_arrays, posedirs=np.zeros(7)))
+        match = "posedirs has 7 values"
+    elif damage == "scalar_regressor":
+        np.savez(p, **dict(toy_arrays, J_regressor=np.float64(1.0)))
+        match = "inconsistent array shapes"
+    elif damage == "nan_template":
+        np.savez(p, **dict(toy_arrays, v_template=np.full_like(toy_arrays["v_template"], np.nan)))
+        match = "v_template holds NaN"
+    elif damage == "truncated_object_member":
+        buf = io.BytesIO()
+        np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+        with zipfile.ZipFile(p, "w") as z:
+            for k, v in toy_arrays.items():
+                b = io.BytesIO()
+                np.save(b, v)
+                z.writestr(k + ".npy", b.getvalue())
+            z.writestr("gender.npy", buf.getvalue()[:-5])
+        match = "not a readable .npz file"
+    else:
+        p = tmp_path / "model.pkl"
+        p.write_bytes(pickle.dumps(dict(toy_arrays, J_regressor=_SparseWithoutIndices()), protocol=2))
+        match = "sparse matrix 'J_regressor' cannot be rebuilt"
+    with pytest.raises(ModelFileError, match=match) as err:
+        load_body_model(p)
+    assert str(p) in str(err.value)

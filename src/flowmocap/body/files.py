@@ -222,8 +222,10 @@ def _read_npz(path: Path) -> dict:
                 with zf.open(member) as f:
                     raw = f.read()
                 out[key] = _to_plain(_read_npy_bytes(raw), path, key)
-    except (zipfile.BadZipFile, OSError, ValueError, pickle.UnpicklingError) as e:
-        raise ModelFileError(f"{path} is not a readable .npz file ({e}). {WHERE_TO_GET}") from e
+    except ModelFileError:
+        raise
+    except Exception as e:  # corrupt or truncated members raise many kinds of errors (EOFError, zlib.error, ...)
+        raise ModelFileError(f"{path} is not a readable .npz file ({type(e).__name__}: {e}). {WHERE_TO_GET}") from e
     return out
 
 
@@ -252,12 +254,14 @@ def _to_plain(value, path: Path, key: str):
             if not isinstance(state, dict):
                 raise ModelFileError(f"{path}: sparse matrix {key!r} has no readable state.")
             shape = state.get("_shape", state.get("shape"))
-            if value._name == "coo_matrix":
-                m = sp.coo_matrix((state["data"], (state["row"], state["col"])), shape=shape)
-            else:
+            try:
+                if value._name == "coo_matrix":
+                    return sp.coo_matrix((state["data"], (state["row"], state["col"])), shape=shape)
                 cls = sp.csc_matrix if value._name == "csc_matrix" else sp.csr_matrix
-                m = cls((state["data"], state["indices"], state["indptr"]), shape=shape)
-            return m
+                return cls((state["data"], state["indices"], state["indptr"]), shape=shape)
+            except (KeyError, TypeError, ValueError) as e:
+                raise ModelFileError(f"{path}: sparse matrix {key!r} cannot be rebuilt from its stored state "
+                                     f"({type(e).__name__}: {e}). {WHERE_TO_GET}") from e
         if isinstance(state, dict) and "x" in state:
             return np.asarray(state["x"])
         raise ModelFileError(
@@ -295,9 +299,10 @@ def _to_arrays(data: dict, path: Path, gender: str) -> ModelArrays:
     except (TypeError, ValueError) as e:
         raise ModelFileError(f"{path}: model arrays have unexpected types ({e}). {WHERE_TO_GET}") from e
     V = v.shape[0] if v.ndim == 2 else -1
-    J = J_reg.shape[0]
+    J = J_reg.shape[0] if J_reg.ndim == 2 else -1
     if (
-        v.ndim != 2 or v.shape[1] != 3
+        J_reg.ndim != 2 or weights.ndim != 2
+        or v.ndim != 2 or v.shape[1] != 3
         or faces.ndim != 2 or faces.shape[1] != 3
         or weights.shape != (V, J)
         or J_reg.shape != (J, V)
@@ -311,9 +316,15 @@ def _to_arrays(data: dict, path: Path, gender: str) -> ModelArrays:
     if faces.size and (faces.min() < 0 or faces.max() >= V):
         raise ModelFileError(f"{path}: face indices out of range for {V} vertices.")
     if posedirs is not None:
+        if posedirs.size != V * 3 * 9 * (J - 1):
+            raise ModelFileError(f"{path}: posedirs has {posedirs.size} values ({posedirs.shape}), expected "
+                                 f"{V} x 3 x {9 * (J - 1)} for {V} vertices and {J} joints. {WHERE_TO_GET}")
         posedirs = posedirs.reshape(V, 3, -1)
-        if posedirs.shape[2] != 9 * (J - 1):
-            raise ModelFileError(f"{path}: posedirs has {posedirs.shape[2]} columns, expected {9 * (J - 1)}.")
+    bad = [k for k, x in (("v_template", v), ("weights", weights), ("J_regressor", J_reg), ("shapedirs", shapedirs),
+                          ("posedirs", posedirs)) if x is not None and not np.isfinite(x).all()]
+    if bad:
+        raise ModelFileError(f"{path}: {', '.join(bad)} {'holds' if len(bad) == 1 else 'hold'} NaN or infinite values; the file is damaged. "
+                             + WHERE_TO_GET)
     if J == NUM_JOINTS:
         kind = "smpl"
     elif J == 52:
