@@ -58,3 +58,10 @@ def test_body_command_errors_cleanly(tmp_path, capsys):
     assert "unknown pose" in capsys.readouterr().err
     assert main(["body", "--model", str(tmp_path / "missing.pkl"), "--out", str(tmp_path / "b.png")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    for size in (["--width", "0"], ["--width", "100000", "--height", "100000"]):  # before: a NaN camera, a 28 GiB array
+        assert main(["body", *size, "--out", str(tmp_path / "b.png")]) == 2
+        assert "16..8192 pixels" in capsys.readouterr().err
+    for angle in (["--azimuth", "nan"], ["--elevation", "90"]):  # before: messages about look_at's arguments
+        assert main(["synth", "builtin:walk", *angle, "--num-frames", "2", "--size", "64x48",
+                     "--out", str(tmp_path / "s")]) == 2
+        assert "elevation strictly between -90 and 90" in capsys.readouterr().err

@@ -165,6 +165,8 @@ def test_render_errors_tell_what_to_do(demo, tmp_path, capsys):
     assert ResultScene(moved, input=seq).num_frames == T
     assert main(["render", str(root / "exact"), "--figure1", str(tmp_path / "f.png"), "--frames", "a,b"]) == 2
     assert main(["render", str(root / "exact"), "--video", str(tmp_path / "v.mp4"), "--alpha", "2"]) == 2
+    assert main(["render", str(root / "exact"), "--traces", str(tmp_path / "t.png"), "--history", "-3"]) == 2
+    assert "--history" in capsys.readouterr().err
 
 
 def test_the_energy_plot_gains_a_panel_for_the_sources_disagreement():

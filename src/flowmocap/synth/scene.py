@@ -58,7 +58,15 @@ def place_camera(
     Returns:
         ``(camera, placement)``: the :class:`PinholeCamera` and a dict of the values used
         (target, distance, azimuth, elevation, focal).
+
+    Raises:
+        InputError: non-finite points or angles, an elevation of +-90 degrees or beyond, a
+            focal length that is not positive.
     """
+    if not (math.isfinite(azimuth) and math.isfinite(elevation) and -90.0 < elevation < 90.0):
+        raise InputError(f"the camera's azimuth must be finite and its elevation strictly between -90 and 90 "
+                         f"degrees (the view direction must not be vertical); got azimuth {azimuth}, "
+                         f"elevation {elevation}.")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if pts.size == 0 or not np.all(np.isfinite(pts)):
         raise InputError("place_camera needs finite points to look at")

@@ -95,7 +95,13 @@ def posed_vertices(model, betas=None, pose="rest") -> np.ndarray:
 
 def render_body(model="default", gender="neutral", betas=None, pose="rest", width=320, height=480,
                 view="front", frame=None) -> np.ndarray:
-    """Render a body model in a named pose; see :func:`render_vertices` for the output."""
+    """Render a body model in a named pose; see :func:`render_vertices` for the output.
+
+    Raises:
+        InputError: ``width`` or ``height`` (pixels) outside 16..8192.
+    """
+    if not (16 <= width <= 8192 and 16 <= height <= 8192):
+        raise InputError(f"image size must be 16..8192 pixels per side, got {width}x{height}.")
     m = load_body_model(model, gender=gender) if isinstance(model, str) else model
     v = posed_vertices(m, betas, pose)
     return render_vertices(v, m.faces_np, width, height, view, frame=frame)

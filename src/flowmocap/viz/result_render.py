@@ -359,6 +359,8 @@ def joint_traces(scene: ResultScene, frames: list[int], history: int | None = No
     """
     if not frames:
         raise InputError("joint_traces needs at least one frame number.")
+    if history is not None and history < 0:
+        raise InputError(f"the joint history must be a number of frames >= 0 (--history); got {history}.")
     j2d = scene.joints2d()
     gt2d = scene.gt_joints2d() if with_gt else None
     ks = [scene.k_of(i) for i in frames]
