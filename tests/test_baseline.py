@@ -117,3 +117,24 @@ def test_wrong_keypoint_shape_is_an_input_error(clip, tmp_path):
     init = parse_init(noisy_init(clip.gt, seed=0), *clip.size)
     with pytest.raises(InputError, match="keypoints must be"):
         run_baseline(clip, tmp_path / "x", model, clip.camera, init, np.zeros((2, 24, 2)), np.ones((2, 24)))
+
+
+@pytest.mark.parametrize("key", ["joints3d", "joints2d"])
+def test_a_ground_truth_shorter_than_the_results_frames_is_a_data_error(tmp_path, key):
+    """score_result against a sequence whose gt.npz holds fewer frames than the result's
+    frame numbers reach is a DataError naming gt.npz (not an IndexError), as a sequence
+    with too few frames already is."""
+    from flowmocap.errors import DataError
+    from flowmocap.io.results import write_motion, write_run
+    from flowmocap.io.sequence import Sequence
+
+    write_motion(tmp_path / "res", {"poses": np.zeros((4, 72)), "trans": np.zeros((4, 3)), "betas": np.zeros(10),
+                                    "joints3d": np.zeros((4, 24, 3)), "joints2d": np.zeros((4, 24, 2)),
+                                    "frame_index": np.arange(4)})
+    write_run(tmp_path / "res", {"flowmocap": "test", "status": "finished"})
+    gt = {"joints3d": np.zeros((4, 24, 3)), "joints2d": np.zeros((4, 24, 2))}
+    gt[key] = gt[key][:2]
+    seq = Sequence(root=tmp_path / "seq", frames=[tmp_path / f"{i}.png" for i in range(4)], masks=None, camera=None,
+                   gt=gt, size=(64, 48))
+    with pytest.raises(DataError, match=rf"gt\.npz '{key}' has 2 frames but the result has frame 3"):
+        score_result(tmp_path / "res", seq)

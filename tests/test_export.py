@@ -318,3 +318,92 @@ def test_export_errors_tell_what_to_do(posed_result, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="not a flowmocap result"):
         export_result(tmp_path / "empty", "json")
+
+
+def _damaged_copy(folder: Path, dest: Path, **changes) -> Path:
+    """A copy of the result ``folder`` whose motion.npz has ``changes`` (key -> array)."""
+    import shutil
+
+    from flowmocap.io.results import read_result
+
+    shutil.copytree(folder, dest)
+    motion, _ = read_result(dest)
+    write_motion(dest, {**motion, **changes})
+    return dest
+
+
+@pytest.mark.parametrize("key, value, says", [
+    ("poses", np.zeros((T, 10)), r"'poses' is \(5, 10\), expected \(T, 72\)"),
+    ("poses", np.zeros(T * 72), r"'poses' is \(360,\), expected \(T, 72\)"),
+    ("trans", np.zeros((T, 2)), r"'trans' is \(5, 2\), expected \(5, 3\)"),
+    ("trans", np.zeros((T - 1, 3)), r"'trans' is \(4, 3\), expected \(5, 3\)"),
+    ("betas", np.zeros(0), r"'betas' is empty"),
+    ("betas", np.array(["a", "b"]), r"'betas' is not numeric"),
+    ("frame_index", np.arange(T + 2), r"'frame_index' is \(7,\), expected \(5,\)"),
+    ("camera", np.array("garbage"), r"'camera' is not the camera's JSON"),
+])
+def test_a_motion_npz_with_wrong_arrays_names_the_file_and_says_to_track_again(posed_result, tmp_path, key, value,
+                                                                                says):
+    """Arrays of the wrong shape (poses not (T, 72), trans not (T, 3) for the same T, no
+    betas, frame_index of another length) or a camera that is not JSON are a DataError
+    that names motion.npz, says what is wrong and to track again with --force."""
+    folder, _ = posed_result
+    copy = _damaged_copy(folder, tmp_path / "result", **{key: value})
+    with pytest.raises(DataError, match=says + r".*--force") as e:
+        load_fitted_motion(copy, frame="up")
+    assert str(copy / "motion.npz") in str(e.value)
+
+
+@pytest.mark.parametrize("key", ["poses", "trans"])
+def test_nan_in_the_motion_is_a_data_error_that_names_the_file(posed_result, tmp_path, key):
+    """NaN poses or translations are reported as a damaged motion.npz (file, array, row),
+    not as a bare "pose contains NaN" from deep inside the body model."""
+    folder, truth = posed_result
+    bad = np.array(truth[key], np.float32)
+    bad[2, 1] = np.nan
+    copy = _damaged_copy(folder, tmp_path / "result", **{key: bad})
+    says = rf"motion\.npz '{key}' holds NaN or infinite values \(first at row 2\).*--force"
+    with pytest.raises(DataError, match=says):
+        load_fitted_motion(copy)
+
+
+def test_a_world_json_that_is_not_an_object_is_computed_again(posed_result, tmp_path):
+    """A world.json cache holding a JSON list (or other non-object) is treated like any
+    unreadable cache: the ground frame is computed again and the cache rewritten."""
+    import shutil
+
+    folder, _ = posed_result
+    copy = tmp_path / "result"
+    shutil.copytree(folder, copy)
+    want = load_fitted_motion(copy)  # the ground frame, and its cache
+    (copy / "world.json").write_text("[1, 2]")
+    got = load_fitted_motion(copy)
+    np.testing.assert_allclose(got.rotation, want.rotation, atol=1e-12)
+    np.testing.assert_allclose(got.offset, want.offset, atol=1e-12)
+    assert isinstance(json.loads((copy / "world.json").read_text()), dict)
+
+
+@pytest.mark.parametrize("fmt, name", [("bvh", "m.bvh"), ("npz", "m.npz"), ("glb", "m.glb"),
+                                       ("glb-frames", "f.glb"), ("obj", "obj")])
+def test_an_interrupted_export_leaves_the_old_file_and_no_partial_one(posed_result, tmp_path, monkeypatch, fmt,
+                                                                      name):
+    """Every export is written through a temporary file renamed into place: interrupted
+    (Ctrl-C) just before the rename, the old file under the final name is untouched and no
+    temporary file is left behind (for obj, each frame's file)."""
+    import os
+
+    folder, _ = posed_result
+    out = tmp_path / name
+    old = (out / "frame_000003.obj") if fmt == "obj" else out
+    old.parent.mkdir(parents=True, exist_ok=True)
+    old.write_text("old")
+
+    def interrupted(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        export_result(folder, fmt, out, frame="up")
+    monkeypatch.undo()
+    assert old.read_text() == "old"
+    assert sorted(p.name for p in old.parent.iterdir()) == [old.name]

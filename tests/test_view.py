@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from flowmocap.commands.view import STATIC, THREE_VERSION, ViewerData, gl_camera, make_server
-from flowmocap.errors import InputError
+from flowmocap.errors import DataError, InputError
 from flowmocap.geometry.camera import PinholeCamera, look_at
 
 from test_export import make_result
@@ -110,6 +110,23 @@ def test_a_taken_port_says_what_to_do(served):
     port = int(url.rsplit(":", 1)[1])
     with pytest.raises(InputError, match="--port 0"):
         make_server(data, port=port)
+
+
+
+def test_an_input_given_that_cannot_be_decoded_is_an_error_not_grey_frames(result, tmp_path):
+    """--input given explicitly but not decodable (random bytes named .mp4) is a DataError
+    naming it; only the input recorded in run.json falls back to grey frames."""
+    import shutil
+
+    bad = tmp_path / "random.mp4"
+    bad.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    with pytest.raises(DataError, match=r"--input .*random\.mp4 cannot be read"):
+        ViewerData(result, input=bad)
+    copy = tmp_path / "result"
+    shutil.copytree(result, copy)
+    run = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**run, "input": str(bad)}))
+    assert ViewerData(copy).seq is None  # recorded, not given: grey frames as before
 
 
 def _shell_signals() -> None:

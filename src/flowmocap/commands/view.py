@@ -63,8 +63,13 @@ class ViewerData:
 
     Args:
         result_dir: the result folder. input: the tracked video or sequence folder (default:
-            the one recorded in ``run.json``; grey frames when it is not found).
+            the one recorded in ``run.json``; grey frames when that one is not found or cannot
+            be read).
         model: body model override. smooth: as for :func:`flowmocap.export.export_result`.
+
+    Raises:
+        DataError: an unreadable result, or an ``input`` given here that is missing, cannot
+            be decoded or is not the tracked one (its size or length differs).
     """
 
     def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False):
@@ -93,7 +98,9 @@ class ViewerData:
             try:
                 seq = (load_video(p, max_side=max(cam.width, cam.height))
                        if p.is_file() or p.suffix.lower() in VIDEO_SUFFIXES else load_sequence(p, max_side=max(cam.width, cam.height)))
-            except DataError:
+            except DataError as e:
+                if given:  # the user's own --input: say why it cannot be shown rather than show grey frames
+                    raise DataError(f"--input {given} cannot be read: {e}") from None
                 return None
             if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.motion.frame_index.max()):
                 return seq

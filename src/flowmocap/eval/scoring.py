@@ -60,7 +60,8 @@ def score_result(result: str | Path, seq, model=None) -> dict:
         per-frame lists ``local_cm_per_frame``, ``iou_per_frame``.
 
     Raises:
-        DataError: unreadable result, or frames of the result outside the sequence.
+        DataError: unreadable result, or frames of the result outside the sequence or its
+            ``gt.npz``.
     """
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.io.results import read_result
@@ -79,6 +80,14 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     for k in ("local_cm", "global_cm", "mpjpe_cm", "accel_mm", "px2d", "iou"):
         out[k] = None
     gt = seq.gt
+    for key in ("joints3d", "joints2d"):  # per-frame ground truth, indexed by the result's frame numbers
+        if key not in gt:
+            continue
+        have = np.asarray(gt[key]).shape[0] if np.ndim(gt[key]) else 0
+        if have <= idx.max():
+            raise DataError(f"{seq.root}/gt.npz '{key}' has {have} frames but the result has "
+                            f"frame {idx.max()}; the ground truth is cut short: regenerate the sequence, or score "
+                            "against the sequence the result was made from.")
     if "joints3d" in gt:
         pred = np.asarray(motion["joints3d"], np.float64)
         ref = np.asarray(gt["joints3d"], np.float64)[idx]

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.atomic import atomic_write
 from flowmocap.errors import InputError
 
 __all__ = ["write_mesh_sequence_glb", "GltfBuffer", "vertex_normals", "save_glb"]
@@ -61,15 +62,16 @@ class GltfBuffer:
 
 
 def save_glb(gltf, buffer: GltfBuffer, path: str | Path) -> Path:
-    """Attach ``buffer`` as the document's binary chunk and write ``path`` as ``.glb``."""
+    """Attach ``buffer`` as the document's binary chunk and write ``path`` as ``.glb``
+    (atomically: an interrupted write leaves the old file, or none, never part of one)."""
     import pygltflib as g
 
     buffer.data += b"\0" * ((-len(buffer.data)) % 4)
     gltf.buffers = [g.Buffer(byteLength=len(buffer.data))]
     gltf.set_binary_blob(bytes(buffer.data))
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(b"".join(gltf.save_to_bytes()))
+    data = b"".join(gltf.save_to_bytes())
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))  # never a cut-off .glb under the final name
     return path
 
 

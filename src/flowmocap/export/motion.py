@@ -141,6 +141,38 @@ def up_rotation(camera) -> np.ndarray:
     return np.eye(3)
 
 
+def _checked_arrays(result_dir: Path, motion: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(poses (T, 72) radians, trans (T, 3) metres, betas (B,))`` float64 of a result's
+    motion arrays, checked: those shapes, one T, finite values.
+
+    Raises:
+        DataError: naming ``motion.npz`` and saying to track again, when they are not.
+    """
+    where = result_dir / "motion.npz"
+    redo = "the result is damaged: track the input again with --force."
+    arrays = {}
+    for key in ("poses", "trans", "betas"):
+        try:
+            arrays[key] = np.asarray(motion[key], np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{where} '{key}' is not numeric (dtype {np.asarray(motion[key]).dtype}); {redo}") from None
+    poses, trans, betas = arrays["poses"], arrays["trans"], arrays["betas"].reshape(-1)
+    if poses.size == 0 and trans.size == 0:  # no frames yet: the caller says so
+        return poses.reshape(0, 72), trans.reshape(0, 3), betas
+    if poses.ndim != 2 or poses.shape[1] != 72:
+        raise DataError(f"{where} 'poses' is {poses.shape}, expected (T, 72); {redo}")
+    if trans.shape != (len(poses), 3):
+        raise DataError(f"{where} 'trans' is {trans.shape}, expected {(len(poses), 3)} (one per pose); {redo}")
+    if betas.size == 0:
+        raise DataError(f"{where} 'betas' is empty, expected the body's shape coefficients (10,); {redo}")
+    for key, a in (("poses", poses), ("trans", trans), ("betas", betas)):
+        if not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a.reshape(len(a), -1)).all(1)) if key != "betas" else []
+            at = f" (first at row {int(bad[0])})" if len(bad) else ""
+            raise DataError(f"{where} '{key}' holds NaN or infinite values{at}; {redo}")
+    return poses, trans, betas
+
+
 def _model_for(run: dict, gender: str, model):
     import torch
 
@@ -200,16 +232,24 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     for key in ("poses", "trans", "betas"):
         if key not in motion:
             raise DataError(f"{result_dir / 'motion.npz'} has no {key!r}; it is not a flowmocap result.")
-    poses = np.asarray(motion["poses"], np.float64).reshape(-1, 72)
+    poses, trans, betas = _checked_arrays(result_dir, motion)
     if poses.shape[0] == 0:
         raise DataError(f"{result_dir} holds no tracked frames yet; run or resume the tracking first.")
-    trans = np.asarray(motion["trans"], np.float64).reshape(-1, 3)
-    betas = np.asarray(motion["betas"], np.float64).reshape(-1)
     gender = str(motion["gender"]) if "gender" in motion else str(run.get("gender", "neutral"))
     fps = float(motion["fps"]) if "fps" in motion else 30.0
     T = poses.shape[0]
     index = np.asarray(motion.get("frame_index", np.arange(T)), np.int64)
-    cam_dict = json.loads(str(motion["camera"])) if "camera" in motion else run.get("camera")
+    if index.shape != (T,):
+        raise DataError(f"{result_dir / 'motion.npz'} 'frame_index' is {index.shape}, expected ({T},) (one per pose); "
+                        "the result is damaged: track the input again with --force.")
+    if "camera" in motion:
+        try:
+            cam_dict = json.loads(str(motion["camera"]))
+        except ValueError as e:
+            raise DataError(f"{result_dir / 'motion.npz'} 'camera' is not the camera's JSON ({e}); the result is "
+                            "damaged: track the input again with --force.") from None
+    else:
+        cam_dict = run.get("camera")
     if cam_dict is None:
         raise DataError(f"{result_dir} records no camera (motion.npz 'camera' or run.json 'camera').")
     camera = PinholeCamera.from_dict(cam_dict)

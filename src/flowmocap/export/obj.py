@@ -6,11 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.atomic import atomic_write
+
 __all__ = ["write_obj", "write_obj_sequence"]
 
 
 def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, comment: str = "") -> Path:
-    """Write one triangle mesh as OBJ (``v`` and 1-based ``f`` lines).
+    """Write one triangle mesh as OBJ (``v`` and 1-based ``f`` lines), atomically (an
+    interrupted write leaves the old file, or none, never part of one).
 
     Args:
         path: output ``.obj`` file.
@@ -27,7 +30,8 @@ def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, comment
     lines.append("\n".join("v %.6f %.6f %.6f" % tuple(p) for p in v))
     lines.append("\n".join("f %d %d %d" % tuple(t) for t in f))
     path = Path(path)
-    path.write_text("\n".join(lines) + "\n")
+    text = "\n".join(lines) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))  # never a cut-off .obj under the final name
     return path
 
 

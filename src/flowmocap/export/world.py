@@ -200,7 +200,8 @@ def load_world_frame(result_dir: str | Path, poses, trans, betas, model, camera,
     """:func:`world_frame` of a result folder, cached in ``RESULT/world.json``.
 
     With ``cache``, a cached file is used when its fingerprint matches the inputs (and this
-    version of the estimate); otherwise the frame is computed and written atomically. A
+    version of the estimate); otherwise (also when the file is unreadable: not JSON, not a
+    JSON object, parts missing) the frame is computed and written atomically. A
     result folder that cannot be written to still gets its frame. ``cache=False`` neither
     reads nor writes the file.
     """
@@ -211,10 +212,10 @@ def load_world_frame(result_dir: str | Path, poses, trans, betas, model, camera,
     if cache and path.is_file():
         try:
             doc = json.loads(path.read_text())
-            if doc.get("fingerprint") == fp and doc.get("format") == "flowmocap-world":
+            if isinstance(doc, dict) and doc.get("fingerprint") == fp and doc.get("format") == "flowmocap-world":
                 return WorldFrame.from_dict(doc)
-        except (ValueError, KeyError, TypeError):
-            pass
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError, OSError):
+            pass  # an unreadable cache (not JSON, not an object, missing parts) is computed again
     wf = world_frame(poses, trans, betas, model, camera, fps)
     if cache:
         text = json.dumps(wf.to_dict(frame_index), indent=1)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError
 from flowmocap.io.smpl_motion import SmplMotion, rotate_motion
 
@@ -29,7 +30,8 @@ Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 def write_amass_npz(path: str | Path, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, gender: str,
                     fps: float, rest_pelvis: np.ndarray, **extra) -> Path:
-    """Write a y-up SMPL motion in the AMASS layout (z up).
+    """Write a y-up SMPL motion in the AMASS layout (z up), atomically (an interrupted
+    write leaves the old file, or none, never part of one).
 
     Args:
         path: output ``.npz``.
@@ -50,13 +52,16 @@ def write_amass_npz(path: str | Path, poses: np.ndarray, trans: np.ndarray, beta
     smplh = np.zeros((T, 156), np.float64)
     smplh[:, :66] = p[:, :66]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        np.savez(f, poses=smplh, trans=t, betas=np.asarray(betas, np.float64).reshape(-1),
-                 gender=np.array(str(gender)), mocap_framerate=np.array(float(fps)),
-                 mocap_frame_rate=np.array(float(fps)), root_orient=p[:, :3], pose_body=p[:, 3:66],
-                 pose_hand=smplh[:, 66:], smpl_hand_pose=p[:, 66:72], surface_model_type=np.array("smpl"),
-                 **extra)
+
+    def write(tmp):  # through a temporary file: never a cut-off .npz under the final name
+        with open(tmp, "wb") as f:
+            np.savez(f, poses=smplh, trans=t, betas=np.asarray(betas, np.float64).reshape(-1),
+                     gender=np.array(str(gender)), mocap_framerate=np.array(float(fps)),
+                     mocap_frame_rate=np.array(float(fps)), root_orient=p[:, :3], pose_body=p[:, 3:66],
+                     pose_hand=smplh[:, 66:], smpl_hand_pose=p[:, 66:72], surface_model_type=np.array("smpl"),
+                     **extra)
+
+    atomic_write(path, write)
     return path
 
 

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError, InputError
 from flowmocap.geometry import matrix_to_euler
 
@@ -779,7 +780,8 @@ def write_bvh(
     order: str = "ZYX",
 ) -> Path:
     """Write a clip as BVH: root with position + rotation channels, joints rotation only
-    (plus position channels where the clip animates a joint's translation).
+    (plus position channels where the clip animates a joint's translation). Written
+    atomically: an interrupted write leaves the old file, or none, never part of one.
 
     Args:
         clip: the clip (end sites become ``End Site`` blocks; a leaf that is not an end
@@ -841,8 +843,8 @@ def write_bvh(
                 vals.extend(clip.translations[t, j] * units_per_metre)
             vals.extend(angles[t, k])
         out.append(" ".join(f"{v:.10f}" for v in vals))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(out) + "\n")
+    text = "\n".join(out) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))  # never a cut-off file under the final name
     return path
 
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -210,12 +211,15 @@ def read_progress(out_dir: str | Path) -> dict:
     path = Path(out_dir) / "progress.json"
     try:
         progress = json.loads(path.read_text())
+        if not isinstance(progress, dict) or not isinstance(progress.get("header"), dict):
+            raise ValueError("it holds no JSON object with a 'header' object")
         for key in ("rows", "events_bytes", "state", "header"):
             progress[key]
     except FileNotFoundError:
         raise DataError(f"{out_dir} holds no run in progress ({path.name} is missing).") from None
     except (ValueError, KeyError, TypeError, OSError) as e:
-        raise DataError(f"{path} is unreadable ({e}); start a new result folder.") from None
+        raise DataError(f"{path} is unreadable ({e}); the run cannot be resumed: track the input again into this "
+                        "folder with --force, or into a new folder.") from None
     return progress
 
 
@@ -290,6 +294,10 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     out_dir = Path(out_dir)
     try:
         run = json.loads((out_dir / "run.json").read_text())
+        if not isinstance(run, dict):
+            raise DataError(f"{out_dir / 'run.json'} holds a JSON {type(run).__name__}, not a flowmocap run; the "
+                            "result is damaged: track the input again into this folder with --force (or into "
+                            "a new folder).")
         if (out_dir / "progress.json").exists():
             progress = read_progress(out_dir)
             recs = _read_records(out_dir, record_dtype(len(progress["header"]["energy_names"])), progress["rows"])
@@ -305,8 +313,9 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
                 motion = {k: z[k] for k in z.files}
     except FileNotFoundError as e:
         raise DataError(f"{out_dir} is not a flowmocap result folder ({Path(e.filename).name} is missing).") from None
-    except (ValueError, OSError) as e:
-        raise DataError(f"{out_dir} holds an unreadable result ({e}).") from None
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:  # a truncated or empty motion.npz: the last two
+        raise DataError(f"{out_dir} holds an unreadable result ({type(e).__name__}: {e}); the result is damaged: "
+                        "track the input again into this folder with --force (or into a new folder).") from None
     if run.get("status") in ("running", "preparing"):
         from flowmocap.io.lock import is_locked
 
