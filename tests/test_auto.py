@@ -67,6 +67,55 @@ def test_stored_detections_are_reused(tmp_path):
     assert load_detections(tmp_path, "fake", num_frames=5) is None
 
 
+def _truncate(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+@pytest.mark.parametrize("damage", [
+    lambda d: _truncate(d / "keypoints.npz"),
+    lambda d: (d / "keypoints.npz").write_bytes(b""),
+    lambda d: (d / "detections.json").write_text("{half"),
+    lambda d: (d / "detections.json").write_text("[]"),
+    lambda d: np.savez(d / "keypoints.npz", found=np.ones(4, bool), keypoints=np.zeros(3), confidence=np.zeros(3)),
+], ids=["truncated-npz", "empty-npz", "bad-json", "json-list", "wrong-shapes"])
+def test_a_damaged_detection_cache_is_computed_anew(tmp_path, damage):
+    """An unreadable detections/ cache (a truncated or empty keypoints.npz, bad JSON,
+    arrays of the wrong shape) counts as absent: the detector runs again instead of every
+    rerun failing with a traceback until the folder is deleted by hand."""
+    boxes = {i: (30, 20, 60, 110) for i in range(4)}
+    first = detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False)
+    damage(tmp_path / "detections")
+    assert load_detections(tmp_path) is None
+    again = detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False)
+    np.testing.assert_array_equal(again.keypoints, first.keypoints)
+    assert load_detections(tmp_path, "fake", 4) is not None
+
+
+def test_the_detection_cache_is_written_atomically(tmp_path, monkeypatch):
+    """A pass stopped while it writes the cache (a kill, a full disk) leaves no half-written
+    keypoints.npz and no detections.json of the earlier pass to pair with new masks: the
+    next run detects again."""
+    boxes = {i: (30, 20, 60, 110) for i in range(4)}
+    first = detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False)
+    d = tmp_path / "detections"
+    before = (d / "keypoints.npz").read_bytes()
+
+    def full_disk(f, **arrays):
+        f.write(b"PK\x03\x04 half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(auto.np, "savez", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False, reuse=False)
+    monkeypatch.undo()
+    assert (d / "keypoints.npz").read_bytes() == before and not list(d.glob("*.tmp"))
+    assert load_detections(tmp_path) is None  # the earlier pass's detections.json is gone: detected again
+    again = detect_sequence(Frames(4), tmp_path, FakeDetector(boxes), progress=False)
+    np.testing.assert_array_equal(again.keypoints, first.keypoints)
+    assert not list(d.rglob("*.tmp"))
+
+
 def test_no_person_anywhere(tmp_path):
     with pytest.raises(NoPersonError, match="no person found"):
         detect_sequence(Frames(3), tmp_path, Nobody(), progress=False)

@@ -247,6 +247,42 @@ def test_track_and_cli_take_the_person(tmp_path):
     assert build_parser().parse_args(["track", "v.mp4", "--out", "o"]).person == "largest"
 
 
+@pytest.mark.parametrize("point", ["9999,9999", "-1,5", "10,-0.5", "33,10"])
+def test_a_person_pixel_outside_the_frames_is_refused_with_their_size(tmp_path, point):
+    """person="x,y" outside the frames (negative, or beyond their width or height) is an
+    InputError saying the frames' size, before the detector runs (it used to track the
+    nearest person silently)."""
+    import cv2
+
+    from flowmocap.pipeline import track
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(frames / f"{i:06d}.png"), np.zeros((24, 32, 3), np.uint8))
+    with pytest.raises(InputError, match=rf"person={point} lies outside the 32x24 frames"):
+        track(frames, tmp_path / "out", person=point, log=None, progress=False)
+
+
+def test_a_person_pixel_is_in_the_frames_own_size_before_max_size(tmp_path):
+    """The point is in the pixels of the frames before max_size (--max-size): a point
+    inside them but outside the scaled frames passes the check (and meets the next one:
+    own masks and init leave nobody to choose)."""
+    import cv2
+
+    from flowmocap.pipeline import track
+
+    for sub in ("frames", "masks"):
+        (tmp_path / sub).mkdir()
+        for i in range(2):
+            cv2.imwrite(str(tmp_path / sub / f"{i:06d}.png"), np.full((96, 160, 3), 255, np.uint8))
+    with pytest.raises(InputError, match="chooses among the people the detector finds"):
+        track(tmp_path / "frames", tmp_path / "out", masks=tmp_path / "masks", init={"joints2d": {}}, max_size=80,
+              person="150,90", log=None, progress=False)
+    with pytest.raises(InputError, match="outside the 160x96 frames"):
+        track(tmp_path / "frames", tmp_path / "out", max_size=80, person="161,90", log=None, progress=False)
+
+
 def test_the_searcher_finds_a_person_inside_the_box_of_the_one_found_first():
     """The searcher looks with the first person's body blanked, not their box: someone
     standing within that box (grown by 10 %) but off the body is still found."""

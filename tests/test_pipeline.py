@@ -202,3 +202,74 @@ def test_a_real_clip_from_python_matches_the_command_line(tmp_path):
     assert main(["track", str(frames), "--out", str(tmp_path / "cli"), "--config", str(cfg), "--quiet"]) == 0
     _same(res, flowmocap.load_result(tmp_path / "cli"))
     assert res.run["profile"] == "video" and res.run["init"] == "automatic" and res.run["masks"] == "automatic"
+
+
+def _frame_folder(folder, n=4, size=(32, 24)):
+    """A plain folder of ``n`` small frames."""
+    import cv2
+
+    folder.mkdir(parents=True)
+    for i in range(n):
+        cv2.imwrite(str(folder / f"{i:06d}.png"), np.full((size[1], size[0], 3), 20 * i, np.uint8))
+    return folder
+
+
+@pytest.mark.parametrize("name, content, match", [
+    ("gt.npz", b"", r"gt.npz is unreadable \(EOFError"),
+    ("gt.npz", b"PK\x03\x04 half of an archive", r"gt.npz is unreadable \(BadZipFile"),
+    ("meta.json", b"{not json", r"meta.json is not valid JSON"),
+    ("meta.json", b"[1, 2]", r"meta.json must hold a JSON object but holds a list"),
+])
+def test_a_damaged_gt_npz_or_meta_json_is_a_data_error(tmp_path, name, content, match):
+    """A truncated, empty or garbage gt.npz, or a meta.json that is not a JSON object, is
+    a DataError naming the file and saying to regenerate or remove it (was a traceback in
+    track and eval)."""
+    seq = tmp_path / "seq"
+    _frame_folder(seq / "frames")
+    (seq / name).write_bytes(content)
+    with pytest.raises(DataError, match=match) as e:
+        load_sequence(seq)
+    assert str(seq / name) in str(e.value) and "regenerate it" in str(e.value) and "remove it" in str(e.value)
+
+
+def test_every_frame_and_mask_of_a_folder_is_checked_before_any_work(tmp_path):
+    """A mask or frame of another size, or not an image, late in a folder is refused when
+    the folder is opened, naming it, instead of when tracking reaches it."""
+    import cv2
+
+    frames = _frame_folder(tmp_path / "frames")
+    masks = _frame_folder(tmp_path / "masks")
+    assert len(load_sequence(frames, masks=masks)) == 4
+    cv2.imwrite(str(masks / "000003.png"), np.zeros((12, 16), np.uint8))
+    with pytest.raises(DataError, match=r"masks/000003.png is 16x12 but the sequence's frames are 32x24"):
+        load_sequence(frames, masks=masks)
+    (masks / "000003.png").write_text("not an image")
+    with pytest.raises(DataError, match=r"cannot read image .*masks/000003.png"):
+        load_sequence(frames, masks=masks)
+    cv2.imwrite(str(frames / "000002.png"), np.zeros((30, 40, 3), np.uint8))
+    with pytest.raises(DataError, match=r"frames/000002.png is 40x30 but the sequence's frames are 32x24"):
+        load_sequence(frames)
+
+
+def test_masks_that_are_all_empty_are_refused_before_tracking(seq_dir, tmp_path):
+    """User masks with no person pixel in any of them give NoPersonError before any work
+    (they used to give a 'finished' result, exit 0, with an 'empty mask' event a frame)."""
+    from flowmocap.errors import NoPersonError
+
+    black = _frame_folder(tmp_path / "black", n=5, size=(200, 150))
+    for p in black.iterdir():
+        p.write_bytes((black / "000000.png").read_bytes())  # all black
+    with pytest.raises(NoPersonError, match=r"every mask in .*black is empty: masks must be non-zero on the person"):
+        flowmocap.track(seq_dir, tmp_path / "o", init=seq_dir.parent / "init.json", masks=black, config=QUICK,
+                        progress=False, joints3d="off", log=None)
+    assert not (tmp_path / "o" / "motion.npz").exists()
+
+
+def test_run_json_records_the_input_as_an_absolute_path(seq_dir, tmp_path, monkeypatch):
+    """A relative input is recorded resolved, so render and view started from another
+    folder find it."""
+    monkeypatch.chdir(seq_dir.parent)
+    res = flowmocap.track(seq_dir.name, tmp_path / "r", init=seq_dir.parent / "init.json", config=QUICK,
+                          frames="0:2", progress=False, joints3d="off", log=None)
+    assert res.run["input"] == str(seq_dir.resolve())
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["input"] == str(seq_dir.resolve())

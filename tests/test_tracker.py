@@ -271,9 +271,8 @@ def test_bad_sequences(clip, tmp_path):
 
     shutil.copy(clip / "masks" / "000000.png", bad / "masks" / "000003.png")
     cv2.imwrite(str(bad / "frames" / "000002.png"), np.zeros((10, 10, 3), np.uint8))
-    seq = load_sequence(bad)
-    with pytest.raises(DataError, match="one size"):
-        seq.frame(2)
+    with pytest.raises(DataError, match="one size"):  # found when the folder is opened, before any work
+        load_sequence(bad)
     with pytest.raises(DataError, match="no images"):
         load_sequence(tmp_path)
 

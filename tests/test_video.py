@@ -181,3 +181,76 @@ def test_frames_read_in_any_order_equal_the_sequential_decode(tmp_path, codec, g
     seq = load_video(path)
     np.testing.assert_array_equal(seq.frame(40), plain[40])
     assert not hasattr(seq, "_decoded")  # nothing but the reader's few frames is held
+
+
+def _write_masks(folder, n, w, h, bad=None):
+    """``n`` masks of ``w x h`` (a block on the person) in ``folder``; ``bad``: ``{i: (w, h)}``
+    masks of another size, or ``{i: None}`` a file that is not an image."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        size = (bad or {}).get(i, (w, h))
+        if size is None:
+            (folder / f"{i:06d}.png").write_text("not an image")
+            continue
+        m = np.zeros((size[1], size[0]), np.uint8)
+        m[size[1] // 4: 3 * size[1] // 4, size[0] // 3: 2 * size[0] // 3] = 255
+        cv2.imwrite(str(folder / f"{i:06d}.png"), m)
+    return folder
+
+
+def test_masks_at_the_videos_own_size_are_scaled_with_its_frames(tmp_path):
+    """With frames scaled by max_side (--max-size) the user's masks may have the video's
+    own size (as load_video's docstring promises): they are scaled like the frames, as a
+    plain folder's are; masks at the scaled size still work."""
+    v = write_video(tmp_path / "big.mp4", _frames(3, w=160, h=96))
+    full = _write_masks(tmp_path / "full", 3, 160, 96)
+    seq = load_video(v, masks=full, max_side=80)
+    assert seq.size == (80, 48) and seq.source_size == (160, 96)
+    m = seq.mask(2)
+    assert m.shape == (48, 80) and m[24, 40] and not m[2, 2]
+    small = _write_masks(tmp_path / "small", 3, 80, 48)
+    np.testing.assert_array_equal(load_video(v, masks=small, max_side=80).mask(2), m)
+    assert load_video(v, masks=_write_masks(tmp_path / "same", 3, 160, 96)).source_size is None  # not scaled
+
+
+def test_every_video_mask_is_checked_before_any_work(tmp_path):
+    """A mask of another size, or a file that is not an image, late in the folder is
+    refused when the video is opened (before tracking), naming the file."""
+    v = write_video(tmp_path / "a.mp4", _frames(4))
+    with pytest.raises(DataError, match="000003.png is 20x20 but"):
+        load_video(v, masks=_write_masks(tmp_path / "size", 4, 64, 48, bad={3: (20, 20)}))
+    with pytest.raises(DataError, match="000002.png"):
+        load_video(v, masks=_write_masks(tmp_path / "text", 4, 64, 48, bad={2: None}))
+
+
+def test_a_negative_max_size_is_refused(tmp_path):
+    """max_side < 0 (--max-size -5) used to shrink the frames to 1x1; it is an InputError
+    in the loaders and in flowmocap.track, before anything is written."""
+    from flowmocap.io.sequence import load_sequence
+    from flowmocap.pipeline import track
+
+    v = write_video(tmp_path / "a.mp4", _frames(2))
+    with pytest.raises(InputError, match=r"--max-size must be >= 0 \(0 keeps the video's size\)"):
+        load_video(v, max_side=-5)
+    with pytest.raises(InputError, match="--max-size must be >= 0"):
+        load_sequence(tmp_path, max_side=-1)
+    with pytest.raises(InputError, match="--max-size must be >= 0"):
+        track(v, tmp_path / "out", max_size=-5, log=None, progress=False)
+    assert not (tmp_path / "out").exists()
+    assert load_video(v, max_side=0).size == (64, 48)
+
+
+def test_an_init_in_the_videos_own_pixels_says_the_frames_are_scaled(tmp_path):
+    """An init.json whose joints lie outside the scaled frames (given in the video's own
+    pixels) is refused with a hint on --max-size."""
+    from flowmocap.body.skeleton import JOINT_NAMES
+    from flowmocap.pipeline import track
+
+    v = write_video(tmp_path / "big.mp4", _frames(3, w=160, h=96))
+    masks = _write_masks(tmp_path / "m", 3, 160, 96)
+    init = {"frame": 0, "joints2d": {n: [100.0 + (i % 5) * 10, 10.0 + 3 * i] for i, n in enumerate(JOINT_NAMES)}}
+    with pytest.raises(InputError, match=r"outside the 80x48 image \(frames scaled by --max-size; pass --max-size 0 "
+                                         r"to keep the video's size\)$"):
+        track(v, tmp_path / "out", init=init, masks=masks, max_size=80, joints3d="off", log=None, progress=False)

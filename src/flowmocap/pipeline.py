@@ -58,7 +58,7 @@ from flowmocap.io.results import (
     write_motion,
     write_run,
 )
-from flowmocap.io.sequence import Sequence, load_sequence
+from flowmocap.io.sequence import Sequence, check_max_side, load_sequence, read_image
 from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
@@ -278,6 +278,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
     if joints3d not in ("auto", "off"):
         raise InputError(f"joints3d must be 'auto' or 'off'; got {joints3d!r}.")
+    check_max_side(max_size)
     parse_person(person)
     _check_out(out, force)
     with FolderLock(out):
@@ -326,7 +327,10 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if len(seq) < 2:
         raise InputError(f"{src} holds only {len(seq)} frame; tracking needs at least 2 frames "
                          "(the flow is measured between neighbouring frames).")
+    _check_person_point(choice, seq, src)
     auto_masks = masks == "auto" or seq.masks is None
+    if not auto_masks:
+        _check_masks_not_all_empty(seq.masks, user_masks)
     auto_init = isinstance(init, str) and init == "auto"
     cam, camera_source = _camera(camera, seq, src)
     if profile is None:
@@ -348,7 +352,13 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         if frames is not None:
             parse_frame_range(frames, len(seq))
     else:
-        spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
+        try:
+            spec = init if isinstance(init, KnownStart) else read_init(init, seq.size, len(seq))
+        except InputError as e:
+            if float(seq.meta.get("scale", 1.0)) == 1.0 or not any(w in str(e) for w in ("outside", "span only")):
+                raise
+            raise InputError(f"{str(e).rstrip('.')} (frames scaled by --max-size; pass --max-size 0 to keep the "
+                             "video's size)") from None
         a, b = _init_span(frames, spec, len(seq))
     uses_detector = auto_masks or auto_init or (joints3d == "auto" and (cfg.uses_detector3d or cfg.detector_keypoints))
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
@@ -369,7 +379,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                      "init_auto.json"):
             (out / name).unlink(missing_ok=True)
     if not has_result(out):
-        write_run(out, {"flowmocap": __version__, "status": "preparing", "input": str(src),
+        write_run(out, {"flowmocap": __version__, "status": "preparing", "input": str(src.resolve()),
                         "fingerprint": fingerprint})
     say(f"settings: profile '{profile}' ({why})" + (", fast" if fast else "") + (f", then {config}" if isinstance(config, (str, Path)) else
                                                     ", then the given overrides" if config else ""))
@@ -461,6 +471,39 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if "frame_range" in notes:
         say(notes["frame_range"])
     return load_result(out)
+
+
+def _check_person_point(choice: tuple, seq: Sequence, src: Path) -> None:
+    """Refuse ``person="x,y"`` outside the input's frames at their original size (before
+    ``max_size``, the pixels the option takes).
+
+    Raises:
+        InputError: the point lies outside the frames, with their size.
+    """
+    if choice[0] != "point":
+        return
+    w, h = seq.source_size or seq.size
+    x, y = choice[1]
+    if not (0 <= x <= w and 0 <= y <= h):
+        raise InputError(f"person={describe_person(choice)} lies outside the {w}x{h} frames of {src}; give a pixel "
+                         f"x,y with 0 <= x <= {w} and 0 <= y <= {h} (the frames' own size, before --max-size) on "
+                         "the person in the first frame they appear in.")
+
+
+def _check_masks_not_all_empty(paths: list[Path], given) -> None:
+    """Refuse masks with no person pixel in any of them (read until the first that has
+    one: at once for usual masks).
+
+    Raises:
+        NoPersonError: every mask is empty.
+        DataError: a mask cannot be read.
+    """
+    for p in paths:
+        if read_image(p, None, gray=True).any():
+            return
+    folder = Path(given) if given is not None else Path(paths[0]).parent
+    raise NoPersonError(f"every mask in {folder} is empty: masks must be non-zero on the person; fix the masks, or "
+                        "pass masks='auto' (--masks auto) to have the detector find the person.")
 
 
 def _check_out(out: Path, force: bool) -> None:
@@ -720,7 +763,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
     a, b = span
     run = {
         "flowmocap": __version__, "torch": torch.__version__, "python": platform.python_version(),
-        "input": str(seq.root), "frames": [a, b], "profile": profile, "config": cfg.to_dict(),
+        "input": str(Path(seq.root).resolve()), "frames": [a, b], "profile": profile, "config": cfg.to_dict(),
         "model": model.name or model.source, "model_source": model.source, "gender": model.gender,
         "camera": camera.to_dict(), "status": "running", **notes,
     }

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -121,6 +122,77 @@ def read_image(path: Path, size: tuple[int, int] | None = None, gray: bool = Fal
     return img
 
 
+def _read_gt(path: Path) -> dict:
+    """The arrays of a sequence's ``gt.npz``.
+
+    Raises:
+        DataError: a damaged file (truncated, empty, not an .npz, a member that does not load).
+    """
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a plain .npy under the name
+            raise ValueError("an .npy array, not an .npz archive")
+        with z:
+            return {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+        raise DataError(f"{path} is unreadable ({type(e).__name__}: {e}); regenerate it (flowmocap synth), or "
+                        "remove it to use the sequence without ground truth.") from None
+
+
+def _read_meta(path: Path) -> dict:
+    """A sequence's ``meta.json`` (a JSON object).
+
+    Raises:
+        DataError: not valid JSON, or not a JSON object.
+    """
+    try:
+        meta = json.loads(path.read_text())
+    except (ValueError, OSError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise DataError(f"{path} is not valid JSON ({e}); regenerate it (flowmocap synth), or remove it.") from None
+    if not isinstance(meta, dict):
+        raise DataError(f"{path} must hold a JSON object but holds a {type(meta).__name__}; regenerate it "
+                        "(flowmocap synth), or remove it.")
+    return meta
+
+
+def check_images(paths: list[Path], size: tuple[int, int] | tuple[tuple[int, int], ...], what: str) -> None:
+    """Check, from their headers only (PIL, a millisecond a file), that every image in
+    ``paths`` can be opened and has one of the sizes ``size`` (a ``(width, height)`` or a
+    tuple of them), so a bad file late in a folder is found before any work starts. A
+    file PIL cannot open, or whose header gives another size (e.g. an EXIF rotation,
+    which OpenCV applies), is read in full by OpenCV, as the tracker reads it.
+
+    Raises:
+        DataError: an unreadable file or one of another size, named, with what to do.
+    """
+    from PIL import Image
+
+    sizes = (tuple(size),) if isinstance(size[0], int) else tuple(tuple(s) for s in size)
+    for p in paths:
+        try:
+            with Image.open(p) as img:
+                got = tuple(img.size)
+        except Exception:  # noqa: BLE001 -- PIL raises many kinds for a broken file: OpenCV decides below
+            got = None
+        if got not in sizes:  # unreadable for PIL, or of another size (an EXIF rotation?): as OpenCV reads it
+            img = read_image(p, None, gray=True)  # DataError when OpenCV cannot read it either
+            got = (img.shape[1], img.shape[0])
+            if got not in sizes:
+                shown = " or ".join(f"{w}x{h}" for w, h in sizes)
+                raise DataError(f"{p} is {got[0]}x{got[1]} but the sequence's frames are {shown}; frames and masks "
+                                f"must all have one size: resize or replace this {what}.")
+
+
+def check_max_side(max_side) -> None:
+    """Refuse a negative ``max_side`` (``--max-size``).
+
+    Raises:
+        InputError: ``max_side`` < 0.
+    """
+    if max_side is not None and max_side < 0:
+        raise InputError(f"--max-size must be >= 0 (0 keeps the video's size); got {max_side}.")
+
+
 def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: int | None = None) -> Sequence:
     """Open a sequence folder, or a plain folder of frames.
 
@@ -133,8 +205,12 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
             its camera and ground truth are in its pixels. ``meta["scale"]`` is the scale.
 
     Raises:
-        DataError: no frames, unreadable files, mask count or size not matching.
+        DataError: no frames, unreadable files (every frame and mask is checked, from its
+            header, before anything else), mask count or size not matching, a damaged
+            gt.npz or meta.json.
+        InputError: a negative ``max_side``.
     """
+    check_max_side(max_side)
     root = Path(path)
     if not root.is_dir():
         raise DataError(f"{root} is not a folder of frames or a sequence folder.")
@@ -156,6 +232,9 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
                 "give one mask per frame, in the same order."
             )
         read_image(mask_paths[0], size, gray=True)
+    check_images(frames[1:], size, "frame")  # before any work: a bad file late in the folder is found now
+    if mask_paths is not None:
+        check_images(mask_paths, size, "mask")
     camera = None
     if (root / "camera.json").exists():
         try:
@@ -165,11 +244,8 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
             raise DataError(f"{root / 'camera.json'} is not a valid camera file: {e}") from e
         if (camera.width, camera.height) != size:
             raise DataError(f"camera.json is for {camera.width}x{camera.height} images but the frames are {size[0]}x{size[1]}.")
-    gt = {}
-    if (root / "gt.npz").exists():
-        with np.load(root / "gt.npz", allow_pickle=False) as z:
-            gt = {k: z[k] for k in z.files}
-    meta = json.loads((root / "meta.json").read_text()) if (root / "meta.json").exists() else {}
+    gt = _read_gt(root / "gt.npz") if (root / "gt.npz").exists() else {}
+    meta = _read_meta(root / "meta.json") if (root / "meta.json").exists() else {}
     source_size = None
     if camera is None and not gt:
         scaled, scale = scaled_size(size, max_side)

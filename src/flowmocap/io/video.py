@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from flowmocap.errors import DataError
-from flowmocap.io.sequence import Sequence, list_images, read_image, scale_image, scaled_size
+from flowmocap.io.sequence import Sequence, check_images, check_max_side, list_images, scale_image, scaled_size
 
 if TYPE_CHECKING:  # torch (via the camera) only where a camera is made
     from flowmocap.geometry.camera import PinholeCamera
@@ -309,13 +309,17 @@ class VideoSequence(Sequence):
     as they are read (:class:`VideoReader`).
 
     ``meta`` holds ``fps``, ``source``, ``timestamps`` and the rest of
-    :attr:`VideoReader.info`.
+    :attr:`VideoReader.info`. With frames scaled (``max_side``) :attr:`source_size` is the
+    video's own (decoded, upright) size, so masks of that size are scaled like the
+    frames (:meth:`Sequence.mask`).
     """
 
     def __init__(self, path: Path, reader: VideoReader, masks: list[Path] | None):
         w, h = reader.info["size"]
         meta = {"source": str(path), **reader.info}
-        super().__init__(root=path, frames=[path] * len(reader), masks=masks, camera=None, meta=meta, size=(w, h))
+        decoded = tuple(int(v) for v in reader.info["decoded_size"])
+        super().__init__(root=path, frames=[path] * len(reader), masks=masks, camera=None, meta=meta, size=(w, h),
+                         source_size=decoded if decoded != (w, h) else None)
         self.reader = reader
 
     def frame(self, i: int) -> np.ndarray:
@@ -333,12 +337,15 @@ def load_video(path: str | Path, masks: str | Path | None = None, max_side: int 
 
     Args:
         path: the video.
-        masks: a folder of one mask per frame (at the video's, or the scaled, size).
-        max_side: scale frames so that the long side is at most this (pixels); None keeps them.
+        masks: a folder of one mask per frame (at the video's, or the scaled, size; each
+            is checked, from its header, before anything else).
+        max_side: scale frames so that the long side is at most this (pixels); None or 0 keeps them.
 
     Raises:
         DataError: undecodable video, mask count or size not matching the video.
+        InputError: a negative ``max_side``.
     """
+    check_max_side(max_side)
     path = Path(path)
     reader = VideoReader(path, max_side=max_side)
     size = tuple(reader.info["size"])
@@ -351,5 +358,6 @@ def load_video(path: str | Path, masks: str | Path | None = None, max_side: int 
         if len(mask_paths) != len(reader):
             raise DataError(f"{len(mask_paths)} masks in {mask_dir} but {len(reader)} frames in {path}; "
                             "give one mask per frame, in the same order.")
-        read_image(mask_paths[0], size, gray=True)
+        decoded = tuple(reader.info["decoded_size"])
+        check_images(mask_paths, (decoded, size) if decoded != size else size, "mask")
     return VideoSequence(path, reader, mask_paths)

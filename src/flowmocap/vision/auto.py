@@ -208,13 +208,21 @@ def others_region(cands: list, mask: np.ndarray) -> np.ndarray:
 
 def load_detections(out_dir: str | Path, detector_name: str | None = None, num_frames: int | None = None,
                     size: tuple[int, int] | None = None) -> PersonTrack | None:
-    """Stored detections of ``out_dir``, or None when absent or made for other input/settings."""
+    """Stored detections of ``out_dir``, or None when absent, unreadable (a damaged file is
+    computed anew, not an error) or made for other input/settings."""
     d = Path(out_dir) / "detections"
     try:
         info = json.loads((d / "detections.json").read_text())
         with np.load(d / "keypoints.npz", allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (FileNotFoundError, ValueError, OSError):
+        T = len(arrays["found"])
+        K = len(KEYPOINT_NAMES)
+        usable = (isinstance(info, dict) and arrays["found"].shape == (T,)
+                  and arrays["keypoints"].shape == (T, K, 2) and arrays["confidence"].shape == (T, K)
+                  and ("world" not in arrays or arrays["world"].shape == (T, K, 3)))
+    except Exception:  # noqa: BLE001 -- a damaged cache (BadZipFile, EOFError, bad JSON, ...): computed anew
+        return None
+    if not usable:
         return None
     if detector_name is not None and info.get("detector") != detector_name:
         return None
@@ -493,9 +501,9 @@ def load_chunk(path: str | Path, key: str, a: int, b: int, masks: bool = True) -
         with np.load(path, allow_pickle=False) as z:
             z = {k: z[k] for k in z.files if masks or k != "mask_bits"}
         meta = json.loads(str(z["meta"]))
-    except (OSError, ValueError, KeyError):
+    except Exception:  # noqa: BLE001 -- a damaged stretch file (BadZipFile, EOFError, ...): computed anew
         return None
-    if meta.get("key") != key or meta.get("frames") != [a, b]:
+    if not isinstance(meta, dict) or meta.get("key") != key or meta.get("frames") != [a, b]:
         return None
     got: list[list[Candidate]] = [[] for _ in range(b - a)]
     start = 0
@@ -627,10 +635,12 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
             if k != main and len(t) > 2:
                 ignored.append({"frames": [t[0][0], t[-1][0]], "why": why})
     found = np.array([m is not None for m in masks])
+    d = out_dir / "detections"
+    # detections.json is written last (every file atomically): while the masks are rewritten
+    # the stored detections are absent, so a pass stopped here is done again, never half-used
+    (d / "detections.json").unlink(missing_ok=True)
     mdir = _mask_dir(out_dir)
     mdir.mkdir(parents=True, exist_ok=True)
-    import cv2
-
     empty = np.zeros((H, W), np.uint8)
     paths = []
     odir = _others_dir(out_dir)
@@ -642,7 +652,7 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
     for i in range(T):
         p = mdir / f"{i:06d}.png"
         own = None if masks[i] is None else _mask_array(masks[i])
-        cv2.imwrite(str(p), empty if own is None else own.astype(np.uint8) * 255)
+        _write_png(p, empty if own is None else own.astype(np.uint8) * 255)
         paths.append(p)
         if own is not None and len(cands[i]) > 0:
             # only people nearer the camera may hide the kept one: standing on the same floor
@@ -650,7 +660,7 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
             front = [c for c in cands[i] if boxes[i] is not None and c.box[3] > boxes[i][3]]
             region = others_region(front, own)
             if region.any():
-                cv2.imwrite(str(odir / f"{i:06d}.png"), region.astype(np.uint8) * 255)
+                _write_png(odir / f"{i:06d}.png", region.astype(np.uint8) * 255)
                 with_others += 1
     info = {
         "detector": name, "frames": T, "size": [W, H], "keypoint_names": list(KEYPOINT_NAMES),
@@ -667,15 +677,34 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
                                                      if refound else ""))},
     }
     box_arr = np.array([b if b is not None else (np.nan,) * 4 for b in boxes], np.float64).reshape(T, 4)
-    d = out_dir / "detections"
-    np.savez(d / "keypoints.npz", keypoints=kp.astype(np.float32), confidence=conf.astype(np.float32),
-             found=found, names=np.array(KEYPOINT_NAMES), box=box_arr, world=world.astype(np.float32))
-    (d / "detections.json").write_text(json.dumps(info, indent=2))
+    from flowmocap.atomic import atomic_write
+
+    arrays = dict(keypoints=kp.astype(np.float32), confidence=conf.astype(np.float32), found=found,
+                  names=np.array(KEYPOINT_NAMES), box=box_arr, world=world.astype(np.float32))
+
+    def write_npz(tmp: str) -> None:
+        with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to the temporary's name
+            np.savez(f, **arrays)
+
+    atomic_write(d / "keypoints.npz", write_npz)
+    atomic_write(d / "detections.json", lambda tmp: Path(tmp).write_text(json.dumps(info, indent=2)))
     if not found.any():
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
                             "check that a whole person is visible, or give --init init.json and --masks FOLDER.")
     return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32),
                        odir)
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """Write ``image`` (uint8) as the PNG ``path`` atomically (:func:`flowmocap.atomic.atomic_write`)."""
+    import cv2
+
+    from flowmocap.atomic import atomic_write
+
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"could not encode {path} as PNG")
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(data.tobytes()))
 
 
 class PackedMask(NamedTuple):
