@@ -456,19 +456,13 @@ def _fd_columns(fun, x0, cols, h=1e-6):
 
 
 def _flow_case(H=30, W=36, seed=0):
+    """:func:`_bumpy_sheet` with per-pixel weights and its raster, held fixed: with
+    visibility fixed the residuals are smooth in the vertices."""
     from flowmocap.render import rasterize
-    from flowmocap.render.primitives import grid_mesh
 
-    rng = np.random.default_rng(seed)
-    v, f = grid_mesh(5, 4, size=(1.2, 1.0))
-    v[:, 2] = 0.1 * np.sin(3 * v[:, 0]) * np.cos(2 * v[:, 1])
-    Xc = v + np.array([0.0, 0.0, 3.0])
-    Xp = Xc + 0.03 * rng.standard_normal(Xc.shape)
-    proj = lambda X: np.stack([30.0 * X[:, 0] / X[:, 2] + W / 2, 30.0 * X[:, 1] / X[:, 2] + H / 2], 1)  # noqa: E731
-    xc, xp = proj(Xc), proj(Xp)
-    obs = rng.standard_normal((H, W, 2)) * 0.5 + np.array([0.3, -0.2])
-    w = rng.random((H, W)) + 0.2
-    raster = rasterize(xc, Xc[:, 2], f, H, W)  # held fixed: the residuals are smooth in the vertices
+    f, Xc, Xp, xc, xp, obs = _bumpy_sheet(H, W, seed)
+    w = np.random.default_rng(seed + 100).random((H, W)) + 0.2
+    raster = rasterize(xc, Xc[:, 2], f, H, W)
     assert (raster.face_id >= 0).sum() > 100
     return f, xc, xp, Xc[:, 2].copy(), Xp[:, 2].copy(), obs, w, raster
 
