@@ -7,7 +7,7 @@ fitted motion and from the ground-truth motion of the same frames, and the angle
 each floor normal and +y is reported, with the fraction of frames labelled as foot contacts
 and how the fit's contact labels agree with those computed from the true motion.
 
-    python benchmarks/ground_cmu.py --runs /work/bench-runs/seeds --out benchmarks/results/ground_cmu.json
+    python benchmarks/ground_cmu.py --runs RUNS --out benchmarks/results/ground_cmu.json
 """
 
 from __future__ import annotations
@@ -55,7 +55,8 @@ def run(runs: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", default="/work/bench-runs/seeds", help="folder of run folders")
+    ap.add_argument("--runs", required=True, help="folder of run folders, each with sequence/ (gt.npz) and a result "
+                    "in new/result, result or flowmocap")
     ap.add_argument("--out", default="benchmarks/results/ground_cmu.json", help="JSON output")
     args = ap.parse_args()
     rows = run(Path(args.runs))

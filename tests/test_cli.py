@@ -65,3 +65,17 @@ def test_body_command_errors_cleanly(tmp_path, capsys):
         assert main(["synth", "builtin:walk", *angle, "--num-frames", "2", "--size", "64x48",
                      "--out", str(tmp_path / "s")]) == 2
         assert "elevation strictly between -90 and 90" in capsys.readouterr().err
+
+
+def test_track_takes_a_list_file_alone_and_says_when_there_is_no_input(tmp_path, capsys):
+    """`track --list FILE` with no other input is a batch (argparse required an input
+    before); `track` with neither says what to give."""
+    from flowmocap.cli import main
+
+    assert main(["track", "--out", str(tmp_path / "none")]) == 2
+    assert "track needs an input" in capsys.readouterr().err
+    todo = tmp_path / "todo.txt"
+    todo.write_text(str(tmp_path / "missing.mp4") + "\n")
+    assert main(["track", "--list", str(todo), "--out", str(tmp_path / "out")]) == 6  # a batch whose input failed
+    assert "missing.mp4 does not exist" in capsys.readouterr().out
+

@@ -64,6 +64,9 @@ def cmd_track(args) -> int:
                 "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow,
                 "fast": args.fast}
     lists = [args.list] if args.list else []
+    if not args.input and not lists:
+        raise InputError("track needs an input: a video file, a folder of frames, a sequence folder, or a batch "
+                         "(several of them, a folder of videos, @LIST or --list FILE).")
     if args.workers < 1:
         raise InputError(f"--workers must be at least 1; got {args.workers}.")
     if args.ray and Path(args.ray).exists():
@@ -141,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=f"Exit status: 0 when every input has a finished result; {BATCH_FAILED} when some inputs "
                        "of a batch failed (the others are done; the summary says why; run again to retry them); "
                        "other non-zero values on an error that stopped the command.")
-    t.add_argument("input", nargs="+", help="a video file, a sequence folder (frames/, masks/, camera.json) or a "
+    t.add_argument("input", nargs="*", help="a video file, a sequence folder (frames/, masks/, camera.json) or a "
                    "folder of frames; for a batch: several of them, a folder of videos and sequence folders, or "
                    "@LIST (a text file, one input per line)")
     t.add_argument("--out", required=True, help="result folder (motion.npz, run.json, detections/); for a batch, "

@@ -23,7 +23,8 @@ def register(subparsers) -> None:
     p.add_argument("result", help="result folder (motion.npz, run.json)")
     p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT",
                    help="one of: " + ", ".join(FORMAT_HELP))
-    p.add_argument("--out", "-o", help="output file (a folder for obj); default RESULT/export/motion.<ext>")
+    p.add_argument("--out", "-o", help="output file (a folder for obj); default RESULT/export/motion.<ext> (motion_frames.glb, "
+                   "motion_amass.npz, obj/ for glb-frames, npz, obj)")
     p.add_argument("--frame", default="ground", choices=["ground", "up", "world"],
                    help="ground: y up, floor at 0 (default); up: turned y up only; world: the result's own frame")
     p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
