@@ -58,6 +58,12 @@ class BodyModel(torch.nn.Module):
     Holds buffers only; build one with :func:`flowmocap.body.load_body_model`.
     The rest pose is SMPL's: T-pose, y up, facing +z, metres.
 
+    Args:
+        arrays: the model's :class:`ModelArrays`.
+        num_betas: shape coefficients used (extra ``shapedirs`` are dropped, missing ones
+            are zero).
+        dtype: dtype of the float buffers.
+
     Attributes:
         faces: ``(F, 3)`` int64 triangle indices, counter-clockwise from outside.
         parents: ``(24,)`` parent joint indices (root: -1).
@@ -94,6 +100,7 @@ class BodyModel(torch.nn.Module):
 
     @property
     def num_vertices(self) -> int:
+        """Number of vertices V."""
         return self.v_template.shape[0]
 
     @property

@@ -85,6 +85,7 @@ class BaselineConfig:
     seed: int = 0
 
     def to_dict(self) -> dict:
+        """The settings as a JSON-ready dict (tuples as lists)."""
         d = asdict(self)
         d["pose_prior_weights"] = list(self.pose_prior_weights)
         d["outlier_px"] = list(self.outlier_px)

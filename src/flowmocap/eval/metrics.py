@@ -53,6 +53,10 @@ def local_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
 def global_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
     """One similarity Procrustes over all frames' joints, then mean distance per frame.
 
+    Args:
+        pred, gt: ``(T, 24, 3)`` joints in metres.
+        joints: the joints evaluated (default: the paper's 13).
+
     Returns:
         ``(T,)`` metres.
     """
@@ -64,7 +68,13 @@ def global_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
 
 
 def mpjpe(pred, gt, joints=EVAL_JOINTS, root: int = 0) -> np.ndarray:
-    """Root-relative mean per-joint position error without alignment, ``(T,)`` metres."""
+    """Root-relative mean per-joint position error without alignment, ``(T,)`` metres.
+
+    Args:
+        pred, gt: ``(T, 24, 3)`` joints in metres.
+        joints: the joints evaluated (default: the paper's 13).
+        root: the joint both are made relative to (default the pelvis).
+    """
     pred, gt = _check(pred, gt)
     p = pred[:, list(joints)] - pred[:, root : root + 1]
     g = gt[:, list(joints)] - gt[:, root : root + 1]

@@ -564,7 +564,13 @@ def _load_reference(ref_dir: Path, settings: dict, cameras: list) -> dict | None
 
 def person_pixel(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5) -> tuple | None:
     """``(frame, (x, y))``: the first frame with at least 4 confident keypoints and the
-    centre of their box (pixels), or None."""
+    centre of their box (pixels), or None.
+
+    Args:
+        keypoints: ``(T, K, 2)`` pixels (NaN where missing), one view's track.
+        confidence: ``(T, K)`` detector confidence per keypoint.
+        min_confidence: the confidence a keypoint needs to count.
+    """
     for i in range(len(keypoints)):
         ok = (confidence[i] >= min_confidence) & np.isfinite(keypoints[i]).all(-1)
         if ok.sum() >= 4:
@@ -585,6 +591,8 @@ def pa_mpjpe(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = None)
     of :data:`EVAL_NAMES`) against a reference of the same shape.
 
     Args:
+        pred: ``(T, 13, 3)`` joints, metres.
+        ref: ``(T, 13, 3)`` reference joints, metres (NaN where missing: not scored).
         valid: ``(T, 13)`` bool, the reference joints to score (default all); both hips
             must be valid in every frame (the per-sequence error is hips-relative).
 

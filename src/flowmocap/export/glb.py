@@ -32,6 +32,7 @@ class GltfBuffer:
     aligned) as a buffer view and an accessor of glTF type ``kind`` (``"SCALAR"``,
     ``"VEC3"``, ``"VEC4"``, ``"MAT4"``) and returns the accessor's index; ``bounds`` adds
     the ``min``/``max`` that glTF requires for positions and animation inputs.
+    Construct with the ``pygltflib.GLTF2`` document the views and accessors go into.
     """
 
     def __init__(self, gltf):
@@ -40,7 +41,19 @@ class GltfBuffer:
 
     def add(self, array: np.ndarray, kind: str, target: int | None = None, bounds: bool = False,
             name: str | None = None) -> int:
-        """Add ``array`` (first axis: the accessor's count) in a buffer view of its own."""
+        """Add ``array`` (first axis: the accessor's count) in a buffer view of its own.
+
+        Args:
+            array: ``(count,)`` or ``(count, k)``, ``k`` components per element (16 for
+                ``"MAT4"``, column-major); float32, uint32, uint16 or uint8.
+            kind: glTF accessor type, e.g. ``"SCALAR"``, ``"VEC3"``, ``"MAT4"``.
+            target: glTF buffer-view target (e.g. ``ARRAY_BUFFER``), or None.
+            bounds: add the accessor's per-component ``min``/``max``.
+            name: the accessor's name.
+
+        Returns:
+            The accessor's index.
+        """
         import pygltflib as g
 
         array = np.ascontiguousarray(array)

@@ -88,6 +88,7 @@ class FittedMotion:
 
     @property
     def num_frames(self) -> int:
+        """Number of frames T."""
         return int(self.poses.shape[0])
 
     def rest_joints(self) -> np.ndarray:
@@ -100,6 +101,9 @@ class FittedMotion:
 
     def body(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Posed vertices and joints of frames ``start:stop``.
+
+        Args:
+            start, stop: frame range, as in ``poses[start:stop]`` (``stop=None``: to the end).
 
         Returns:
             ``vertices (n, V, 3)`` and ``joints (n, 24, 3)``, float64 metres, export frame.

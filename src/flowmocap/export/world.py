@@ -63,7 +63,8 @@ class WorldFrame:
     fingerprint: str
 
     def to_dict(self, frame_index=None) -> dict:
-        """The ``world.json`` document (see the module docstring)."""
+        """The ``world.json`` document (see the module docstring); ``frame_index``: ``(T,)``
+        source-video frame numbers to record (None: an empty list)."""
         r = lambda a, n=9: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
         return {
             "format": "flowmocap-world", "version": 1, "fingerprint": self.fingerprint,
@@ -78,6 +79,11 @@ class WorldFrame:
 
     @classmethod
     def from_dict(cls, doc: dict) -> "WorldFrame":
+        """The frame of a ``world.json`` document (the inverse of :meth:`to_dict`).
+
+        Raises:
+            KeyError, TypeError, ValueError: if a field is missing or malformed.
+        """
         from flowmocap.geometry.camera import PinholeCamera
 
         res = doc.get("residual_mm")
@@ -95,6 +101,14 @@ def camera_in_frame(camera, rotation: np.ndarray, offset: np.ndarray):
 
     ``X_cam = R x_old + t = (R rotation^T) x_new + (t - R rotation^T offset)``, so it
     projects the moved points to the same pixels.
+
+    Args:
+        camera: a ``PinholeCamera`` (world-to-camera ``R``, ``t``).
+        rotation: ``(3, 3)`` rotation from the old frame to the new.
+        offset: ``(3,)`` metres.
+
+    Returns:
+        A new ``PinholeCamera``, same intrinsics.
     """
     from flowmocap.geometry.camera import PinholeCamera
 
@@ -109,6 +123,9 @@ def foot_vertex_sets(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Args:
         weights: ``(V, 24)`` skinning weights.
+
+    Returns:
+        ``left`` and ``right``, 1-D int64 vertex indices (into the ``V`` vertices).
     """
     top = np.argmax(np.asarray(weights), axis=1)
     return np.flatnonzero(np.isin(top, _LEFT_FOOT)), np.flatnonzero(np.isin(top, _RIGHT_FOOT))
@@ -204,6 +221,17 @@ def load_world_frame(result_dir: str | Path, poses, trans, betas, model, camera,
     JSON object, parts missing) the frame is computed and written atomically. A
     result folder that cannot be written to still gets its frame. ``cache=False`` neither
     reads nor writes the file.
+
+    Args:
+        result_dir: the result folder (``world.json`` is read and written there).
+        poses, trans, betas, model, camera, fps: as for :func:`world_frame` (``(T, 72)``
+            radians, ``(T, 3)`` metres, ``(10,)``, in the result's frame).
+        frame_index: ``(T,)`` source-video frame numbers, stored in ``world.json`` only
+            (not part of the fingerprint); None stores an empty list.
+        cache: read and write ``world.json``.
+
+    Returns:
+        :class:`WorldFrame`.
     """
     from flowmocap.atomic import atomic_write
 

@@ -381,6 +381,7 @@ class TrackerConfig:
                 or self.reinit_max_joint3d_error > 0)
 
     def to_dict(self) -> dict:
+        """All settings as a JSON-ready dict (``stages`` as lists), as ``run.json`` records them."""
         d = asdict(self)
         d["stages"] = [list(s) for s in self.stages]
         return d

@@ -466,10 +466,12 @@ class SilhouetteTarget:
 
     @property
     def height(self) -> int:
+        """Image height H in pixels."""
         return int(self.mask.shape[0])
 
     @property
     def width(self) -> int:
+        """Image width W in pixels."""
         return int(self.mask.shape[1])
 
 
@@ -1258,7 +1260,7 @@ def pseudo_huber(r2: torch.Tensor, scale: float) -> torch.Tensor:
     ``rho = 2 s^2 (sqrt(1 + r2 / s^2) - 1)``, ``~ r2`` for ``r << s``, ``~ 2 s r`` for
     ``r >> s`` (unit of ``r2``; ``scale`` s in the unit of ``r``). Unlike Geman-McClure it
     never saturates: its slope tends to ``2 s`` per unit of distance, so a large error
-    keeps a pull."""
+    keeps a pull. ``r2`` may have any shape; the result has the same shape and dtype."""
     return r2 * (2.0 / (1.0 + torch.sqrt(1.0 + r2 / (scale * scale))))
 
 

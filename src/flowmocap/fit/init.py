@@ -141,7 +141,8 @@ def guess_translation(model: BodyModel, camera: PinholeCamera, spec: InitSpec) -
     """Translation that puts the rough-posed body's joints over the 2D joints (least squares).
 
     The depth comes from the ratio of 3D to 2D spread of the given joints; x and y from
-    back-projecting their centroid. Returns ``(3,)`` metres in the camera frame.
+    back-projecting their centroid. Returns ``(3,)`` float32 metres: the body model's
+    translation in the camera's world frame (the camera frame when ``R = I``, ``t = 0``).
     """
     with torch.no_grad():
         out = model(betas=torch.as_tensor(spec.betas, dtype=torch.float32)[None],
@@ -168,8 +169,13 @@ def fit_frame0(model: BodyModel, camera: PinholeCamera, spec: InitSpec, silhouet
     """Steps 1 and 2 of the initialisation (``joints3d``: the frame's detected 3D joints
     for ``E_d``, as :func:`fit_to_joints` takes them, or None).
 
+    Args:
+        spec: the parsed init (``joints2d (24, 2)`` pixels, ``pose (72,)`` radians, ...).
+        silhouette: a :class:`~flowmocap.fit.energies.SilhouetteTarget` or None.
+
     Returns:
-        ``pose (72,)``, ``trans (3,)``, ``betas (1, 10)`` and a dict of final energies.
+        ``pose (72,)`` radians, ``trans (3,)`` metres, ``betas (1, 10)`` and a dict of
+        final energies.
     """
     trans = (torch.as_tensor(spec.trans, dtype=torch.float32) if spec.trans is not None
              else guess_translation(model, camera, spec))

@@ -428,10 +428,12 @@ class RotationEKF:
 
     @property
     def accel_noise(self) -> float:
+        """Std of the white angular acceleration, rad/frame^2."""
         return float(self._accel[0])
 
     @property
     def meas_noise(self) -> float:
+        """Std of a measured rotation, rad (per axis)."""
         return float(self._meas[0])
 
     @property
@@ -465,9 +467,9 @@ class RotationEKF:
         return self.rotvec
 
     def update(self, measurement) -> np.ndarray:
-        """Correct with a measured rotation (``(3,)`` axis-angle or ``(3, 3)`` matrix).
+        """Correct with a measured rotation (``(3,)`` axis-angle in radians or ``(3, 3)`` matrix).
 
-        Returns the a-posteriori rotation as ``(3,)`` axis-angle.
+        Returns the a-posteriori rotation as ``(3,)`` axis-angle, radians.
         """
         Rm, rv = _rotation_input(measurement, "measurement")
         _ekf_update(self._R[None], self._w[None], self._P[None], Rm[None], self._meas)
@@ -559,12 +561,13 @@ class TranslationKF:
         return self.kf.P.copy()
 
     def predict(self) -> np.ndarray:
-        """Advance one step; returns the a-priori translation ``(3,)``."""
+        """Advance one step; returns the a-priori translation ``(3,)`` metres."""
         self.kf.predict()
         return self.position
 
     def update(self, trans) -> np.ndarray:
-        """Correct with a measured translation ``(3,)``; returns the a-posteriori one."""
+        """Correct with a measured translation ``(3,)`` metres; returns the a-posteriori
+        one, ``(3,)`` metres."""
         self.kf.update(_array(trans, (3,), "trans")[:, None])
         return self.position
 

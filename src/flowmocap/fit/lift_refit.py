@@ -125,7 +125,9 @@ def keypoints13(model, kmap, poses: torch.Tensor, betas: torch.Tensor, trans: to
     """``(keypoints (B, 13, 3), joints (B, 24, 3))`` of posed bodies, world axes, metres:
     the 13 points in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS` where the
     detector puts them (the head at the middle of the ears). Without gradients, a long
-    motion is posed :data:`NO_GRAD_CHUNK` frames at a time (the same values, less memory)."""
+    motion is posed :data:`NO_GRAD_CHUNK` frames at a time (the same values, less memory).
+    ``poses (B, 72)`` radians, ``betas (1, num_betas)`` or ``(B, num_betas)``, ``trans (B,
+    3)`` metres, as for :func:`posed_joints_only`."""
     if not torch.is_grad_enabled() and len(poses) > NO_GRAD_CHUNK:
         parts = [keypoints13(model, kmap, poses[a:a + NO_GRAD_CHUNK], betas, trans[a:a + NO_GRAD_CHUNK])
                  for a in range(0, len(poses), NO_GRAD_CHUNK)]
@@ -320,7 +322,19 @@ def refit_energy(model, kmap, poses, trans, betas, targets, use, poses_tracked, 
     in world axes, ``use (B,)`` the frames that have one (0 / 1). With ``pixel_sigma``
     (pixels) it adds ``sum_j w_j |camera.project(J_j) - pixels_j|^2 / pixel_sigma^2`` over the
     24 joints of the frames used, ``pixels (B, 24, 2)``: the tracked body's image held;
-    ``pixel_use (B, 24)`` the weights ``w_j`` (default 1: every joint held)."""
+    ``pixel_use (B, 24)`` the weights ``w_j`` (default 1: every joint held).
+
+    Args:
+        poses: ``(B, 72)`` radians; trans: ``(B, 3)`` metres; betas: ``(1, num_betas)``
+            (tensors, the variables).
+        poses_tracked: ``(B, 72)`` radians, the tracked poses the joints 1..23 are held
+            near (``sum (poses - poses_tracked)^2 / reg^2``).
+        sigma: metres, the scale of the keypoints' distance to ``targets``.
+        reg: radians, the scale of the poses' change.
+
+    Returns:
+        A 0-d tensor (unitless).
+    """
     kp, joints = keypoints13(model, kmap, poses, betas, trans)
     fit = (((kp - targets) ** 2).sum(-1).sum(-1) * use).sum() / sigma ** 2
     if pixel_sigma:

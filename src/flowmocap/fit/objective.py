@@ -104,7 +104,11 @@ class Scene:
         return body_capsules(self.model, out, rest=self.rest_capsules)
 
     def forward(self, pose: torch.Tensor, trans: torch.Tensor):
-        """Body output, ``(V, 2)`` projected vertices (pixels) and ``(V,)`` depths (metres)."""
+        """Body output, ``(V, 2)`` projected vertices (pixels) and ``(V,)`` depths (metres).
+
+        ``pose`` ``(72,)`` axis-angle radians and ``trans`` ``(3,)`` metres (world frame),
+        as for :func:`~flowmocap.body.fused.posed_body` (batch 1).
+        """
         out = posed_body(self.rig, pose, trans)
         return (out, *self.camera.project_with_depth(out.vertices[0]))
 

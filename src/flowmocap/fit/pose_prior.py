@@ -130,6 +130,10 @@ class PosePrior:
             positive diagonal, ``P_k = L_k L_k^T`` (units 1/rad).
         log_normalizers: ``(K,)`` ``c_k`` of the module docstring.
         info: what the file says about its training (clips, frames, energies, ...).
+
+    The constructor takes ``weights``, ``means``, ``precisions_cholesky``, ``joints`` and
+    ``info`` as above (array-likes, converted to float64); InputError where they are
+    inconsistent.
     """
 
     def __init__(self, weights: Any, means: Any, precisions_cholesky: Any, joints: Any,
@@ -163,6 +167,7 @@ class PosePrior:
 
     @property
     def num_components(self) -> int:
+        """Number of mixture components K."""
         return int(self.weights.size)
 
     @property
@@ -172,6 +177,7 @@ class PosePrior:
 
     @property
     def joint_names(self) -> tuple[str, ...]:
+        """Names of the covered joints, in the order of :attr:`joints`."""
         return tuple(JOINT_NAMES[i] for i in self.joints)
 
     @property
@@ -270,7 +276,8 @@ class PosePrior:
         return y, 0.5 * (y * y).sum(-1) + c
 
     def component_energies(self, pose: torch.Tensor) -> torch.Tensor:
-        """``(B, K)``: ``0.5 (x - mu_k)^T P_k (x - mu_k) + c_k - min c`` for each component."""
+        """``(B, K)``: ``0.5 (x - mu_k)^T P_k (x - mu_k) + c_k - min c`` for each component
+        (nats), of ``pose`` ``(B, 72)`` or ``(B, 69)`` axis-angle radians (see :meth:`select`)."""
         return self._whitened(pose)[1]
 
     def energy(self, pose: torch.Tensor) -> torch.Tensor:
@@ -300,7 +307,8 @@ class PosePrior:
 
     def log_likelihood(self, pose: torch.Tensor) -> torch.Tensor:
         """``(B,)`` the full mixture's log density of the covered joints' rotations,
-        ``log sum_k w_k N(x; mu_k, P_k^-1)`` in nats (not shifted)."""
+        ``log sum_k w_k N(x; mu_k, P_k^-1)`` in nats (not shifted), of ``pose`` ``(B, 72)``
+        or ``(B, 69)`` axis-angle radians (see :meth:`select`)."""
         e = self.component_energies(pose)
         return torch.logsumexp(-e, dim=1) - float(self.log_normalizers.min())
 

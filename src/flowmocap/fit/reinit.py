@@ -71,7 +71,9 @@ __all__ = ["body_silhouette", "joint_disagreement", "joint3d_disagreement", "fit
 
 
 def body_silhouette(scene: Scene, pose: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
-    """``(H, W)`` bool: the pixels the body covers (rasterised mesh) with this pose."""
+    """``(H, W)`` bool: the pixels the body covers (rasterised mesh) with this pose,
+    ``pose (72,)`` axis-angle radians and ``trans (3,)`` metres (as :meth:`Scene.forward
+    <flowmocap.fit.objective.Scene.forward>` takes them)."""
     with torch.no_grad():
         _, px, d = scene.forward(pose, trans)
     return body_mask(px.numpy().astype(np.float64), d.numpy(), scene.faces, scene.camera.height, scene.camera.width)
@@ -79,9 +81,10 @@ def body_silhouette(scene: Scene, pose: torch.Tensor, trans: torch.Tensor) -> np
 
 def joint_disagreement(joints2d: np.ndarray, j2d: np.ndarray, conf: np.ndarray,
                        min_confidence: float = CONFIDENT) -> float | None:
-    """Median pixel distance between the model's joints ``(24, 2)`` and the detected
-    ones ``(24, 2)`` over the joints with ``conf >= min_confidence``, divided by the
-    height of the detected joints' box; None with fewer than 4 such joints."""
+    """Median pixel distance between the model's joints ``joints2d (24, 2)`` pixels and
+    the detected ones ``j2d (24, 2)`` pixels over the joints with ``conf (24,) >=
+    min_confidence``, divided by the larger side of the detected joints' box (at least
+    1 pixel): a fraction of the person's size, unitless; None with fewer than 4 such joints."""
     ok = conf >= min_confidence
     if ok.sum() < 4:
         return None
@@ -94,7 +97,7 @@ def joint3d_disagreement(joints_cam: np.ndarray, j3d: np.ndarray, conf: np.ndarr
                          min_confidence: float = CONFIDENT) -> float | None:
     """Mean distance in metres between the model's joints ``joints_cam (24, 3)`` and
     the detector's 3D joints ``j3d (24, 3)`` (both in the camera's axes; any origin and,
-    for the detector, any scale) over the joints with ``conf >= min_confidence``, after
+    for the detector, any scale) over the joints with ``conf (24,) >= min_confidence``, after
     the detector's joints are aligned onto the model's by the confidence-weighted
     similarity (scale, rotation, translation) of least squares: a per-frame PA-MPJPE
     against the detector (a mean, not a median: one flipped limb moves only one or two
@@ -161,6 +164,8 @@ class ReinitMonitor:
             ``cfg.reinit_max_joint3d_error``).
         patience3d: 3D-bad frames in a row before re-initialising (default
             ``cfg.reinit_3d_patience``).
+        others: ``others(i)``: frame ``i``'s ``(H, W)`` bool pixels where someone else may
+            hide the person (``PersonTrack.others``), or None; None: none anywhere.
     """
 
     def __init__(self, track: PersonTrack, cfg: TrackerConfig, stored_joints2d: dict | None = None,
@@ -243,7 +248,14 @@ class ReinitMonitor:
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
         """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus
-        ``"joint3d_error"`` (metres or None) and ``"bad3d"`` when the 3D criterion is on."""
+        ``"joint3d_error"`` (metres or None) and ``"bad3d"`` when the 3D criterion is on.
+
+        Args:
+            i: the frame.
+            scene: the tracker's :class:`~flowmocap.fit.objective.Scene`.
+            pose: ``(72,)`` axis-angle radians; trans: ``(3,)`` metres.
+            mask: the frame's ``(H, W)`` bool person mask, or None (no IoU).
+        """
         j2d, conf = self._joints(i) if i < len(self.track) else (None, None)
         with torch.no_grad():
             out, _, _ = scene.forward(pose, trans)
@@ -284,6 +296,18 @@ class ReinitMonitor:
         return int((conf >= CONFIDENT).sum()) >= MIN_INIT_JOINTS
 
     def __call__(self, i: int, state, scene, mask: np.ndarray | None):
+        """Judge tracked frame ``i`` and re-initialise it when due (the tracker's ``monitor``).
+
+        Args:
+            i: the frame.
+            state: its optimised :class:`~flowmocap.fit.objective.FrameState` (``pose
+                (72,)`` radians, ``trans (3,)`` metres).
+            scene: the tracker's :class:`~flowmocap.fit.objective.Scene`.
+            mask: the frame's ``(H, W)`` bool person mask, or None.
+
+        Returns:
+            ``(FrameState, info)`` of a kept refit, or None.
+        """
         s = self.judge(i, scene, state.pose, state.trans, mask)
         self.verdicts[i] = s["bad"]
         self.verdicts3d[i] = s.get("bad3d")

@@ -209,7 +209,8 @@ def _limit_kernel(pose, lo, hi, joints, kinds, axes, lock_eps, out_r, out_j):
 
 class LimitCharts:
     """The limits table in the kernel's form: ``joints (n,)`` limited joints, ``kinds``,
-    ``axes (n, 3)``, ``lo``/``hi (n, 3)`` radians (see :class:`~flowmocap.fit.joint_limits.JointLimits`).
+    ``axes (n, 3)``, ``lo``/``hi (n, 3)`` radians (see :class:`~flowmocap.fit.joint_limits.JointLimits`),
+    built from a ``JointLimits``.
 
     Raises:
         InputError: a chart is neither ``"axis_angle"`` nor an intrinsic Tait-Bryan order.
@@ -282,7 +283,8 @@ class _Limits(torch.autograd.Function):
 
 
 def limit_residuals(pose: torch.Tensor, charts: LimitCharts, lock_eps: float) -> torch.Tensor:
-    """:func:`limit_residuals_jacobian` as a differentiable op on a CPU ``(B, 72)`` tensor."""
+    """:func:`limit_residuals_jacobian` as a differentiable op on a CPU ``(B, 72)`` tensor
+    (axis-angle, radians); returns ``(B, 3 n)`` unitless residuals of ``pose``'s dtype."""
     return _Limits.apply(pose, charts, lock_eps)
 
 

@@ -346,8 +346,11 @@ def prediction_curve(cameras, tracks: list, offsets, view: int, search, min_conf
     compared with the projection at time ``f + d``.
 
     Args:
+        cameras: ``V`` :class:`CalibratedCamera`.
         tracks: per view ``(points (T_v, J, 2) px, confidence (T_v, J))`` or None.
-        offsets: ``(V,)`` the views' offsets (``offsets[view]`` is not used).
+        offsets: ``(V,)`` the views' offsets in frames (``offsets[view]`` is not used).
+        view: the index of the view predicted.
+        search: the candidate offsets of ``view`` (frames).
 
     Returns:
         ``(len(search),)`` the median distance in pixels between ``view``'s confident

@@ -113,10 +113,12 @@ class MocapClip:
 
     @property
     def num_frames(self) -> int:
+        """Number of frames T."""
         return int(self.rotations.shape[0])
 
     @property
     def num_joints(self) -> int:
+        """Number of joints J, end sites included."""
         return len(self.names)
 
     @property

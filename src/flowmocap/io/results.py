@@ -88,7 +88,12 @@ def write_json(path: Path, info) -> None:
 
 def json_default(x):
     """``json.dumps(default=...)`` for numpy arrays and numbers and paths (lists, Python
-    numbers, strings); TypeError for anything else."""
+    numbers, strings); TypeError for anything else.
+
+    Args:
+        x: an ``np.ndarray`` of any shape (to nested lists of that shape), a numpy scalar
+            (to a Python number) or a ``Path`` (to a string).
+    """
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, (np.floating, np.integer)):
@@ -155,9 +160,10 @@ class FrameLog:
 
     def append(self, poses, trans, joints3d, joints2d, energies, frame: int, seconds: float,
                events: list[dict] = ()) -> None:
-        """Queue one frame's record (``poses (72,)``, ``trans (3,)``, ``joints3d (24, 3)``,
-        ``joints2d (24, 2)``, ``energies (K,)`` in :attr:`header`'s order) and its events
-        for the next :meth:`commit`."""
+        """Queue one frame's record (``poses (72,)`` radians, ``trans (3,)`` metres,
+        ``joints3d (24, 3)`` metres, ``joints2d (24, 2)`` pixels, ``energies (K,)`` in
+        :attr:`header`'s order; ``frame`` the input frame number, ``seconds`` its tracking
+        time) and its events for the next :meth:`commit`."""
         rec = np.zeros((), self.dtype)
         rec["poses"], rec["trans"], rec["joints3d"], rec["joints2d"] = poses, trans, joints3d, joints2d
         rec["energies"], rec["frame_index"], rec["seconds"] = energies, frame, seconds

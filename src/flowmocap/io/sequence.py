@@ -77,7 +77,15 @@ class Sequence:
 
 
 def scale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """``img`` resized to ``size = (width, height)`` by area averaging (OpenCV)."""
+    """``img`` resized to ``size = (width, height)`` by area averaging (OpenCV).
+
+    Args:
+        img: ``(H, W)`` or ``(H, W, C)`` image (e.g. uint8 RGB or a 0/255 uint8 mask).
+        size: ``(width, height)`` in pixels.
+
+    Returns:
+        ``(height, width)`` or ``(height, width, C)``, the input's dtype.
+    """
     import cv2
 
     return cv2.resize(img, tuple(int(v) for v in size), interpolation=cv2.INTER_AREA)

@@ -49,6 +49,7 @@ class SmplMotion:
 
     @property
     def num_frames(self) -> int:
+        """Number of frames T."""
         return int(self.poses.shape[0])
 
     def slice(self, start: int = 0, stop: int | None = None, step: int = 1) -> "SmplMotion":

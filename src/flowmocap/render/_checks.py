@@ -35,6 +35,7 @@ class Faces:
 
     @property
     def num_faces(self) -> int:
+        """Number of triangles F."""
         return int(self.array.shape[0])
 
 
@@ -74,7 +75,9 @@ def prepare_faces(faces: Any) -> Faces:
 
 
 def to_numpy(x: Any, name: str) -> np.ndarray:
-    """``x`` as a numpy array (torch tensors are detached and moved to the CPU)."""
+    """``x`` as a numpy array (torch tensors are detached and moved to the CPU), of
+    ``x``'s shape and dtype; ``name`` names it in the InputError raised when numpy cannot
+    read it."""
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
     try:
@@ -95,7 +98,18 @@ def check_faces(faces: Any, num_vertices: int) -> np.ndarray:
 
 
 def check_points(x: Any, name: str, dim: int, num: int | None = None) -> np.ndarray:
-    """``(N, dim)`` float64 C-contiguous array with finite values."""
+    """``(N, dim)`` float64 C-contiguous array with finite values.
+
+    Args:
+        x: ``(N, dim)`` real numbers, numpy or torch, in the caller's unit (e.g. pixels
+            for ``dim = 2``, metres for ``dim = 3``); converted, not rescaled.
+        name: the argument's name for the error message.
+        dim: the number of columns.
+        num: the number of rows ``N`` required (one per vertex), or None for any.
+
+    Raises:
+        InputError: wrong shape or dtype, or a NaN or infinite value.
+    """
     arr = to_numpy(x, name)
     if arr.ndim != 2 or arr.shape[1] != dim:
         raise InputError(f"{name} must have shape (V, {dim}), got {arr.shape}")
@@ -110,7 +124,18 @@ def check_points(x: Any, name: str, dim: int, num: int | None = None) -> np.ndar
 
 
 def check_vector(x: Any, name: str, num: int, positive: bool = False) -> np.ndarray:
-    """``(num,)`` float64 C-contiguous array with finite values (and ``> 0`` if asked)."""
+    """``(num,)`` float64 C-contiguous array with finite values (and ``> 0`` if asked).
+
+    Args:
+        x: ``(num,)`` real numbers, numpy or torch (e.g. per-vertex depths in metres).
+        name: the argument's name for the error message.
+        num: the length required (one value per vertex).
+        positive: require every value ``> 0`` (depths in front of the camera).
+
+    Raises:
+        InputError: wrong shape or dtype, a NaN or infinite value, or a value ``<= 0``
+            with ``positive``.
+    """
     arr = to_numpy(x, name)
     if arr.shape != (num,):
         raise InputError(f"{name} must have shape ({num},) (one value per vertex), got {arr.shape}")

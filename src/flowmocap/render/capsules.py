@@ -170,7 +170,9 @@ def capsule_distance_grid(
     (pixels) to the union of 2D capsules at the pixel centres ``(x0 + j grid_step + 0.5,
     y0 + i grid_step + 0.5)`` of a ``height x width`` window at ``origin = (y0, x0)``.
 
-    Args: as :func:`capsule_signed_distance`.
+    Args: as :func:`capsule_signed_distance`: ``starts_px``, ``ends_px`` ``(B, K, 2)``
+    and ``radii_px`` ``(B, K)`` tensors in pixels; ``height``, ``width`` and ``grid_step``
+    in pixels; ``origin`` ``(y0, x0)`` pixels, multiples of ``grid_step``.
 
     Returns:
         ``(B, gh, gw)`` tensor of the inputs' dtype with ``gh = (height - 1) // grid_step + 2``

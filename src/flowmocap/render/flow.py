@@ -863,6 +863,8 @@ class PendingFlow:
         return self._raster.result()
 
     def __call__(self) -> torch.Tensor:
+        """Wait for the worker; ``E_f`` as a 0-dim tensor (pixels^2) carrying its gradients,
+        exactly as :func:`flow_loss` returns it (the worker's exceptions are raised here)."""
         return self._finish(self._pending.result())
 
 
@@ -877,7 +879,20 @@ def flow_loss_async(executor: Executor, verts_px_cur: torch.Tensor, verts_px_pre
     ``(V, 2)`` pixels and ``(V,)`` metres); copies the vertices before returning, so the
     caller may go on using (not modifying) its tensors. Returns a :class:`PendingFlow`;
     calling it waits and gives exactly what :func:`flow_loss` would have (the same
-    arithmetic; its exceptions are raised there)."""
+    arithmetic; its exceptions are raised there).
+
+    Args:
+        executor: where the work runs (e.g. a one-thread ``ThreadPoolExecutor``).
+        verts_px_cur, verts_px_prev: ``(V, 2)`` projected vertices at frames ``i`` and
+            ``i - 1``, pixels (CPU tensors).
+        faces: ``(F, 3)`` int vertex indices, or ``Faces``.
+        observed_flow: the frame's :class:`FlowTarget`.
+        depth_cur: ``(V,)`` depths at frame ``i``, metres (for the rasterisation).
+        cull_backfaces: passed to :func:`rasterize`.
+
+    Raises:
+        InputError: ``observed_flow`` is not a :class:`FlowTarget`.
+    """
     if not isinstance(observed_flow, FlowTarget):
         raise InputError("flow_loss_async needs a FlowTarget (flow_target())")
     numeric = [t.detach().numpy().copy() if isinstance(t, torch.Tensor) else t

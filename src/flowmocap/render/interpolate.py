@@ -54,7 +54,13 @@ def _interpolate_covered_kernel(face_id, bary, faces, attr, out):
 
 def interpolate_covered(raster: Raster, attr: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """``interpolate(raster, attr, faces)[raster.mask]`` without the full image:
-    ``(N, C)`` float64 for the covered pixels in row-major order (checked inputs)."""
+    ``(N, C)`` float64 for the covered pixels in row-major order (checked inputs).
+
+    Args:
+        raster: :class:`~flowmocap.render.Raster` of the mesh.
+        attr: ``(V, C)`` per-vertex attributes (any unit, kept), numpy.
+        faces: ``(F, 3)`` int32 vertex indices, already checked (``Faces.array``).
+    """
     n = int(np.count_nonzero(raster.face_id >= 0))
     out = np.empty((n, attr.shape[1]))
     _interpolate_covered_kernel(raster.face_id, raster.bary, faces, np.ascontiguousarray(attr, dtype=np.float64), out)

@@ -17,6 +17,13 @@ def icosphere(subdivisions: int = 2, radius: float = 1.0) -> tuple[np.ndarray, n
     """Unit icosahedron subdivided ``subdivisions`` times, scaled to ``radius``.
 
     Faces: ``20 * 4**subdivisions`` (0: 20, 1: 80, 2: 320, 3: 1280, 4: 5120).
+
+    Args:
+        subdivisions: 0..7.
+        radius: metres.
+
+    Returns:
+        ``verts (V, 3)`` float64 metres (centred at the origin) and ``faces (F, 3)`` int32.
     """
     if subdivisions < 0 or subdivisions > 7:
         raise InputError(f"subdivisions must be in 0..7, got {subdivisions}")
@@ -48,7 +55,11 @@ def icosphere(subdivisions: int = 2, radius: float = 1.0) -> tuple[np.ndarray, n
 
 
 def box(size: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box centred at the origin: 8 vertices, 12 faces."""
+    """Axis-aligned box centred at the origin: 8 vertices, 12 faces.
+
+    ``size``: ``(x, y, z)`` edge lengths in metres. Returns ``verts (8, 3)`` float64
+    metres and ``faces (12, 3)`` int32.
+    """
     sx, sy, sz = (0.5 * float(s) for s in size)
     verts = np.array([[x, y, z] for x in (-sx, sx) for y in (-sy, sy) for z in (-sz, sz)])
     # vertex index = 4 * (x>0) + 2 * (y>0) + (z>0)
@@ -61,7 +72,11 @@ def box(size: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[np.ndarray,
 
 def grid_mesh(nx: int, ny: int, size: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """A flat ``nx`` x ``ny``-cell grid in the z = 0 plane centred at the origin,
-    normal along -z (facing a camera that looks along +z), ``2 * nx * ny`` faces."""
+    normal along -z (facing a camera that looks along +z), ``2 * nx * ny`` faces.
+
+    ``size``: ``(x, y)`` extent in metres. Returns ``verts ((nx + 1) (ny + 1), 3)`` float64
+    metres and ``faces (2 nx ny, 3)`` int32.
+    """
     xs = np.linspace(-0.5, 0.5, nx + 1) * size[0]
     ys = np.linspace(-0.5, 0.5, ny + 1) * size[1]
     X, Y = np.meshgrid(xs, ys)
@@ -77,7 +92,8 @@ def grid_mesh(nx: int, ny: int, size: tuple[float, float] = (1.0, 1.0)) -> tuple
 def mannequin(subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """A person-shaped stand-in: 11 ellipsoids (head, torso, pelvis, upper/lower arms and
     legs), 1.75 m tall, y up, facing +z, feet at y = 0. With ``subdivisions=3`` it has
-    14,080 faces (the size of an SMPL body: 13,776)."""
+    14,080 faces (the size of an SMPL body: 13,776). Returns ``verts (V, 3)`` float64
+    metres and ``faces (F, 3)`` int32."""
     parts = [  # centre (x, y, z), semi-axes (x, y, z)
         ((0.0, 1.62, 0.0), (0.09, 0.12, 0.10)),
         ((0.0, 1.28, 0.0), (0.18, 0.24, 0.11)),

@@ -58,10 +58,12 @@ class Raster:
 
     @property
     def height(self) -> int:
+        """Image height H in pixels."""
         return int(self.face_id.shape[0])
 
     @property
     def width(self) -> int:
+        """Image width W in pixels."""
         return int(self.face_id.shape[1])
 
     @property
@@ -252,7 +254,16 @@ def rasterize_scratch(xy: np.ndarray, z: np.ndarray, faces: np.ndarray, height: 
     inputs). Only the previous call's bounding box is cleared, which saves the page
     faults of fresh full-image buffers. The result is overwritten by the next call in
     the same thread, and ``bary`` is stale (not zero) on background pixels: for internal,
-    transient use only (e.g. inside ``flow_loss``)."""
+    transient use only (e.g. inside ``flow_loss``).
+
+    Args:
+        xy: ``(V, 2)`` float64 projected vertices, pixels (as :func:`check_points
+            <flowmocap.render._checks.check_points>` returns them).
+        z: ``(V,)`` float64 camera-space depths, metres.
+        faces: ``(F, 3)`` int32 checked vertex indices.
+        height, width: image size in pixels.
+        cull_backfaces, near: as for :func:`rasterize` (``near`` in metres).
+    """
     key = (height, width)
     buf = getattr(_SCRATCH, "buffers", None)
     if buf is None or buf[0] != key:

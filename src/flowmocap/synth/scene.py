@@ -241,6 +241,8 @@ class ClothingPattern:
         )
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` float64 RGB in ``[0, 1]`` of ``points (N, 3)``, rest-pose surface
+        points in metres (the frame of :attr:`rest_joints`)."""
         p = np.asarray(points, dtype=np.float64)
         J = self.rest_joints
         i = JOINT_INDEX

@@ -83,7 +83,8 @@ def parse_size(size) -> tuple[int, int]:
 
 def parse_betas(betas, num_betas: int, rng: np.random.Generator) -> np.ndarray:
     """Body shape from None (mean), ``"random"`` (seeded, N(0, 0.7^2) clipped to +-2),
-    a string of comma-separated numbers, or numbers.
+    a string of comma-separated numbers, or numbers (at most ``num_betas``; the rest 0).
+    ``rng`` draws the random shape.
 
     Returns:
         ``(num_betas,)`` float64.

@@ -209,7 +209,8 @@ def others_region(cands: list, mask: np.ndarray) -> np.ndarray:
 def load_detections(out_dir: str | Path, detector_name: str | None = None, num_frames: int | None = None,
                     size: tuple[int, int] | None = None) -> PersonTrack | None:
     """Stored detections of ``out_dir``, or None when absent, unreadable (a damaged file is
-    computed anew, not an error) or made for other input/settings."""
+    computed anew, not an error) or made for other input/settings (``detector_name``,
+    ``num_frames``, ``size = (width, height)`` pixels; None: not checked)."""
     d = Path(out_dir) / "detections"
     try:
         info = json.loads((d / "detections.json").read_text())

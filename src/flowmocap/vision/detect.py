@@ -104,8 +104,9 @@ class PersonDetector(Protocol):
 
     ``name`` says which detector (and settings) made a stored result, so a rerun can tell
     whether stored detections still apply. ``detect`` takes the frames of one video in
-    order (a detector may track the person from frame to frame) and returns None when
-    the image shows no person. ``reset`` forgets the tracked person (a new video).
+    order, each ``(H, W, 3)`` uint8 RGB (a detector may track the person from frame to
+    frame), and returns a :class:`Detection` in that frame's pixels, or None when the
+    image shows no person. ``reset`` forgets the tracked person (a new video).
     """
 
     name: str
@@ -194,6 +195,7 @@ class MediaPipePoseDetector:
                 self._pool = ThreadPoolExecutor(max_workers=3, thread_name_prefix="flowmocap-mediapipe")
 
     def close(self) -> None:
+        """Release MediaPipe's graphs and the augmentation threads (:meth:`reset` makes new ones)."""
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None

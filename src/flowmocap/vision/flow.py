@@ -290,7 +290,16 @@ class FlowCache:
 
     def put(self, index: int, flow: np.ndarray, region: tuple | None = None) -> Path:
         """Store the flow of frame ``index`` atomically (with the ``region`` it was
-        computed in, None: the whole frame); returns the file path."""
+        computed in, None: the whole frame); returns the file path.
+
+        Args:
+            index: frame number i (the flow is ``F_o(i, i-1)``).
+            flow: ``(H, W, 2)`` backward flow in pixels (stored as float32).
+            region: ``(row0, row1, col0, col1)`` pixels, or None.
+
+        Raises:
+            InputError: ``flow`` is not ``(H, W, 2)``.
+        """
         flow = np.asarray(flow, dtype=np.float32)
         if flow.ndim != 3 or flow.shape[2] != 2:
             raise InputError(f"flow must have shape (H, W, 2), got {flow.shape}")

@@ -78,6 +78,17 @@ class LifterNet(torch.nn.Module):
         self.out = torch.nn.Linear(hidden, 3 * n)
 
     def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The normalised 3D of the window's middle frame.
+
+        Args:
+            points: ``(B, F, 13, 2)`` (or ``(B, 13, 2)`` for ``F = 1``) normalised 2D
+                points (:func:`normalise_2d`), in the order of :data:`POINTS`.
+            mask: ``(B, F, 13)`` (or ``(B, 13)``) float, 1 where a point is given, 0 where not.
+
+        Returns:
+            ``(B, 13, 3)`` in normalised units (times :attr:`Lifter.metres`: metres), in
+            the ray's axes; :meth:`Lifter.lift_points` re-centres it on the hips.
+        """
         x = torch.cat([(points * mask[..., None]).flatten(1), mask.flatten(1)], 1)
         x = torch.relu(self.inp(x))
         for b in self.blocks:
@@ -88,7 +99,8 @@ class LifterNet(torch.nn.Module):
 def normalise_2d(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(points - hips) / s`` and ``s (B, 1, 1)``: ``points (B, 13, 2)`` centred on the
     middle of the hips and divided by the RMS distance of the masked points from it
-    (masked-out points: 0)."""
+    (masked-out points: 0). ``mask (B, 13)`` float, 1 for a given point; ``s`` is in the
+    points' unit (pixels), the normalised points ``(B, 13, 2)`` are unitless."""
     v = points - points[:, list(HIPS)].mean(1, keepdim=True)
     s = (((v ** 2).sum(-1) * mask).sum(1) / mask.sum(1).clamp(min=1)).sqrt().clamp(min=1e-9)[:, None, None]
     return v / s * mask[..., None], s
@@ -148,8 +160,9 @@ def bridge_gaps(points: np.ndarray, given: np.ndarray, max_frames: int) -> tuple
 
 def window_indices(frames: int, offsets, fps: float) -> tuple[np.ndarray, np.ndarray]:
     """``(index (T, F), inside (T, F))``: for each of ``frames`` frames at ``fps`` the
-    frame nearest in time to each window offset (``offsets``, frames at
-    :data:`WINDOW_FPS`), and whether it lies inside the sequence (``index`` clipped)."""
+    frame nearest in time to each window offset (``offsets``, ``F`` ints, frames at
+    :data:`WINDOW_FPS`), and whether it lies inside the sequence (``index`` clipped).
+    ``index`` is int frame indices, ``inside`` bool."""
     t = np.arange(frames)[:, None] + np.rint(np.asarray(offsets, np.float64) * (fps / WINDOW_FPS)).astype(int)[None]
     inside = (t >= 0) & (t < frames)
     return np.clip(t, 0, max(frames - 1, 0)), inside

@@ -20,6 +20,11 @@ def person_box(keypoints: np.ndarray, confidence: np.ndarray, mask: np.ndarray |
                min_confidence: float = 0.3) -> tuple[float, float, float, float] | None:
     """``(x0, y0, x1, y1)`` pixels around the confident keypoints (and the mask, if given).
 
+    Args:
+        keypoints: ``(K, 2)`` pixels; confidence: ``(K,)``.
+        mask: optional ``(H, W)`` bool.
+        min_confidence: the confidence a keypoint needs to count.
+
     Returns None when fewer than two keypoints are confident and the mask is empty.
     """
     xs, ys = [], []
@@ -106,7 +111,8 @@ def same_person(prev_box, cur_box, frames_apart: int = 1) -> bool:
 
     True when the boxes overlap (IoU > 0.1) or their centres lie within 0.5 of the
     earlier box's height per frame apart (at most 2 heights): a person moves less than
-    half their height between neighbouring frames.
+    half their height between neighbouring frames. ``prev_box``, ``cur_box``: ``(x0, y0,
+    x1, y1)`` pixels, or None (then True).
     """
     if prev_box is None or cur_box is None:
         return True

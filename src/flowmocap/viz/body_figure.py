@@ -97,6 +97,20 @@ def render_body(model="default", gender="neutral", betas=None, pose="rest", widt
                 view="front", frame=None) -> np.ndarray:
     """Render a body model in a named pose; see :func:`render_vertices` for the output.
 
+    Args:
+        model: a model name for :func:`~flowmocap.body.load_body_model` (e.g.
+            ``"default"``) or a :class:`~flowmocap.body.BodyModel`.
+        gender: the model's gender when ``model`` is a name.
+        betas: ``(10,)`` shape coefficients (default: the mean shape).
+        pose: a name in :data:`POSES` or a ``(72,)`` axis-angle pose in radians.
+        width, height: image size in pixels.
+        view: ``"front"``, ``"three-quarter"`` or ``"side"``.
+        frame: ``(centre (3,), extent)`` metres to frame (:func:`mesh_frame`); default:
+            the posed mesh's own bounding box.
+
+    Returns:
+        ``(height, width, 3)`` uint8 image.
+
     Raises:
         InputError: ``width`` or ``height`` (pixels) outside 16..8192.
     """

@@ -63,6 +63,8 @@ def render_body_view(vertices: np.ndarray, faces, camera: PinholeCamera, backgro
         faces: ``(F, 3)`` triangle indices.
         camera: the viewing camera.
         background: RGB 0..255.
+        colour: the body's RGB, 0..1.
+        supersample: samples per pixel side (anti-aliasing), as for :func:`flowmocap.render.shade`.
 
     Returns:
         ``(camera.height, camera.width, 3)`` uint8 RGB.

@@ -98,6 +98,7 @@ class ResultScene:
 
     @property
     def num_frames(self) -> int:
+        """Number of frames T of the result."""
         return self.motion.num_frames
 
     def k_of(self, frame: int) -> int:
@@ -386,7 +387,14 @@ def joint_traces(scene: ResultScene, frames: list[int], history: int | None = No
 def energy_figure(scene: ResultScene) -> np.ndarray:
     """Per-frame energy terms, the 3D sources' disagreement (where the result has it) and
     (with ground truth) 3D joint errors as an RGB image, see
-    :func:`flowmocap.viz.plots.energy_error_plot`."""
+    :func:`flowmocap.viz.plots.energy_error_plot`.
+
+    Returns:
+        ``(h, w, 3)`` uint8 RGB image of the figure.
+
+    Raises:
+        DataError: ``motion.npz`` has no energies.
+    """
     from flowmocap.viz.plots import energy_error_plot
 
     a = scene.arrays

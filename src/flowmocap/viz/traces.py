@@ -81,6 +81,10 @@ def trace_box(joints2d: np.ndarray, size: tuple[int, int], masks=None, margin: i
         size: ``(width, height)`` of the image.
         masks: optional iterable of ``(H, W)`` bool masks to include (e.g. the body).
         margin: pixels added on each side.
+        joints: the joint indices included (default: the paper's 13 evaluated joints).
+
+    Returns:
+        Row and column bounds in pixels (end-exclusive), clipped to the image.
     """
     W, H = size
     pts = _check_joints(joints2d, "joints2d")[:, list(joints)].reshape(-1, 2)
