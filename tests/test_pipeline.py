@@ -273,3 +273,34 @@ def test_run_json_records_the_input_as_an_absolute_path(seq_dir, tmp_path, monke
                           frames="0:2", progress=False, joints3d="off", log=None)
     assert res.run["input"] == str(seq_dir.resolve())
     assert json.loads((tmp_path / "r" / "run.json").read_text())["input"] == str(seq_dir.resolve())
+
+
+def test_a_camera_no_pinhole_lens_could_be_is_refused_before_any_work(seq_dir, tmp_path):
+    kw = dict(init=seq_dir.parent / "init.json", progress=False, joints3d="off", log=None)
+    # fx = 1e-9 px: a field of view of 180 degrees; before, tracking failed with "a capsule is
+    # not in front of the camera" and no word on the camera
+    with pytest.raises(InputError, match=r"field of view of 180 degrees across .*not mm"):
+        flowmocap.track(seq_dir, tmp_path / "o1", camera=1e-9, **kw)
+    cam = json.loads((seq_dir / "camera.json").read_text())
+    cam["fy"] = 1e7  # 0.00086 degrees down the image
+    (tmp_path / "tele.json").write_text(json.dumps(cam))
+    with pytest.raises(InputError, match=r"tele\.json\) has a field of view of 0.000\d+ degrees down"):
+        flowmocap.track(seq_dir, tmp_path / "o2", camera=tmp_path / "tele.json", **kw)
+    assert [f.name for f in (tmp_path / "o1").iterdir()] == [".lock"]  # nothing tracked, nothing written
+
+
+def test_a_videos_focal_length_no_lens_could_have_is_set_aside_and_said():
+    from flowmocap import pipeline
+    from flowmocap.io.video import DEFAULT_FOCAL_FACTOR
+
+    class _Seq:
+        size = (640, 360)
+        camera = None
+        meta = {"focal_35mm": 0.01}  # 0.01 mm: a tag written wrong
+
+    cam, note = pipeline._camera(None, _Seq(), None)
+    assert cam.fx == pytest.approx(DEFAULT_FOCAL_FACTOR * 640)
+    assert "0.01 mm is not a real lens's, ignored" in note
+    _Seq.meta = {"focal_35mm": 26.0}  # a phone's: kept
+    cam, note = pipeline._camera(None, _Seq(), None)
+    assert cam.fx == pytest.approx(26.0 / 36.0 * 640)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import glob
 import json
+import math
 import platform
 import shutil
 import time
@@ -682,17 +683,60 @@ def _camera(camera, seq: Sequence, src: Path) -> tuple[PinholeCamera, str]:
                              f"got {camera!r}.") from None
         if not focal > 0:
             raise InputError(f"the focal length must be > 0 pixels; got {focal!r}.")
-        return (PinholeCamera.from_focal(w, h, focal * scale),
-                f"focal {focal:g} px" + (f" (x {scale:.4g} for the scaled frames)" if scale != 1.0 else ""))
+        cam = PinholeCamera.from_focal(w, h, focal * scale)
+        note = f"focal {focal:g} px" + (f" (x {scale:.4g} for the scaled frames)" if scale != 1.0 else "")
     elif seq.camera is not None:
-        return seq.camera, f"{src / 'camera.json'}"
+        cam, note = seq.camera, f"{src / 'camera.json'}"
     else:
-        return default_camera(w, h, seq.meta.get("focal_35mm"))
+        cam, note = default_camera(w, h, seq.meta.get("focal_35mm"))
+        if not _field_of_view_ok(cam):  # metadata the user did not write: set it aside, say so
+            f35 = seq.meta.get("focal_35mm")
+            cam, note = default_camera(w, h, None)
+            note = f"the video's 35 mm-equivalent focal length {f35:g} mm is not a real lens's, ignored; {note}"
+        return cam, note
     if (cam.width, cam.height) != (w, h):
         raise InputError(f"the camera ({note}) is for {cam.width}x{cam.height} images but the frames are {w}x{h}"
                          + (" (scaled by max_size / --max-size; pass 0 to keep the video's size)"
                             if scale != 1.0 else "") + ".")
+    _check_field_of_view(cam, note)
     return cam, note
+
+
+#: The widest and narrowest field of view, degrees across the image, a pinhole camera may have
+#: for tracking. Wider than 170 degrees no lens is a pinhole (a fisheye needs undistorting
+#: first), and the body would be placed at a depth of millimetres; narrower than 0.2 degrees
+#: (a 2000 mm lens on a full-frame sensor is 1 degree) the depth is hundreds of metres.
+FIELD_OF_VIEW_DEG = (0.2, 170.0)
+
+
+def _fields_of_view(cam: PinholeCamera) -> tuple[float, float]:
+    """The camera's field of view across and down the image, degrees."""
+    return (math.degrees(2.0 * math.atan2(cam.width / 2.0, cam.fx)),
+            math.degrees(2.0 * math.atan2(cam.height / 2.0, cam.fy)))
+
+
+def _field_of_view_ok(cam: PinholeCamera) -> bool:
+    """Whether both of the camera's fields of view lie in :data:`FIELD_OF_VIEW_DEG`."""
+    lo, hi = FIELD_OF_VIEW_DEG
+    return all(lo <= fov <= hi for fov in _fields_of_view(cam))
+
+
+def _check_field_of_view(cam: PinholeCamera, note: str) -> None:
+    """Refuse a camera whose focal length cannot be a real pinhole's (``InputError``).
+
+    Args:
+        cam: the camera (pixels).
+        note: where it came from, for the message.
+    """
+    lo, hi = FIELD_OF_VIEW_DEG
+    for axis, size, focal, fov in zip(("across", "down"), (cam.width, cam.height), (cam.fx, cam.fy),
+                                      _fields_of_view(cam)):
+        if not lo <= fov <= hi:
+            raise InputError(
+                f"the camera ({note}) has a field of view of {fov:.3g} degrees {axis} the image "
+                f"({'fx' if axis == 'across' else 'fy'} = {focal:g} px for {size} px), outside "
+                f"{lo:g}..{hi:g}; check that the focal length is in pixels (not mm), or leave the camera out "
+                "and the tool assumes a phone's.")
 
 
 def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera_R=None) -> tuple:
