@@ -383,7 +383,7 @@ def test_a_world_json_that_is_not_an_object_is_computed_again(posed_result, tmp_
     assert isinstance(json.loads((copy / "world.json").read_text()), dict)
 
 
-@pytest.mark.parametrize("fmt, name", [("bvh", "m.bvh"), ("npz", "m.npz"), ("glb", "m.glb"),
+@pytest.mark.parametrize("fmt, name", [("bvh", "m.bvh"), ("npz", "m.npz"), ("glb", "m.glb"), ("trc", "m.trc"), ("c3d", "m.c3d"),
                                        ("glb-frames", "f.glb"), ("obj", "obj")])
 def test_an_interrupted_export_leaves_the_old_file_and_no_partial_one(posed_result, tmp_path, monkeypatch, fmt,
                                                                       name):

@@ -9,12 +9,15 @@ FORMAT_HELP = {
     "obj": "one .obj mesh per frame in a folder",
     "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
+    "trc": "the 24 joints as marker trajectories, OpenSim's text format (metres, y up: OpenSim, Pose2Sim)",
+    "c3d": "the 24 joints as marker trajectories, the motion-capture binary standard (millimetres, z up: "
+           "Vicon, Visual3D, Mokka)",
 }
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "export", help="write a result as BVH, glTF (.glb), OBJ, JSON or AMASS .npz",
+        "export", help="write a result as BVH, glTF (.glb), OBJ, JSON, AMASS .npz, TRC or C3D",
         description="Export a result folder of `flowmocap track` (or demo's result/). 3D output is in "
         "metres in the ground frame: gravity up (+y), the floor at y = 0, estimated from the fitted feet "
         "(cached in RESULT/world.json with per-frame foot contacts); --frame up only turns the result "

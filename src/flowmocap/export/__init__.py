@@ -4,10 +4,11 @@ Formats (:data:`FORMATS`): ``bvh`` (skeleton with the fitted bone lengths),
 ``glb`` (one skinned mesh, a 24-joint rig and keyframed joint rotations,
 :mod:`flowmocap.export.gltf_skin`), ``glb-frames`` (a flipbook: one full mesh per frame,
 exact vertices, large), ``obj`` (one mesh per frame in a folder), ``json`` (per-frame
-joints and parameters), ``npz`` (AMASS layout). All 3D output is in metres, by default in
-the ground frame of :mod:`flowmocap.export.world` (gravity up, y up, the floor at 0);
-see :mod:`flowmocap.export.motion` for the other frames (the AMASS file is z up, as
-AMASS's own). ``smooth=True`` smooths the motion first (:mod:`flowmocap.fit.smooth`).
+joints and parameters), ``npz`` (AMASS layout), ``trc`` and ``c3d`` (the 24 joints as
+marker trajectories for biomechanics tools, :mod:`flowmocap.export.markers`). All 3D output
+is in metres, by default in the ground frame of :mod:`flowmocap.export.world` (gravity up,
+y up, the floor at 0); see :mod:`flowmocap.export.motion` for the other frames (the AMASS
+file is z up, as AMASS's own; the C3D file is z up and in millimetres, as labs write it). ``smooth=True`` smooths the motion first (:mod:`flowmocap.fit.smooth`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ FORMATS: dict[str, str] = {
     "obj": "obj",
     "json": "motion.json",
     "npz": "motion_amass.npz",
+    "trc": "motion.trc",
+    "c3d": "motion.c3d",
 }
 
 
@@ -172,6 +175,15 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         return out
     if fmt == "json":
         return write_json(out, motion)
+    if fmt in ("trc", "c3d"):
+        from flowmocap.body.skeleton import JOINT_NAMES
+        from flowmocap.export.markers import write_c3d, write_trc
+
+        first = int(motion.frame_index[0]) if motion.num_frames else 0
+        if fmt == "trc":
+            return write_trc(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first)
+        return write_c3d(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first,
+                         up="none" if frame == "world" else "y")
     from flowmocap.io.amass import write_amass_npz
 
     if frame == "world":

@@ -1,0 +1,142 @@
+"""The fitted joints as marker trajectories, for biomechanics tools.
+
+Two formats, each holding the 24 body joints' positions frame by frame, named by
+:data:`flowmocap.body.skeleton.JOINT_NAMES` (``pelvis``, ``left_hip``, ...):
+
+- ``.trc`` (Motion Analysis's track-row-column text, read by OpenSim, Pose2Sim and most
+  biomechanics software): tab-separated, metres, the export frame as it is (the ground
+  frame is y up, OpenSim's own convention).
+- ``.c3d`` (the binary motion-capture standard: Vicon, Qualisys, Visual3D, Mokka, Blender's
+  importer), written with the ``ezc3d`` library: millimetres (the unit motion-capture
+  systems write and some readers assume) and **z up**, as labs record, turned from the
+  y-up export frame by +90 degrees about x (``(x, y, z) -> (x, -z, y)``, as the AMASS
+  export). The file's ``POINT:UNITS`` says ``mm``.
+
+Frame numbers start at 1 in both, as the formats expect; the input video's frame number of
+the first one is stored, plus one (TRC ``OrigDataStartFrame``, the C3D header's first
+frame), so a clip tracked from frame 200 can be lined up with the video. Both are written atomically.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from flowmocap.atomic import atomic_write
+from flowmocap.errors import InputError
+
+__all__ = ["write_trc", "write_c3d", "C3D_UNITS_PER_METRE"]
+
+#: C3D points are written in millimetres.
+C3D_UNITS_PER_METRE = 1000.0
+
+
+def _checked(joints: np.ndarray, names, fps: float) -> np.ndarray:
+    j = np.asarray(joints, np.float64)
+    if j.ndim != 3 or j.shape[2] != 3 or j.shape[0] < 1 or j.shape[1] != len(names):
+        raise InputError(f"marker trajectories must be (T >= 1, {len(names)}, 3) metres, one per name; "
+                         f"got shape {j.shape}.")
+    if not np.all(np.isfinite(j)):
+        raise InputError("marker trajectories hold NaN or infinite positions; the result is damaged: track again.")
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"the frame rate must be a positive number of frames per second; got {fps!r}.")
+    return j
+
+
+def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0) -> Path:
+    """Write joint trajectories as an OpenSim ``.trc`` file, atomically.
+
+    Args:
+        path: output file (``.trc``).
+        joints: ``(T, M, 3)`` positions in metres.
+        names: ``M`` marker names (no white space in them).
+        fps: frames per second (Hz); frame ``k`` is at ``k / fps`` seconds.
+        first_frame: the input video's frame number of frame 0 (stored 1-based as
+            ``OrigDataStartFrame``).
+
+    Returns:
+        The path written.
+
+    Raises:
+        InputError: wrong shapes, non-finite positions or frame rate.
+    """
+    j = _checked(joints, names, fps)
+    names = [str(n) for n in names]
+    if any(not n or any(c.isspace() for c in n) for n in names):
+        raise InputError(f"TRC marker names must be non-empty and hold no white space; got {names}.")
+    T, M, _ = j.shape
+    path = Path(path)
+    rate = f"{float(fps):.6g}"
+    head = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{rate}\t{rate}\t{T}\t{M}\tm\t{rate}\t{int(first_frame) + 1}\t{T}",
+        "Frame#\tTime\t" + "\t\t\t".join(names),
+        "\t\t" + "\t".join(f"X{m}\tY{m}\tZ{m}" for m in range(1, M + 1)),
+        "",
+    ]
+
+    def write(tmp):
+        with open(tmp, "w", newline="\n") as f:
+            f.write("\n".join(head) + "\n")
+            for k in range(T):
+                f.write(f"{k + 1}\t{k / fps:.6f}\t" + "\t".join(f"{v:.6f}" for v in j[k].reshape(-1)) + "\n")
+
+    atomic_write(path, write)
+    return path
+
+
+def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0,
+              up: str = "y") -> Path:
+    """Write joint trajectories as a ``.c3d`` file (via ``ezc3d``), atomically.
+
+    Args:
+        path: output file (``.c3d``).
+        joints: ``(T, M, 3)`` positions in metres, in a frame whose up axis is ``up``.
+        names: ``M`` marker names.
+        fps: frames per second (Hz).
+        first_frame: the input video's frame number of frame 0 (the file's first frame
+            is this plus 1).
+        up: ``"y"`` (the joints are y up: turned to z up on the way out) or ``"none"``
+            (written as given, e.g. a camera-frame export).
+
+    Returns:
+        The path written. Points are in millimetres (``POINT:UNITS`` ``mm``).
+
+    Raises:
+        InputError: wrong shapes, non-finite positions or frame rate, unknown ``up``.
+    """
+    import ezc3d
+
+    from flowmocap.io.amass import Y_UP_TO_Z_UP
+
+    j = _checked(joints, names, fps)
+    if up not in ("y", "none"):
+        raise InputError(f"up must be 'y' or 'none'; got {up!r}.")
+    if up == "y":
+        j = j @ Y_UP_TO_Z_UP.T
+    T, M, _ = j.shape
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [float(fps)]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = tuple(str(n) for n in names)
+    c3d["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    points = np.ones((4, M, T))
+    points[:3] = np.transpose(j * C3D_UNITS_PER_METRE, (2, 1, 0))
+    c3d["data"]["points"] = points
+    c3d["header"]["points"]["first_frame"] = int(first_frame)
+    c3d.add_parameter("MANUFACTURER", "SOFTWARE", "flowmocap")
+    path = Path(path)
+
+    def write(tmp):
+        own = tmp + ".c3d"  # ezc3d adds .c3d to a name without it
+        try:
+            c3d.write(own)
+            os.replace(own, tmp)
+        finally:
+            if os.path.exists(own):
+                os.remove(own)
+
+    atomic_write(path, write)
+    return path

@@ -1,0 +1,99 @@
+"""flowmocap export --format trc / c3d: the fitted joints as marker trajectories, read back
+with independent third-party readers (``trc-data-reader`` for TRC, the pure-Python ``c3d``
+package for C3D; ours writes C3D with ``ezc3d``)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from flowmocap.body import JOINT_NAMES
+from flowmocap.cli import main
+from flowmocap.errors import InputError
+from flowmocap.export import export_result, load_fitted_motion
+from flowmocap.export.markers import write_c3d, write_trc
+from flowmocap.io.amass import Y_UP_TO_Z_UP
+
+from test_export import T, camera_frame_result, posed_result  # noqa: F401  (fixtures)
+
+
+def _read_trc(path):
+    trc = pytest.importorskip("trc", reason="trc-data-reader is a test dependency ([test] extra)")
+    doc = trc.TRCData()
+    doc.load(str(path))
+    return doc
+
+
+def _read_c3d(path):
+    c3d = pytest.importorskip("c3d", reason="the c3d package is a test dependency (via trc-data-reader)")
+    with open(path, "rb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "no analog data": we write none
+        r = c3d.Reader(f)
+        frames = [(i, pts.copy()) for i, pts, _ in r.read_frames()]
+        return {"first": r.header.first_frame, "rate": r.point_rate, "labels": [s.strip() for s in r.point_labels],
+                "units": r.get("POINT:UNITS").string_value.strip(), "frames": frames}
+
+
+def test_trc_holds_the_joints_in_metres_with_the_header_opensim_reads(posed_result, tmp_path):
+    folder, truth = posed_result
+    path = export_result(folder, "trc", tmp_path / "m.trc", frame="up")
+    doc = _read_trc(path)
+    assert doc["Markers"] == list(JOINT_NAMES)
+    assert (doc["NumFrames"], doc["NumMarkers"], doc["Units"]) == (T, 24, "m")
+    assert doc["DataRate"] == doc["CameraRate"] == 25.0
+    assert doc["OrigDataStartFrame"] == 4  # the result starts at the input's frame 3 (0-based)
+    assert doc["Frame#"] == list(range(1, T + 1))
+    np.testing.assert_allclose(doc["Time"], np.arange(T) / 25.0, atol=1e-6)
+    got = np.stack([np.asarray(doc[name], np.float64) for name in JOINT_NAMES], axis=1)  # (T, 24, 3)
+    np.testing.assert_allclose(got, truth["joints3d"], atol=2e-6)  # 6 decimals, and float32 poses
+
+
+def test_c3d_holds_the_joints_z_up_in_millimetres(posed_result, tmp_path):
+    folder, truth = posed_result
+    path = export_result(folder, "c3d", tmp_path / "m.c3d", frame="up")
+    doc = _read_c3d(path)
+    assert doc["labels"] == list(JOINT_NAMES)
+    assert (doc["units"], doc["rate"], doc["first"]) == ("mm", 25.0, 4)
+    assert [i for i, _ in doc["frames"]] == list(range(4, 4 + T))
+    got = np.stack([pts[:, :3] for _, pts in doc["frames"]]) / 1000.0
+    np.testing.assert_allclose(got, truth["joints3d"] @ Y_UP_TO_Z_UP.T, atol=1e-6)  # float32 mm
+    assert all(np.all(pts[:, 3] >= 0) for _, pts in doc["frames"])  # every marker valid (residual >= 0)
+    # z is up: the head is above the pelvis in every frame
+    head, pelvis = JOINT_NAMES.index("head"), JOINT_NAMES.index("pelvis")
+    assert np.all(got[:, head, 2] > got[:, pelvis, 2] + 0.3)
+
+
+def test_the_ground_frame_is_the_default_and_world_is_written_as_it_is(camera_frame_result, tmp_path):
+    folder, _ = camera_frame_result
+    ground = load_fitted_motion(folder).joints()
+    doc = _read_trc(export_result(folder, "trc", tmp_path / "g.trc"))
+    got = np.stack([np.asarray(doc[name]) for name in JOINT_NAMES], axis=1)
+    np.testing.assert_allclose(got, ground, atol=2e-6)
+    world = load_fitted_motion(folder, frame="world").joints()
+    doc = _read_c3d(export_result(folder, "c3d", tmp_path / "w.c3d", frame="world"))
+    np.testing.assert_allclose(np.stack([p[:, :3] for _, p in doc["frames"]]) / 1000.0, world, atol=1e-5)
+
+
+def test_the_command_line_writes_both_to_the_result_folder(posed_result, capsys):
+    folder, _ = posed_result
+    for fmt in ("trc", "c3d"):
+        assert main(["export", str(folder), "--format", fmt, "--quiet"]) == 0
+        assert (folder / "export" / f"motion.{fmt}").is_file()
+        assert f"motion.{fmt} ({fmt}: the 24 joints as marker trajectories" in capsys.readouterr().out
+
+
+def test_bad_trajectories_are_refused(tmp_path):
+    good = np.zeros((2, 2, 3))
+    with pytest.raises(InputError, match="one per name"):
+        write_trc(tmp_path / "a.trc", good, ["a"], 30.0)
+    with pytest.raises(InputError, match="NaN"):
+        write_c3d(tmp_path / "a.c3d", np.full((2, 2, 3), np.nan), ["a", "b"], 30.0)
+    with pytest.raises(InputError, match="frame rate"):
+        write_trc(tmp_path / "a.trc", good, ["a", "b"], 0.0)
+    with pytest.raises(InputError, match="white space"):
+        write_trc(tmp_path / "a.trc", good, ["a", "left hip"], 30.0)
+    with pytest.raises(InputError, match="up must be"):
+        write_c3d(tmp_path / "a.c3d", good, ["a", "b"], 30.0, up="x")
+    assert not list(tmp_path.iterdir())
