@@ -97,3 +97,43 @@ def test_bad_trajectories_are_refused(tmp_path):
     with pytest.raises(InputError, match="up must be"):
         write_c3d(tmp_path / "a.c3d", good, ["a", "b"], 30.0, up="x")
     assert not list(tmp_path.iterdir())
+
+
+def test_contact_events_are_the_contacts_changes():
+    from flowmocap.export.markers import contact_events
+
+    c = np.array([[1, 0], [1, 0], [0, 1], [0, 1], [1, 1], [1, 0]], bool)
+    assert contact_events(c) == [(2, "Left", "Foot Off"), (2, "Right", "Foot Strike"),
+                                 (4, "Left", "Foot Strike"), (5, "Right", "Foot Off")]
+    assert contact_events(np.ones((4, 2), bool)) == []  # standing still: the start is no event
+
+
+def test_the_ground_frames_c3d_carries_the_foot_contacts_as_gait_events(camera_frame_result, tmp_path):
+    from flowmocap.export.markers import contact_events
+
+    c3d = pytest.importorskip("c3d", reason="the c3d package is a test dependency (via trc-data-reader)")
+    folder, _ = camera_frame_result
+    motion = load_fitted_motion(folder)
+    contacts = motion.world.contacts.copy()
+    contacts[2:4, 0] = ~contacts[2:4, 0]  # make sure there are changes to see
+    path = write_c3d(tmp_path / "g.c3d", motion.joints(), JOINT_NAMES, motion.fps,
+                     first_frame=int(motion.frame_index[0]), contacts=contacts)
+    want = contact_events(contacts)
+    assert want
+    with open(path, "rb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = c3d.Reader(f)
+        labels = [s.strip() for s in r.get("EVENT:LABELS").string_array]
+        sides = [s.strip() for s in r.get("EVENT:CONTEXTS").string_array]
+        times = r.get("EVENT:TIMES").float_array[:, 1]
+    assert list(zip(sides, labels)) == [(side, label) for _, side, label in want]
+    np.testing.assert_allclose(times, [(3 + k) / 25.0 for k, _, _ in want], atol=1e-6)
+    # and the export command writes the result's own contacts
+    doc = export_result(folder, "c3d", tmp_path / "e.c3d")
+    with open(doc, "rb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = c3d.Reader(f)
+        n = int(r.get("EVENT:USED").int16_value) if r.get("EVENT:USED") is not None else 0
+    assert n == len(contact_events(motion.world.contacts))
+    with pytest.raises(InputError, match="contacts must be"):
+        write_c3d(tmp_path / "x.c3d", motion.joints(), JOINT_NAMES, motion.fps, contacts=contacts[:2])

@@ -183,7 +183,8 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         if fmt == "trc":
             return write_trc(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first)
         return write_c3d(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first,
-                         up="none" if frame == "world" else "y")
+                         up="none" if frame == "world" else "y",
+                         contacts=motion.world.contacts if motion.world is not None else None)
     from flowmocap.io.amass import write_amass_npz
 
     if frame == "world":

@@ -12,7 +12,9 @@ Two formats, each holding the 24 body joints' positions frame by frame, named by
   y-up export frame by +90 degrees about x (``(x, y, z) -> (x, -z, y)``, as the AMASS
   export). The file's ``POINT:UNITS`` says ``mm``.
 
-Frame numbers start at 1 in both, as the formats expect; the input video's frame number of
+In the ground frame the C3D also carries the foot contacts
+(:mod:`flowmocap.export.world`: rough hints) as gait events, "Foot Strike" and "Foot Off"
+for the left and right foot. Frame numbers start at 1 in both, as the formats expect; the input video's frame number of
 the first one is stored, plus one (TRC ``OrigDataStartFrame``, the C3D header's first
 frame), so a clip tracked from frame 200 can be lined up with the video. Both are written atomically.
 """
@@ -27,7 +29,7 @@ import numpy as np
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import InputError
 
-__all__ = ["write_trc", "write_c3d", "C3D_UNITS_PER_METRE"]
+__all__ = ["write_trc", "write_c3d", "contact_events", "C3D_UNITS_PER_METRE"]
 
 #: C3D points are written in millimetres.
 C3D_UNITS_PER_METRE = 1000.0
@@ -88,8 +90,28 @@ def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
     return path
 
 
+def contact_events(contacts: np.ndarray) -> list[tuple[int, str, str]]:
+    """Gait events from per-frame foot contacts: a foot strike where a foot comes onto the
+    floor, a foot off where it leaves it (none at the first frame: its state has no start).
+
+    Args:
+        contacts: ``(T, 2)`` bool, left and right foot on the floor per frame.
+
+    Returns:
+        ``(frame, side, label)`` sorted by frame: ``frame`` the 0-based index into the
+        motion, ``side`` ``"Left"`` or ``"Right"``, ``label`` ``"Foot Strike"`` or ``"Foot Off"``
+        (the names Vicon, Visual3D and Mokka use).
+    """
+    c = np.asarray(contacts, bool).reshape(-1, 2)
+    events = []
+    for side, name in enumerate(("Left", "Right")):
+        change = np.flatnonzero(c[1:, side] != c[:-1, side]) + 1
+        events += [(int(k), name, "Foot Strike" if c[k, side] else "Foot Off") for k in change]
+    return sorted(events)
+
+
 def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0,
-              up: str = "y") -> Path:
+              up: str = "y", contacts: np.ndarray | None = None) -> Path:
     """Write joint trajectories as a ``.c3d`` file (via ``ezc3d``), atomically.
 
     Args:
@@ -101,6 +123,9 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
             is this plus 1).
         up: ``"y"`` (the joints are y up: turned to z up on the way out) or ``"none"``
             (written as given, e.g. a camera-frame export).
+        contacts: optional ``(T, 2)`` bool, left/right foot on the floor per frame: written
+            as the file's gait events (:func:`contact_events`), at ``(first_frame + k) / fps``
+            seconds, the time of the file's frame ``first_frame + k + 1``.
 
     Returns:
         The path written. Points are in millimetres (``POINT:UNITS`` ``mm``).
@@ -127,6 +152,13 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
     c3d["data"]["points"] = points
     c3d["header"]["points"]["first_frame"] = int(first_frame)
     c3d.add_parameter("MANUFACTURER", "SOFTWARE", "flowmocap")
+    if contacts is not None:
+        if np.shape(contacts) != (T, 2):
+            raise InputError(f"contacts must be (T, 2) = ({T}, 2), one left/right pair per frame; "
+                             f"got {np.shape(contacts)}.")
+        for k, side, label in contact_events(contacts):
+            c3d.add_event([0, (int(first_frame) + k) / float(fps)], context=side, label=label,
+                          description="from the fitted foot's contact with the floor (a rough estimate)")
     path = Path(path)
 
     def write(tmp):
