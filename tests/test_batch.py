@@ -259,3 +259,15 @@ def test_inputs_from_folders_and_list_files(tmp_path):
         expand_inputs([tmp_path / "a.mp4", tmp_path / "empty"])
     with pytest.raises(InputError, match="workers"):
         track_many([videos / "b.mp4"], tmp_path / "o", workers=0)
+
+
+def test_batch_export_writes_every_finished_result(clips, one_by_one, tmp_path, capsys):
+    import shutil
+
+    out = tmp_path / "copy"
+    shutil.copytree(one_by_one, out)
+    assert main(_args(clips, out, "--export", "json")) == 0  # all finished: nothing tracked, all exported
+    assert "3 finished before (skipped)" in capsys.readouterr().out
+    for name in NAMES:
+        doc = json.loads((out / name / "export" / "motion.json").read_text())
+        assert len(doc["frames"]) == 4

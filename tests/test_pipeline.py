@@ -304,3 +304,21 @@ def test_a_videos_focal_length_no_lens_could_have_is_set_aside_and_said():
     _Seq.meta = {"focal_35mm": 26.0}  # a phone's: kept
     cam, note = pipeline._camera(None, _Seq(), None)
     assert cam.fx == pytest.approx(26.0 / 36.0 * 640)
+
+
+def test_track_export_writes_the_formats_after_tracking_and_refuses_unknown_ones_first(seq_dir, tmp_path, capsys):
+    args = ["track", str(seq_dir), "--init", str(seq_dir.parent / "init.json"), "--config",
+            str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "bad"), "--export", "bvh,fbx"]) == 2
+    assert "--export takes export formats" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()  # refused before the result folder was made
+    out = tmp_path / "o"
+    assert main([*args, "--out", str(out), "--export", "trc, bvh,trc"]) == 0
+    said = capsys.readouterr().out
+    assert sorted(p.name for p in (out / "export").iterdir()) == ["motion.bvh", "motion.trc"]
+    assert said.count("wrote ") == 2
+    from flowmocap.export import export_result
+
+    direct = np.loadtxt(export_result(out, "trc", tmp_path / "direct.trc"), skiprows=6)
+    np.testing.assert_allclose(np.loadtxt(out / "export" / "motion.trc", skiprows=6), direct, atol=2e-6)
+    assert "-0.000000" not in (out / "export" / "motion.trc").read_text()

@@ -52,7 +52,7 @@ def cmd_demo(args) -> int:
     print("paper's targets (HumanEva walking): local <= 5.5 cm, global <= 7.6 cm; ours: <= 1 s per frame")
     print(f"wrote {out / 'eval.json'}, the sequence in {out / 'sequence'} and the result in {out / 'result'}")
     print(f"next: flowmocap render {out / 'result'} (overlay video, figures); "
-          f"flowmocap export {out / 'result'} --format bvh|glb|obj|json|npz; "
+          f"flowmocap export {out / 'result'} --format bvh|glb|obj|json|npz|trc|c3d; "
           f"flowmocap eval {out / 'result'} --gt {out / 'sequence'}")
     return 0
 
@@ -72,10 +72,12 @@ def cmd_track(args) -> int:
     if args.ray and Path(args.ray).exists():
         raise InputError(f"--ray took {args.ray!r} for the Ray cluster's address; put --ray after the inputs, or "
                          "write --ray=ADDRESS.")
+    formats = _export_formats(args.export)
     if not is_batch(args.input, lists):
         if args.workers > 1 or args.ray is not None:
             print("one input: tracking it in this process (--workers and --ray share out several inputs)")
         track(args.input[0], args.out, resume=args.resume, progress=not args.quiet, force=args.force, **settings)
+        _export_all(args.out, formats, quiet=args.quiet)
         return 0
     if args.masks not in (None, "auto"):
         raise InputError(f"--masks {args.masks} holds one video's masks; with several inputs leave --masks at auto "
@@ -88,7 +90,33 @@ def cmd_track(args) -> int:
     items = track_many(expand_inputs(args.input, lists), args.out, workers=args.workers, ray=ray, force=args.force,
                        progress=not args.quiet, **settings)
     print(summary_table(items, args.out))
+    for it in items:
+        if it.ok:
+            _export_all(it.out, formats, quiet=args.quiet)
     return BATCH_FAILED if any(it.status == "failed" for it in items) else 0
+
+
+def _export_formats(text: str | None) -> list[str]:
+    """The formats of ``track --export`` (checked before any tracking)."""
+    from flowmocap.export import FORMATS
+
+    if not text:
+        return []
+    formats = [f.strip() for f in str(text).split(",") if f.strip()]
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise InputError(f"--export takes export formats separated by commas, of: {', '.join(FORMATS)}; "
+                         f"got {text!r}.")
+    return list(dict.fromkeys(formats))
+
+
+def _export_all(result: str | Path, formats: list[str], quiet: bool) -> None:
+    """Export a finished result in each format, to ``RESULT/export/`` (as ``flowmocap export``)."""
+    from flowmocap.export import export_result
+
+    for fmt in formats:
+        path = export_result(result, fmt, progress=not quiet)
+        print(f"wrote {path} ({fmt})")
 
 
 def cmd_synth(args) -> int:
@@ -199,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "measurements)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
+    t.add_argument("--export", metavar="FMT[,FMT...]", help="after tracking, also export each finished result "
+                   "into OUT/export/ as `flowmocap export` does with its defaults (ground frame): any of bvh, glb, "
+                   "glb-frames, obj, json, npz, trc, c3d")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.set_defaults(func=cmd_track)
 

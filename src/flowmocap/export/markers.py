@@ -83,8 +83,9 @@ def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
     def write(tmp):
         with open(tmp, "w", newline="\n") as f:
             f.write("\n".join(head) + "\n")
+            rows = np.round(j.reshape(T, -1), 6) + 0.0  # + 0.0: no "-0.000000"
             for k in range(T):
-                f.write(f"{k + 1}\t{k / fps:.6f}\t" + "\t".join(f"{v:.6f}" for v in j[k].reshape(-1)) + "\n")
+                f.write(f"{k + 1}\t{k / fps:.6f}\t" + "\t".join(f"{v:.6f}" for v in rows[k]) + "\n")
 
     atomic_write(path, write)
     return path
