@@ -975,3 +975,43 @@ def test_body_girth_is_each_vertex_distance_to_its_bone():
         want[n] = np.linalg.norm(v[n] - (a + s * ab))
     assert len(PARENTS) == jt.shape[0]
     np.testing.assert_allclose(g, want, rtol=1e-10, atol=1e-12)
+
+
+def test_the_steps_after_tracking_run_on_the_settings_threads_whatever_the_process_has(tmp_path, monkeypatch):
+    """A ``--workers`` process has fewer torch threads than a run alone; the steps after
+    tracking run on ``torch_threads`` as the tracker does, so the two give the same result
+    to the last bit (torch's reductions split their work by the thread count)."""
+    import torch
+
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.io.results import write_motion, write_run
+
+    motion, track, _, _ = _setup(tmp_path, TRUTH)
+    out = tmp_path / "result"
+    out.mkdir()
+    write_motion(out, motion)
+    write_run(out, {"status": "finished", "events": []})
+    seen = []
+
+    def spy(name):
+        def step(out, *args):
+            seen.append((name, torch.get_num_threads()))
+            return args[-2]  # the run info, as each step returns it
+        return step
+
+    monkeypatch.setattr(pipeline, "_lifter_refit", spy("lifter_refit"))
+    monkeypatch.setattr(pipeline, "_stance_pending", lambda *a: True)
+    monkeypatch.setattr(pipeline, "_stance_depth", spy("stance"))
+    monkeypatch.setattr(pipeline, "_smooth_poses", spy("smooth"))
+    before = torch.get_num_threads()
+    try:
+        for pool in (1, 2, 3):
+            torch.set_num_threads(pool)
+            seen.clear()
+            pipeline._post_steps(out, track, load_body_model("default"), TrackerConfig(torch_threads=2),
+                                 {"status": "finished"}, "auto", lambda s: None)
+            assert seen == [("lifter_refit", 2), ("stance", 2), ("smooth", 2)]
+            assert torch.get_num_threads() == pool  # the process's own pool back afterwards
+    finally:
+        torch.set_num_threads(before)

@@ -13,6 +13,7 @@ from the detector where the fit loses the person; and write ``motion.npz`` and
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import json
 import math
@@ -793,11 +794,18 @@ def _run(seq: Sequence, out: Path, model: BodyModel, camera: PinholeCamera, init
     """Initialise (or restore) and track ``span`` of ``seq`` into ``out``; returns run.json's contents.
     ``proportions``: ``(7,)`` or None, the body's bone proportions the video shows
     (:func:`~flowmocap.fit.init.initialise`)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(int(cfg.torch_threads))
-    try:
+    with _torch_threads(cfg.torch_threads):
         return _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, detections, keypoints,
                              joints3d, profile, notes, keep_flow, proportions)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int):
+    """torch's thread pool at ``n`` threads inside the block, as it was after it."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
     finally:
         torch.set_num_threads(threads)
 
@@ -919,15 +927,20 @@ def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: Trac
                 say) -> dict:
     """The steps after tracking, each on the finished ``motion.npz`` and each done once:
     the lifter refit (with the detections ``watch``), the stance depth correction and the
-    pose smoothing. Returns the run info."""
+    pose smoothing. Returns the run info.
+
+    They run on the settings' ``torch_threads``, as the tracker does: a result is then the same
+    to the last bit whatever thread pool the process had (one input tracked alone, or in a
+    ``--workers`` process with fewer threads)."""
     if not has_result(out):
         return run
-    if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
-        run = _lifter_refit(out, watch, body, cfg, run, say)
-    if _stance_pending(out, cfg, run):
-        run = _stance_depth(out, cfg, run, say)
-    if cfg.pose_smoothing_s > 0:
-        run = _smooth_poses(out, body, cfg, run, say)
+    with _torch_threads(cfg.torch_threads):
+        if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
+            run = _lifter_refit(out, watch, body, cfg, run, say)
+        if _stance_pending(out, cfg, run):
+            run = _stance_depth(out, cfg, run, say)
+        if cfg.pose_smoothing_s > 0:
+            run = _smooth_poses(out, body, cfg, run, say)
     return run
 
 
