@@ -271,3 +271,24 @@ def test_batch_export_writes_every_finished_result(clips, one_by_one, tmp_path, 
     for name in NAMES:
         doc = json.loads((out / name / "export" / "motion.json").read_text())
         assert len(doc["frames"]) == 4
+
+
+def test_a_batch_export_that_fails_for_one_result_exports_the_others_and_says_so(clips, one_by_one, tmp_path,
+                                                                                  capsys, monkeypatch):
+    import shutil
+
+    import flowmocap.export as export
+
+    out = tmp_path / "copy"
+    shutil.copytree(one_by_one, out)
+    real = export.export_result
+
+    def failing(result, fmt, **kw):
+        if Path(result).name == NAMES[1]:
+            raise flowmocap.errors.DataError(f"{result} cannot be exported (a test)")
+        return real(result, fmt, **kw)
+
+    monkeypatch.setattr(export, "export_result", failing)
+    assert main(_args(clips, out, "--export", "trc")) == BATCH_FAILED
+    assert f"export of {out / NAMES[1]} failed: " in capsys.readouterr().err
+    assert [(out / n / "export" / "motion.trc").exists() for n in NAMES] == [True, False, True]

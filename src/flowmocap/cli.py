@@ -90,10 +90,15 @@ def cmd_track(args) -> int:
     items = track_many(expand_inputs(args.input, lists), args.out, workers=args.workers, ray=ray, force=args.force,
                        progress=not args.quiet, **settings)
     print(summary_table(items, args.out))
+    export_failed = False
     for it in items:
         if it.ok:
-            _export_all(it.out, formats, quiet=args.quiet)
-    return BATCH_FAILED if any(it.status == "failed" for it in items) else 0
+            try:
+                _export_all(it.out, formats, quiet=args.quiet)
+            except FlowMocapError as e:  # the others still get theirs; the tracked result is kept
+                print(f"export of {it.out} failed: {e}", file=sys.stderr)
+                export_failed = True
+    return BATCH_FAILED if export_failed or any(it.status == "failed" for it in items) else 0
 
 
 def _export_formats(text: str | None) -> list[str]:
