@@ -96,6 +96,12 @@ def test_bad_trajectories_are_refused(tmp_path):
         write_trc(tmp_path / "a.trc", good, ["a", "left hip"], 30.0)
     with pytest.raises(InputError, match="up must be"):
         write_c3d(tmp_path / "a.c3d", good, ["a", "b"], 30.0, up="x")
+    # C3D's header counts frames in 16 bits; ezc3d would cut a longer motion there unsaid
+    end = _read_c3d(write_c3d(tmp_path / "end.c3d", np.zeros((3, 1, 3)), ["a"], 60.0, first_frame=65532))
+    assert [i for i, _ in end["frames"]] == [65533, 65534, 65535]  # the last frame a header can number
+    (tmp_path / "end.c3d").unlink()
+    with pytest.raises(InputError, match="16 bits, up to 65535, and this motion runs to frame 65536"):
+        write_c3d(tmp_path / "long.c3d", np.zeros((4, 1, 3)), ["a"], 60.0, first_frame=65532)
     assert not list(tmp_path.iterdir())
 
 

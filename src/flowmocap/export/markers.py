@@ -29,10 +29,14 @@ import numpy as np
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import InputError
 
-__all__ = ["write_trc", "write_c3d", "contact_events", "C3D_UNITS_PER_METRE"]
+__all__ = ["write_trc", "write_c3d", "contact_events", "C3D_UNITS_PER_METRE", "C3D_MAX_FRAME"]
 
 #: C3D points are written in millimetres.
 C3D_UNITS_PER_METRE = 1000.0
+
+#: The last frame number a C3D header can hold (16 bits): 18 minutes at 60 fps. ``ezc3d``
+#: would cut a longer motion there without a word, so :func:`write_c3d` refuses it.
+C3D_MAX_FRAME = 65535
 
 
 def _checked(joints: np.ndarray, names, fps: float) -> np.ndarray:
@@ -132,7 +136,8 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
         The path written. Points are in millimetres (``POINT:UNITS`` ``mm``).
 
     Raises:
-        InputError: wrong shapes, non-finite positions or frame rate, unknown ``up``.
+        InputError: wrong shapes, non-finite positions or frame rate, unknown ``up``, or a
+            last frame number past :data:`C3D_MAX_FRAME`.
     """
     import ezc3d
 
@@ -144,6 +149,10 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
     if up == "y":
         j = j @ Y_UP_TO_Z_UP.T
     T, M, _ = j.shape
+    if int(first_frame) + T > C3D_MAX_FRAME:
+        raise InputError(
+            f"a C3D file numbers its frames in 16 bits, up to {C3D_MAX_FRAME}, and this motion runs to frame "
+            f"{int(first_frame) + T}; export it as trc or json, or track a shorter stretch (--frames A:B).")
     c3d = ezc3d.c3d()
     c3d["parameters"]["POINT"]["RATE"]["value"] = [float(fps)]
     c3d["parameters"]["POINT"]["LABELS"]["value"] = tuple(str(n) for n in names)
