@@ -32,8 +32,14 @@ def _read_c3d(path):
         warnings.simplefilter("ignore")  # "no analog data": we write none
         r = c3d.Reader(f)
         frames = [(i, pts.copy()) for i, pts, _ in r.read_frames()]
+        events = []
+        if r.get("EVENT:USED") is not None:
+            events = list(zip([s.strip() for s in r.get("EVENT:CONTEXTS").string_array],
+                              [s.strip() for s in r.get("EVENT:LABELS").string_array],
+                              r.get("EVENT:TIMES").float_array[:, 1]))
         return {"first": r.header.first_frame, "rate": r.point_rate, "labels": [s.strip() for s in r.point_labels],
-                "units": r.get("POINT:UNITS").string_value.strip(), "frames": frames}
+                "units": r.get("POINT:UNITS").string_value.strip(), "frames": frames,
+                "events": events}  # (side, label, seconds)
 
 
 def test_trc_holds_the_joints_in_metres_with_the_header_opensim_reads(posed_result, tmp_path):
@@ -117,7 +123,6 @@ def test_contact_events_are_the_contacts_changes():
 def test_the_ground_frames_c3d_carries_the_foot_contacts_as_gait_events(camera_frame_result, tmp_path):
     from flowmocap.export.markers import contact_events
 
-    c3d = pytest.importorskip("c3d", reason="the c3d package is a test dependency (via trc-data-reader)")
     folder, _ = camera_frame_result
     motion = load_fitted_motion(folder)
     contacts = motion.world.contacts.copy()
@@ -126,20 +131,11 @@ def test_the_ground_frames_c3d_carries_the_foot_contacts_as_gait_events(camera_f
                      first_frame=int(motion.frame_index[0]), contacts=contacts)
     want = contact_events(contacts)
     assert want
-    with open(path, "rb") as f, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = c3d.Reader(f)
-        labels = [s.strip() for s in r.get("EVENT:LABELS").string_array]
-        sides = [s.strip() for s in r.get("EVENT:CONTEXTS").string_array]
-        times = r.get("EVENT:TIMES").float_array[:, 1]
-    assert list(zip(sides, labels)) == [(side, label) for _, side, label in want]
-    np.testing.assert_allclose(times, [(3 + k) / 25.0 for k, _, _ in want], atol=1e-6)
+    events = _read_c3d(path)["events"]
+    assert [(side, label) for side, label, _ in events] == [(side, label) for _, side, label in want]
+    np.testing.assert_allclose([t for _, _, t in events], [(3 + k) / 25.0 for k, _, _ in want], atol=1e-6)
     # and the export command writes the result's own contacts
     doc = export_result(folder, "c3d", tmp_path / "e.c3d")
-    with open(doc, "rb") as f, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = c3d.Reader(f)
-        n = int(r.get("EVENT:USED").int16_value) if r.get("EVENT:USED") is not None else 0
-    assert n == len(contact_events(motion.world.contacts))
+    assert len(_read_c3d(doc)["events"]) == len(contact_events(motion.world.contacts))
     with pytest.raises(InputError, match="contacts must be"):
         write_c3d(tmp_path / "x.c3d", motion.joints(), JOINT_NAMES, motion.fps, contacts=contacts[:2])
