@@ -87,7 +87,7 @@ def test_the_command_line_writes_both_to_the_result_folder(posed_result, capsys)
     for fmt in ("trc", "c3d"):
         assert main(["export", str(folder), "--format", fmt, "--quiet"]) == 0
         assert (folder / "export" / f"motion.{fmt}").is_file()
-        assert f"motion.{fmt} ({fmt}: the 24 joints as marker trajectories" in capsys.readouterr().out
+        assert f"motion.{fmt} ({fmt}: marker trajectories (--markers)" in capsys.readouterr().out
 
 
 def test_bad_trajectories_are_refused(tmp_path):
@@ -109,6 +109,21 @@ def test_bad_trajectories_are_refused(tmp_path):
     with pytest.raises(InputError, match="16 bits, up to 65535, and this motion runs to frame 65536"):
         write_c3d(tmp_path / "long.c3d", np.zeros((4, 1, 3)), ["a"], 60.0, first_frame=65532)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_trc_may_hold_missing_markers_as_nan_when_asked(tmp_path):
+    pts = np.arange(4 * 2 * 3, dtype=np.float64).reshape(4, 2, 3) / 10.0
+    pts[1, 0] = np.nan  # marker a missing in frame 1
+    with pytest.raises(InputError, match="NaN"):
+        write_trc(tmp_path / "m.trc", pts, ["a", "b"], 30.0)
+    doc = _read_trc(write_trc(tmp_path / "m.trc", pts, ["a", "b"], 30.0, missing_ok=True))
+    got = np.stack([np.asarray(doc[n], np.float64) for n in ("a", "b")], axis=1)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(pts))
+    np.testing.assert_allclose(got[~np.isnan(pts)], pts[~np.isnan(pts)], atol=1e-6)
+    pts[2, 1, 0] = np.inf
+    with pytest.raises(InputError, match="infinite"):
+        write_trc(tmp_path / "inf.trc", pts, ["a", "b"], 30.0, missing_ok=True)
+    assert not (tmp_path / "inf.trc").exists()
 
 
 def test_contact_events_are_the_contacts_changes():

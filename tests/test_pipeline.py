@@ -312,13 +312,17 @@ def test_track_export_writes_the_formats_after_tracking_and_refuses_unknown_ones
     assert main([*args, "--out", str(tmp_path / "bad"), "--export", "bvh,fbx"]) == 2
     assert "--export takes export formats" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()  # refused before the result folder was made
+    assert main([*args, "--out", str(tmp_path / "bad"), "--export", "bvh", "--export-markers", "halpe26"]) == 2
+    assert "--export-markers halpe26 sets the markers of the trc and c3d exports" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
     out = tmp_path / "o"
-    assert main([*args, "--out", str(out), "--export", "trc, bvh,trc"]) == 0
+    assert main([*args, "--out", str(out), "--export", "trc, bvh,trc", "--export-markers", "halpe26"]) == 0
     said = capsys.readouterr().out
     assert sorted(p.name for p in (out / "export").iterdir()) == ["motion.bvh", "motion.trc"]
     assert said.count("wrote ") == 2
     from flowmocap.export import export_result
 
-    direct = np.loadtxt(export_result(out, "trc", tmp_path / "direct.trc"), skiprows=6)
+    assert "\tRHip\t" in (out / "export" / "motion.trc").read_text()  # the marker set reached the trc
+    direct = np.loadtxt(export_result(out, "trc", tmp_path / "direct.trc", markers="halpe26"), skiprows=6)
     np.testing.assert_allclose(np.loadtxt(out / "export" / "motion.trc", skiprows=6), direct, atol=2e-6)
     assert "-0.000000" not in (out / "export" / "motion.trc").read_text()

@@ -9,6 +9,7 @@ from pathlib import Path
 from flowmocap.batch import BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many
 from flowmocap.commands import register_all
 from flowmocap.errors import FlowMocapError, InputError, OutputError
+from flowmocap.export.marker_sets import MARKER_SETS
 from flowmocap.eval.demo import run_demo
 from flowmocap.pipeline import track
 from flowmocap.synth import synthesize
@@ -72,12 +73,12 @@ def cmd_track(args) -> int:
     if args.ray and Path(args.ray).exists():
         raise InputError(f"--ray took {args.ray!r} for the Ray cluster's address; put --ray after the inputs, or "
                          "write --ray=ADDRESS.")
-    formats = _export_formats(args.export)
+    formats = _export_formats(args.export, args.export_markers)
     if not is_batch(args.input, lists):
         if args.workers > 1 or args.ray is not None:
             print("one input: tracking it in this process (--workers and --ray share out several inputs)")
         track(args.input[0], args.out, resume=args.resume, progress=not args.quiet, force=args.force, **settings)
-        _export_all(args.out, formats, quiet=args.quiet)
+        _export_all(args.out, formats, quiet=args.quiet, markers=args.export_markers)
         return 0
     if args.masks not in (None, "auto"):
         raise InputError(f"--masks {args.masks} holds one video's masks; with several inputs leave --masks at auto "
@@ -94,33 +95,38 @@ def cmd_track(args) -> int:
     for it in items:
         if it.ok:
             try:
-                _export_all(it.out, formats, quiet=args.quiet)
+                _export_all(it.out, formats, quiet=args.quiet, markers=args.export_markers)
             except FlowMocapError as e:  # the others still get theirs; the tracked result is kept
                 print(f"export of {it.out} failed: {e}", file=sys.stderr)
                 export_failed = True
     return BATCH_FAILED if export_failed or any(it.status == "failed" for it in items) else 0
 
 
-def _export_formats(text: str | None) -> list[str]:
-    """The formats of ``track --export`` (checked before any tracking)."""
+def _export_formats(text: str | None, markers: str = "joints") -> list[str]:
+    """The formats of ``track --export`` and its ``--export-markers`` set (checked before any tracking)."""
     from flowmocap.export import FORMATS
+    from flowmocap.export.marker_sets import marker_names
 
-    if not text:
-        return []
-    formats = [f.strip() for f in str(text).split(",") if f.strip()]
+    marker_names(markers)
+    formats = [f.strip() for f in str(text or "").split(",") if f.strip()]
     unknown = [f for f in formats if f not in FORMATS]
-    if unknown or not formats:
+    if text and (unknown or not formats):
         raise InputError(f"--export takes export formats separated by commas, of: {', '.join(FORMATS)}; "
                          f"got {text!r}.")
+    if markers != "joints" and not {"trc", "c3d"} & set(formats):
+        raise InputError(f"--export-markers {markers} sets the markers of the trc and c3d exports; add one of them "
+                         "to --export (e.g. --export trc).")
     return list(dict.fromkeys(formats))
 
 
-def _export_all(result: str | Path, formats: list[str], quiet: bool) -> None:
-    """Export a finished result in each format, to ``RESULT/export/`` (as ``flowmocap export``)."""
+def _export_all(result: str | Path, formats: list[str], quiet: bool, markers: str = "joints") -> None:
+    """Export a finished result in each format, to ``RESULT/export/`` (as ``flowmocap export``),
+    the trc and c3d files with the ``markers`` set."""
     from flowmocap.export import export_result
 
     for fmt in formats:
-        path = export_result(result, fmt, progress=not quiet)
+        path = export_result(result, fmt, progress=not quiet,
+                             markers=markers if fmt in ("trc", "c3d") else "joints")
         print(f"wrote {path} ({fmt})")
 
 
@@ -235,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--export", metavar="FMT[,FMT...]", help="after tracking, also export each finished result "
                    "into OUT/export/ as `flowmocap export` does with its defaults (ground frame): any of bvh, glb, "
                    "glb-frames, obj, json, npz, trc, c3d")
+    t.add_argument("--export-markers", default="joints", choices=list(MARKER_SETS),
+                   help="the markers of the trc and c3d exports: joints (the 24 joint centres, default) or "
+                   "halpe26 (Pose2Sim's HALPE_26 keypoints, for its OpenSim model)")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.set_defaults(func=cmd_track)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from flowmocap.export.marker_sets import MARKER_SETS
+
 FORMAT_HELP = {
     "bvh": "skeleton with the fitted bone lengths (Blender, Maya, MotionBuilder, Unity)",
     "glb": "glTF binary: one skinned mesh, 24-joint rig, keyframed joint rotations (Blender, three.js, engines)",
@@ -9,8 +11,8 @@ FORMAT_HELP = {
     "obj": "one .obj mesh per frame in a folder",
     "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
-    "trc": "the 24 joints as marker trajectories, OpenSim's text format (metres, y up: OpenSim, Pose2Sim)",
-    "c3d": "the 24 joints as marker trajectories, the motion-capture binary standard (millimetres, z up: "
+    "trc": "marker trajectories (--markers), OpenSim's text format (metres, y up: OpenSim, Pose2Sim)",
+    "c3d": "marker trajectories (--markers), the motion-capture binary standard (millimetres, z up: "
            "Vicon, Visual3D, Mokka)",
 }
 
@@ -36,6 +38,10 @@ def register(subparsers) -> None:
     p.add_argument("--smooth-order", type=int, default=2, help="polynomial degree of --smooth (default 2)")
     p.add_argument("--model", default=None,
                    help="body model (default: the one recorded in run.json, else the bundled default)")
+    p.add_argument("--markers", default="joints", choices=list(MARKER_SETS),
+                   help="trc and c3d: joints (the 24 joint centres, named pelvis, left_hip, ...; default) or "
+                   "halpe26 (Pose2Sim's HALPE_26 keypoints Hip, RHip, ..., RHeel, as its OpenSim model "
+                   "Model_Pose2Sim_Halpe26 names them: where a detector puts them on the fitted body)")
     p.add_argument("--bvh-unit", default="m", choices=["m", "cm"], help="BVH length unit (default m)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_export)
@@ -60,7 +66,7 @@ def run_export(args) -> int:
 
     path = export_result(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
                          units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
-                         smooth=smooth_option(args.smooth, args.smooth_order))
+                         smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers)
     size = ""
     if path.is_file():
         size = f", {path.stat().st_size / 1e6:.2f} MB"

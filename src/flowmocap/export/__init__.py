@@ -4,8 +4,9 @@ Formats (:data:`FORMATS`): ``bvh`` (skeleton with the fitted bone lengths),
 ``glb`` (one skinned mesh, a 24-joint rig and keyframed joint rotations,
 :mod:`flowmocap.export.gltf_skin`), ``glb-frames`` (a flipbook: one full mesh per frame,
 exact vertices, large), ``obj`` (one mesh per frame in a folder), ``json`` (per-frame
-joints and parameters), ``npz`` (AMASS layout), ``trc`` and ``c3d`` (the 24 joints as
-marker trajectories for biomechanics tools, :mod:`flowmocap.export.markers`). All 3D output
+joints and parameters), ``npz`` (AMASS layout), ``trc`` and ``c3d`` (marker trajectories
+for biomechanics tools, :mod:`flowmocap.export.markers`: the 24 joints, or Pose2Sim's HALPE_26
+keypoints, :mod:`flowmocap.export.marker_sets`). All 3D output
 is in metres, by default in the ground frame of :mod:`flowmocap.export.world` (gravity up,
 y up, the floor at 0); see :mod:`flowmocap.export.motion` for the other frames (the AMASS
 file is z up, as AMASS's own; the C3D file is z up and in millimetres, as labs write it). ``smooth=True`` smooths the motion first (:mod:`flowmocap.fit.smooth`).
@@ -131,7 +132,7 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
 
 def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground",
                   model=None, units_per_metre: float = 1.0, progress: bool = False,
-                  smooth: bool | dict = False) -> Path:
+                  smooth: bool | dict = False, markers: str = "joints") -> Path:
     """Export a result folder.
 
     Args:
@@ -145,14 +146,23 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         model: body model override (default: the one recorded in ``run.json``).
         units_per_metre: BVH length unit (1 = metres, 100 = centimetres).
         progress: progress bars for the per-frame formats.
+        markers: the marker set of ``trc`` and ``c3d``
+            (:data:`flowmocap.export.marker_sets.MARKER_SETS`: ``"joints"``, the 24 joint
+            centres, or ``"halpe26"``, Pose2Sim's keypoints); other formats take only the default.
 
     Returns:
         The path written (file or folder).
 
     Raises:
-        InputError: unknown format or frame. DataError: not a result folder.
+        InputError: unknown format, frame or marker set, or a marker set for a format without
+            markers. DataError: not a result folder.
     """
+    from flowmocap.export.marker_sets import marker_names
+
     _check_format(fmt)
+    marker_names(markers)
+    if markers != "joints" and fmt not in ("trc", "c3d"):
+        raise InputError(f"a marker set ({markers!r}) is for the trc and c3d formats; {fmt!r} holds the body itself.")
     out = Path(out) if out is not None else default_output(result_dir, fmt)
     motion = load_fitted_motion(result_dir, frame=frame, model=model, smooth=smooth)
     rest = motion.rest_joints()
@@ -176,13 +186,14 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     if fmt == "json":
         return write_json(out, motion)
     if fmt in ("trc", "c3d"):
-        from flowmocap.body.skeleton import JOINT_NAMES
+        from flowmocap.export.marker_sets import marker_trajectories
         from flowmocap.export.markers import write_c3d, write_trc
 
         first = int(motion.frame_index[0]) if motion.num_frames else 0
+        names, points = marker_trajectories(motion, markers)
         if fmt == "trc":
-            return write_trc(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first)
-        return write_c3d(out, motion.joints(), JOINT_NAMES, motion.fps, first_frame=first,
+            return write_trc(out, points, names, motion.fps, first_frame=first)
+        return write_c3d(out, points, names, motion.fps, first_frame=first,
                          up="none" if frame == "world" else "y",
                          contacts=motion.world.contacts if motion.world is not None else None)
     from flowmocap.io.amass import write_amass_npz

@@ -1,7 +1,8 @@
-"""The fitted joints as marker trajectories, for biomechanics tools.
+"""Marker trajectories of the fitted body, for biomechanics tools.
 
-Two formats, each holding the 24 body joints' positions frame by frame, named by
-:data:`flowmocap.body.skeleton.JOINT_NAMES` (``pelvis``, ``left_hip``, ...):
+Two formats, each holding named points frame by frame: by default the 24 body joints, named by
+:data:`flowmocap.body.skeleton.JOINT_NAMES` (``pelvis``, ``left_hip``, ...), or another marker
+set of :mod:`flowmocap.export.marker_sets` (Pose2Sim's HALPE_26 keypoints):
 
 - ``.trc`` (Motion Analysis's track-row-column text, read by OpenSim, Pose2Sim and most
   biomechanics software): tab-separated, metres, the export frame as it is (the ground
@@ -39,19 +40,23 @@ C3D_UNITS_PER_METRE = 1000.0
 C3D_MAX_FRAME = 65535
 
 
-def _checked(joints: np.ndarray, names, fps: float) -> np.ndarray:
+def _checked(joints: np.ndarray, names, fps: float, missing_ok: bool = False) -> np.ndarray:
     j = np.asarray(joints, np.float64)
     if j.ndim != 3 or j.shape[2] != 3 or j.shape[0] < 1 or j.shape[1] != len(names):
         raise InputError(f"marker trajectories must be (T >= 1, {len(names)}, 3) metres, one per name; "
                          f"got shape {j.shape}.")
-    if not np.all(np.isfinite(j)):
+    if missing_ok:
+        if np.isinf(j).any():
+            raise InputError("marker trajectories hold infinite positions; a missing marker is NaN.")
+    elif not np.all(np.isfinite(j)):
         raise InputError("marker trajectories hold NaN or infinite positions; the result is damaged: track again.")
     if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"the frame rate must be a positive number of frames per second; got {fps!r}.")
     return j
 
 
-def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0) -> Path:
+def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0,
+              missing_ok: bool = False) -> Path:
     """Write joint trajectories as an OpenSim ``.trc`` file, atomically.
 
     Args:
@@ -61,14 +66,17 @@ def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
         fps: frames per second (Hz); frame ``k`` is at ``k / fps`` seconds.
         first_frame: the input video's frame number of frame 0 (stored 1-based as
             ``OrigDataStartFrame``).
+        missing_ok: allow NaN positions (a marker missing in a frame), written as ``NaN``,
+            which OpenSim's tools leave out of that frame.
 
     Returns:
         The path written.
 
     Raises:
-        InputError: wrong shapes, non-finite positions or frame rate.
+        InputError: wrong shapes, non-finite positions (NaN allowed with ``missing_ok``)
+            or frame rate.
     """
-    j = _checked(joints, names, fps)
+    j = _checked(joints, names, fps, missing_ok)
     names = [str(n) for n in names]
     if any(not n or any(c.isspace() for c in n) for n in names):
         raise InputError(f"TRC marker names must be non-empty and hold no white space; got {names}.")
@@ -89,7 +97,8 @@ def write_trc(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
             f.write("\n".join(head) + "\n")
             rows = np.round(j.reshape(T, -1), 6) + 0.0  # + 0.0: no "-0.000000"
             for k in range(T):
-                f.write(f"{k + 1}\t{k / fps:.6f}\t" + "\t".join(f"{v:.6f}" for v in rows[k]) + "\n")
+                f.write(f"{k + 1}\t{k / fps:.6f}\t" + "\t".join("NaN" if v != v else f"{v:.6f}" for v in rows[k])
+                        + "\n")
 
     atomic_write(path, write)
     return path
