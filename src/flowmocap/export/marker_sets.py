@@ -142,8 +142,6 @@ def marker_trajectories(motion, marker_set: str = "joints", chunk: int = 256) ->
     Raises:
         InputError: an unknown marker set.
     """
-    import torch
-
     from flowmocap.body.skeleton import JOINT_INDEX
     from flowmocap.vision.keypoint_map import load_keypoint_map
 
@@ -152,22 +150,16 @@ def marker_trajectories(motion, marker_set: str = "joints", chunk: int = 256) ->
         return names, motion.joints()
     surface = surface_vertices(motion.model)
     kmap = load_keypoint_map()
-    dt = torch.float64
-    b = torch.as_tensor(motion.betas[None], dtype=dt)
     frames = []
-    with torch.no_grad():
-        shaped = motion.model.shaped(b)
-        for s in range(0, motion.num_frames, chunk):
-            out = motion.model(betas=b, pose=torch.as_tensor(motion.poses[s:s + chunk], dtype=dt),
-                               trans=torch.as_tensor(motion.trans[s:s + chunk], dtype=dt), shaped=shaped)
-            keypoints = kmap.apply(out.joints, out.transforms).numpy()
-            vertices = out.vertices.numpy()
-            points = {}
-            for name, joint in _KEYPOINT_JOINT.items():
-                points[name] = keypoints[:, JOINT_INDEX[joint]]
-            for name, index in surface.items():
-                points[name] = vertices[:, index]
-            points["Hip"] = 0.5 * (points["LHip"] + points["RHip"])
-            points["Neck"] = out.joints[:, JOINT_INDEX["neck"]].numpy()
-            frames.append(np.stack([points[n] for n in names], axis=1))
+    for out in motion.posed(chunk, with_vertices=True):
+        keypoints = kmap.apply(out.joints, out.transforms).numpy()
+        vertices = out.vertices.numpy()
+        points = {}
+        for name, joint in _KEYPOINT_JOINT.items():
+            points[name] = keypoints[:, JOINT_INDEX[joint]]
+        for name, index in surface.items():
+            points[name] = vertices[:, index]
+        points["Hip"] = 0.5 * (points["LHip"] + points["RHip"])
+        points["Neck"] = out.joints[:, JOINT_INDEX["neck"]].numpy()
+        frames.append(np.stack([points[n] for n in names], axis=1))
     return names, (np.concatenate(frames) if frames else np.zeros((0, len(names), 3)))

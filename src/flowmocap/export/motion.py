@@ -116,20 +116,24 @@ class FittedMotion:
                              trans=torch.as_tensor(self.trans[start:stop], dtype=torch.float64))
         return out.vertices.numpy(), out.joints.numpy()
 
-    def joints(self, chunk: int = 1024) -> np.ndarray:
-        """``(T, 24, 3)`` float64 posed joints in metres, export frame (posed ``chunk``
-        frames at a time, without the mesh, the shape made once)."""
+    def posed(self, chunk: int = 1024, with_vertices: bool = False):
+        """The body posed ``chunk`` frames at a time, the shape made once: yields a
+        :class:`~flowmocap.body.model.BodyOutput` (float64, metres, export frame) per chunk,
+        in frame order; ``with_vertices=False`` leaves the mesh out."""
         import torch
 
         dt = torch.float64
         b = torch.as_tensor(self.betas[None], dtype=dt)
-        out = []
         with torch.no_grad():
             shaped = self.model.shaped(b)
             for s in range(0, self.num_frames, chunk):
-                out.append(self.model(betas=b, pose=torch.as_tensor(self.poses[s:s + chunk], dtype=dt),
-                                      trans=torch.as_tensor(self.trans[s:s + chunk], dtype=dt), shaped=shaped,
-                                      with_vertices=False).joints.double().numpy())
+                yield self.model(betas=b, pose=torch.as_tensor(self.poses[s:s + chunk], dtype=dt),
+                                 trans=torch.as_tensor(self.trans[s:s + chunk], dtype=dt), shaped=shaped,
+                                 with_vertices=with_vertices)
+
+    def joints(self, chunk: int = 1024) -> np.ndarray:
+        """``(T, 24, 3)`` float64 posed joints in metres, export frame (:meth:`posed`)."""
+        out = [o.joints.double().numpy() for o in self.posed(chunk)]
         return np.concatenate(out) if out else np.zeros((0, 24, 3))
 
 
