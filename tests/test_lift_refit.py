@@ -801,6 +801,24 @@ def test_the_refit_moves_the_bodys_proportions_towards_the_lifters(tmp_path, sha
     np.testing.assert_allclose(out["joints3d"], j, atol=1e-4)
 
 
+def test_a_stated_height_holds_through_the_shape_step(tmp_path):
+    from flowmocap.body.stature import stature
+
+    frames = 12
+    model64, kmap = load_body_model("default", dtype=torch.float64), load_keypoint_map()
+    motion, track, _, _ = _setup(tmp_path, TRUTH, frames=frames)
+    with torch.no_grad():
+        truth_kp, _ = keypoints13(model64, kmap, torch.as_tensor(np.tile(TRUTH, (frames, 1))),
+                                  torch.as_tensor(TRUTH_BETAS).reshape(1, -1), torch.zeros(frames, 3, dtype=torch.float64))
+    kw = dict(weight=0.5, lifter=TruthLifter(truth_kp.numpy()), iterations=20, shape_share=1.0)
+    free, _ = lifter_refit_motion(motion, track, load_body_model("default"), **kw)
+    out, info = lifter_refit_motion(motion, track, load_body_model("default"), height=1.62, **kw)
+    assert abs(stature(model64, free["betas"]) - 1.62) > 0.01  # the shape step alone moves the stature
+    assert stature(model64, out["betas"]) == pytest.approx(1.62, abs=1e-4)  # float32 betas
+    np.testing.assert_allclose(info["shape"]["proportions_after"], _proportions(model64, kmap, out["betas"], [TRUTH]),
+                               atol=1e-4)
+
+
 def test_too_few_lifted_frames_keep_the_shape(tmp_path):
     motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)  # 3 frames with a person
     out, info = lifter_refit_motion(motion, track, load_body_model("default"), weight=0.5,

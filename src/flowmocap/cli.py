@@ -63,7 +63,7 @@ def cmd_track(args) -> int:
                 "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
                 "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow,
-                "fast": args.fast}
+                "fast": args.fast, "height": args.height}
     lists = [args.list] if args.list else []
     if not args.input and not lists:
         raise InputError("track needs an input: a video file, a folder of frames, a sequence folder, or a batch "
@@ -227,6 +227,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", help="JSON file of tracker settings over the profile's (fields of "
                    "flowmocap.fit.config.TrackerConfig; see docs/settings.md)")
     t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
+    t.add_argument("--height", type=float, default=None, metavar="METRES",
+                   help="the person's standing height in metres, if known (e.g. 1.78): the body is given that "
+                   "height and placed at the depth that goes with it, so lengths, speeds and positions come out in "
+                   "the person's metres (one camera leaves the size open; default: the fit's own estimate, "
+                   "recorded in run.json as body.stature_m). In a batch it applies to every input")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same input and "
                    "set-up only; it ends exactly as an uninterrupted run would)")
     t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from flowmocap.body import BodyModel, load_body_model
+from flowmocap.body.stature import check_height, stature
 from flowmocap.errors import DataError, InputError, NoPersonError, OutputError
 from flowmocap.fit.config import FAST_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
@@ -202,7 +203,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           model: str | Path | BodyModel = "default", gender: str = "neutral", flow: str | None = None,
           max_size: int | None = 640, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
-          force: bool = False, keep_flow: bool | None = None, fast: bool = False) -> Result:
+          force: bool = False, keep_flow: bool | None = None, fast: bool = False,
+          height: float | None = None) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -263,6 +265,11 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         fast: the :data:`~flowmocap.fit.config.FAST_SETTINGS` over the profile's (``config``
             still overrides them) and the detector without its mask augmentation: faster at
             some cost in the 2D fit on real video (``docs/settings.md``, "Speed and --fast").
+        height: the person's standing height in metres, when known (0.5..2.5): the body is
+            given that stature (``TrackerConfig.body_height_m``; :mod:`flowmocap.body.stature`)
+            and placed at the depth that goes with it, so lengths, speeds and positions in
+            metres are the person's. None: the size the fit gives the body (one camera leaves
+            it open). The result's ``run.json`` records the body's stature either way (``body``).
 
     Returns:
         the :class:`Result`.
@@ -282,11 +289,13 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         raise InputError(f"joints3d must be 'auto' or 'off'; got {joints3d!r}.")
     check_max_side(max_size)
     parse_person(person)
+    if height is not None:
+        check_height(height)
     _check_out(out, force)
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast)
+                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height)
         except BaseException as e:
             _failed_before_tracking(out, e)
             if not isinstance(e, OSError):
@@ -314,7 +323,7 @@ def _failed_before_tracking(out: Path, error: BaseException) -> None:
 
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False) -> Result:
+           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False, height=None) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -342,7 +351,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         why = "chosen"
     if profile not in PROFILES:
         raise InputError(f"unknown profile {profile!r}; use one of {sorted(PROFILES)}.")
-    cfg = TrackerConfig.load(config, profile=profile, base=FAST_SETTINGS if fast else None, flow_method=flow)
+    cfg = TrackerConfig.load(config, profile=profile, base=FAST_SETTINGS if fast else None, flow_method=flow,
+                             body_height_m=None if height is None else float(height))
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
     if choice[0] != "largest" and not (auto_masks or auto_init):
         raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
@@ -941,6 +951,20 @@ def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: Trac
             run = _stance_depth(out, cfg, run, say)
         if cfg.pose_smoothing_s > 0:
             run = _smooth_poses(out, body, cfg, run, say)
+    return _record_body(out, body, cfg, run, say)
+
+
+def _record_body(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:
+    """``run.json``'s ``body``: the result body's stature (metres, :mod:`flowmocap.body.stature`)
+    and the height stated for it (``cfg.body_height_m``, None when not given)."""
+    motion, _ = read_result(out)
+    info = {"stature_m": round(stature(body, np.asarray(motion["betas"], np.float64)), 4),
+            "height_given_m": cfg.body_height_m or None}
+    if run.get("body") != info:
+        run = {**run, "body": info}
+        write_run(out, run)
+        given = " (as stated)" if cfg.body_height_m else " (one camera's estimate: give --height if you know it)"
+        say(f"the body stands {info['stature_m']:.2f} m tall{given}")
     return run
 
 
@@ -1008,7 +1032,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           shape_share=cfg.lifter_refit_shape_share,
                                           shape_girth_sigma=cfg.lifter_refit_shape_girth or None,
                                           bridge_s=cfg.lifter_refit_bridge_s,
-                                          hidden_share=cfg.lifter_refit_hidden_share)
+                                          hidden_share=cfg.lifter_refit_hidden_share,
+                                          height=cfg.body_height_m or None)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

@@ -56,10 +56,6 @@ _KEYPOINT_JOINT = {
                         ("Shoulder", "shoulder"), ("Elbow", "elbow"), ("Wrist", "wrist"))
 }
 
-#: Vertices within this of the body's midline (metres, ``|x|``) are on it: the nose, the top
-#: of the head.
-_MIDLINE_M = 0.02
-
 #: A toe's share of the foot's front: vertices within this of the foot's most forward point
 #: (metres) count as the front of the foot, where the big toe is the most medial.
 _TOE_FRONT_M = 0.01
@@ -90,7 +86,8 @@ def surface_vertices(model) -> dict[str, int]:
     its side of the body are the foot; its heel is the foot's rearmost vertex, its big toe the
     most medial vertex within 1 cm of the foot's most forward point, its small toe the vertex
     furthest forward and outward (largest ``z + |x|``). Of the vertices within 2 cm of the
-    body's midline above the neck joint, ``Nose`` is the most forward, ``Head`` the highest.
+    body's midline above the neck joint, ``Nose`` is the most forward; ``Head`` is the top of
+    the stature (:func:`flowmocap.body.stature.stature_vertices`), the highest on the midline.
 
     Args:
         model: a :class:`~flowmocap.body.BodyModel`.
@@ -104,15 +101,16 @@ def surface_vertices(model) -> dict[str, int]:
             body in the SMPL axes).
     """
     from flowmocap.body.skeleton import JOINT_INDEX
+    from flowmocap.body.stature import MIDLINE_M, stature_vertices
     from flowmocap.errors import ModelFileError
 
     v = model.v_template.detach().double().cpu().numpy()
     joints = model.J_regressor.detach().double().cpu().numpy() @ v
-    face = np.flatnonzero((v[:, 1] > joints[JOINT_INDEX["neck"], 1]) & (np.abs(v[:, 0]) < _MIDLINE_M))
+    face = np.flatnonzero((v[:, 1] > joints[JOINT_INDEX["neck"], 1]) & (np.abs(v[:, 0]) < MIDLINE_M))
     if face.size == 0:
         raise ModelFileError("no mesh vertex on the body's midline above its neck joint; the model is not an "
                              "upright body in the SMPL axes (y up, facing +z).")
-    out = {"Head": int(face[np.argmax(v[face, 1])]), "Nose": int(face[np.argmax(v[face, 2])])}
+    out = {"Head": stature_vertices(model)[0], "Nose": int(face[np.argmax(v[face, 2])])}
     for s, side, sign in (("L", "left", 1.0), ("R", "right", -1.0)):
         ankle = joints[JOINT_INDEX[f"{side}_ankle"]]
         foot = np.flatnonzero((v[:, 1] < ankle[1]) & (sign * v[:, 0] > 0))

@@ -72,11 +72,13 @@ def profile_names() -> list[str]:
 
 # What each number setting must satisfy (checked in TrackerConfig.__post_init__).
 _AT_LEAST_0, _ABOVE_0, _UNIT, _AT_LEAST_1 = ">= 0", "> 0", "in [0, 1]", ">= 1"
+_HEIGHT = "0 (not known) or a height in metres in [0.5, 2.5]"
 _RANGE_OK = {
     _AT_LEAST_0: lambda v: v >= 0,
     _ABOVE_0: lambda v: v > 0,
     _UNIT: lambda v: 0 <= v <= 1,
     _AT_LEAST_1: lambda v: v >= 1,
+    _HEIGHT: lambda v: v == 0 or 0.5 <= v <= 2.5,  # flowmocap.body.stature.STATURE_RANGE_M
 }
 _RANGES: dict[str, str] = {
     "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
@@ -103,7 +105,7 @@ _RANGES: dict[str, str] = {
     "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
     "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
-    "init_shape_share": _UNIT, "init_shape_girth": _AT_LEAST_0,
+    "init_shape_share": _UNIT, "init_shape_girth": _AT_LEAST_0, "body_height_m": _HEIGHT,
     "init_shape_prior_weight": _AT_LEAST_0, "init_detector3d_weight": _AT_LEAST_0, "init_iterations": _AT_LEAST_1,
     "init_flow_iterations": _AT_LEAST_1,
 }
@@ -287,6 +289,9 @@ class TrackerConfig:
     #                                    on video, off (docs/experiments.md, thirtieth session)
     init_shape_girth: float = 0.0      # m: with init_shape_share, the body's girth along its bones held at this
     #                                    scale (fit.lift_refit.body_girth); 0: not held
+    body_height_m: float = 0.0         # m: the person's stated standing height (track --height); the body is given
+    #                                    that stature after frame 0's shape fit and after the refit's shape step
+    #                                    (flowmocap.body.stature.with_stature); 0: not known, the fit's own size
     init_detector3d_weight: float = 3e4   # E_3d in the init's and the refits' joint fits (px^2 scale); 0: off
     init_learned_prior_weight: float = 5.0  # E_p in the init's and the refits' joint fits (px^2 scale); 0: off
     init_iterations: int = 60          # L-BFGS iterations per init step

@@ -383,6 +383,35 @@ def shape_towards_seen(model: BodyModel, betas: torch.Tensor, pose: torch.Tensor
     return new.to(torch.as_tensor(betas).dtype), info
 
 
+def given_stature(model: BodyModel, camera: PinholeCamera, betas: torch.Tensor, trans: torch.Tensor,
+                  height: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The body given a stated stature, kept where it was in the image.
+
+    ``betas`` become the nearest shape of stature ``height`` metres
+    (:func:`flowmocap.body.stature.with_stature`) and the body's root joint moves along its
+    camera ray to the distance scaled by the same factor as the stature (a body ``s`` times
+    taller is ``s`` times further away for the same image), so the fit's next steps start
+    where the image puts it.
+
+    Args:
+        betas: ``(1, n)`` shape; trans: ``(3,)`` metres, world frame; height: metres.
+
+    Returns:
+        ``(betas (1, n), trans (3,))`` in the inputs' dtypes.
+    """
+    from flowmocap.body.stature import stature, with_stature
+
+    new = with_stature(model, betas, height)
+    scale = float(height) / stature(model, betas)
+    with torch.no_grad():
+        root_old = model(betas=betas, with_vertices=False).joints[0, 0].double().numpy()
+        root_new = model(betas=new, with_vertices=False).joints[0, 0].double().numpy()
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    cam = R @ (root_old + np.asarray(torch.as_tensor(trans).detach().double())) + t
+    moved = R.T @ (scale * cam - t) - root_new
+    return new, torch.as_tensor(moved, dtype=torch.as_tensor(trans).dtype)
+
+
 def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: FrameData, d1: FrameData,
                cfg: TrackerConfig, proportions: np.ndarray | None = None) -> Start:
     """The paper's three initialisation steps on the first two frames.
@@ -395,7 +424,8 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
             (:func:`~flowmocap.fit.lift_refit.median_proportions` of the lifter's 3D of every frame); with
             ``cfg.init_shape_share`` > 0, the shape fitted on frame 0 moves that share of
             the way towards them (:func:`shape_towards_seen`, girth held at
-            ``cfg.init_shape_girth``) before step 3.
+            ``cfg.init_shape_girth``) before step 3. With ``cfg.body_height_m`` the body is
+            then given that stature (:func:`given_stature`), before step 3 too.
 
     Returns:
         a :class:`Start`; ``second_terms`` are the energies of frame 1 against frame 0.
@@ -405,6 +435,8 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
     if proportions is not None and cfg.init_shape_share > 0:
         betas, shape = shape_towards_seen(model, betas, pose0, proportions, cfg.init_shape_share,
                                           cfg.init_shape_girth or None)
+    if cfg.body_height_m:
+        betas, trans0 = given_stature(model, camera, betas, trans0, cfg.body_height_m)
     scene = Scene(model, betas, camera)
     s0 = FrameState(pose0, trans0)
     j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)

@@ -352,7 +352,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         vote_min_reach: float = 0.08, vote_sources: str = "detector",
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
                         ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
-                        bridge_s: float = 0.0, hidden_share: float = 0.0) -> tuple[dict, dict]:
+                        bridge_s: float = 0.0, hidden_share: float = 0.0,
+                        height: float | None = None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -397,6 +398,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             before the refit (module docstring); 0: the tracked shape stays.
         shape_girth_sigma: metres or None: with ``shape_share``, the body's girth along its
             bones (:func:`body_girth`) held at this scale (:func:`fit_proportions`).
+        height: metres or None: with ``shape_share``, the refitted shape is given this
+            stature afterwards (:func:`flowmocap.body.stature.with_stature`: the person's
+            stated height, which the tracked body already had).
         bridge_s: seconds: with ``lifter_input`` ``"detector"`` or ``"unswap"``, a detected
             point missing (confidence below 0.5) for at most this long between two frames
             that have it is filled by a straight line between them before lifting
@@ -523,6 +527,12 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         some = np.flatnonzero(ok)[np.linspace(0, ok.sum() - 1, min(PROPORTION_FRAMES, int(ok.sum()))).round().astype(int)]
         at = poses0[torch.as_tensor(some)]
         betas, own, got = proportions_towards(body, kmap, betas, at, seen, shape_share, shape_girth_sigma)
+        if height:  # the stated stature again; the proportions reached are the body's with it
+            from flowmocap.body.stature import with_stature
+
+            betas = with_stature(body, betas, height)
+            with torch.no_grad():
+                got = posed_proportions(body, kmap, betas, at).numpy()
         with torch.no_grad():
             fit_world, _ = keypoints13(body, kmap, poses0, betas, trans0)
         fit_cam = fit_world.numpy() @ R.T + t

@@ -1,0 +1,105 @@
+"""A body's stature (standing height) as a function of its shape, and the nearest shape of a given stature.
+
+One camera leaves a body's absolute size open: a body 10 % larger placed 10 % further away
+gives nearly the same image, so the fitted size (and with it every length and speed in
+metres) is what the shape prior and the fit settle on. A user who knows the person's height
+can state it (``flowmocap track --height 1.78``); the body is then given that stature and the
+fit places it at the matching depth.
+
+The stature is measured on the shaped body in the rest (T-) pose, from its sole to the top of
+its head: the height of two fixed mesh vertices, the highest vertex within 2 cm of the body's
+midline and the lowest vertex, both chosen once on the mean shape (:func:`stature_vertices`).
+The shaped rest mesh is linear in the shape coefficients (``v = v_template + shapedirs @
+betas``), so the stature is linear in them too, ``s(b) = s0 + a . b``, and the shape of a given
+stature nearest to a fitted one is a closed-form projection (:func:`with_stature`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from flowmocap.errors import InputError, ModelFileError
+
+__all__ = ["STATURE_RANGE_M", "MIDLINE_M", "stature_vertices", "stature", "with_stature", "check_height"]
+
+#: Heights (metres) a stated stature must lie in: a small child to well past the tallest adults.
+STATURE_RANGE_M = (0.5, 2.5)
+
+#: Vertices within this of the body's midline (metres, ``|x|`` in the rest pose) are on it.
+MIDLINE_M = 0.02
+
+
+def check_height(height) -> float:
+    """``height`` as a float in metres, or :class:`InputError` if it is not a number in
+    :data:`STATURE_RANGE_M`."""
+    try:
+        h = float(height)
+    except (TypeError, ValueError):
+        h = float("nan")
+    lo, hi = STATURE_RANGE_M
+    if not lo <= h <= hi:
+        raise InputError(f"height is the person's standing height in metres, between {lo:g} and {hi:g} "
+                         f"(e.g. 1.75); got {height!r}.")
+    return h
+
+
+def stature_vertices(model) -> tuple[int, int]:
+    """``(top, bottom)`` vertex indices: the highest vertex within :data:`MIDLINE_M` of the
+    body's midline and the lowest vertex, on the mean shape's rest pose (y up, the SMPL axes).
+
+    Raises:
+        ModelFileError: no vertex on the midline (not an upright body in the SMPL axes).
+    """
+    v = model.v_template.detach().double().cpu().numpy()
+    mid = np.flatnonzero(np.abs(v[:, 0]) < MIDLINE_M)
+    if mid.size == 0:
+        raise ModelFileError("no mesh vertex on the body's midline (|x| < 2 cm); the model is not an upright "
+                             "body in the SMPL axes (y up, facing +z).")
+    return int(mid[np.argmax(v[mid, 1])]), int(np.argmin(v[:, 1]))
+
+
+def _linear(model) -> tuple[float, np.ndarray]:
+    """``(s0, a)``: the stature is ``s0 + a @ betas`` (metres; ``a`` per shape coefficient)."""
+    top, bottom = stature_vertices(model)
+    vt = model.v_template.detach().double().cpu().numpy()
+    sd = model.shapedirs.detach().double().cpu().numpy()
+    return float(vt[top, 1] - vt[bottom, 1]), sd[top, 1, :] - sd[bottom, 1, :]
+
+
+def stature(model, betas) -> float:
+    """The stature (metres) of the body with shape ``betas`` (``(n,)`` or ``(1, n)``, fewer than
+    the model's coefficients zero-padded)."""
+    s0, a = _linear(model)
+    b = np.zeros(a.size)
+    given = np.asarray(torch.as_tensor(betas).detach().cpu().double().reshape(-1))
+    b[: min(a.size, given.size)] = given[: a.size]
+    return float(s0 + a @ b)
+
+
+def with_stature(model, betas, height: float):
+    """The shape nearest to ``betas`` whose stature is ``height`` metres.
+
+    The shape coefficients are standard normal under the model's shape space, so "nearest"
+    is the smallest change in them: ``b + a (h - s(b)) / |a|^2``, a move along the one
+    direction that changes the stature, which leaves every direction that does not
+    (proportions at a given height, girth) as fitted.
+
+    Args:
+        model: a :class:`~flowmocap.body.BodyModel`.
+        betas: ``(1, n)`` or ``(n,)`` tensor (returned in the same shape and dtype).
+        height: metres (:func:`check_height`).
+
+    Returns:
+        the new betas.
+    """
+    h = check_height(height)
+    s0, a = _linear(model)
+    b = torch.as_tensor(betas)
+    flat = b.detach().cpu().double().reshape(-1).numpy().copy()
+    n = min(a.size, flat.size)
+    a_n = a[:n]
+    if not np.any(a_n):
+        raise ModelFileError("this body model's shape coefficients do not change its height; it cannot be given one.")
+    flat[:n] += a_n * (h - (s0 + a_n @ flat[:n])) / (a_n @ a_n)
+    return torch.as_tensor(flat, dtype=b.dtype).reshape(b.shape).to(b.device)
