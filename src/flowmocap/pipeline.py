@@ -29,7 +29,7 @@ import torch
 
 from flowmocap.body import BodyModel, load_body_model
 from flowmocap.body.stature import check_height, stature
-from flowmocap.errors import DataError, InputError, NoPersonError, OutputError
+from flowmocap.errors import DataError, InputError, ModelFileError, NoPersonError, OutputError
 from flowmocap.fit.config import FAST_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
 from flowmocap.fit.objective import (
@@ -958,13 +958,17 @@ def _record_body(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say)
     """``run.json``'s ``body``: the result body's stature (metres, :mod:`flowmocap.body.stature`)
     and the height stated for it (``cfg.body_height_m``, None when not given)."""
     motion, _ = read_result(out)
-    info = {"stature_m": round(stature(body, np.asarray(motion["betas"], np.float64)), 4),
-            "height_given_m": cfg.body_height_m or None}
+    try:
+        tall = round(stature(body, np.asarray(motion["betas"], np.float64)), 4)
+    except ModelFileError:  # a model with no midline to measure (stature_vertices): nothing to record
+        tall = None
+    info = {"stature_m": tall, "height_given_m": cfg.body_height_m or None}
     if run.get("body") != info:
         run = {**run, "body": info}
         write_run(out, run)
-        given = " (as stated)" if cfg.body_height_m else " (one camera's estimate: give --height if you know it)"
-        say(f"the body stands {info['stature_m']:.2f} m tall{given}")
+        if tall is not None:
+            given = " (as stated)" if cfg.body_height_m else " (one camera's estimate: give --height if you know it)"
+            say(f"the body stands {tall:.2f} m tall{given}")
     return run
 
 
