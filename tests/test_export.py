@@ -254,6 +254,10 @@ def test_obj_and_json(posed_result, tmp_path):
     assert doc["frames"][0]["index"] == 3
     np.testing.assert_allclose(np.array(doc["frames"][4]["joints3d"]), truth["joints3d"][4], atol=1e-5)
     assert np.array(doc["frames"][4]["pose"]).shape == (72,)
+    # the body's standing height: its mesh from sole to crown in the rest pose
+    with torch.no_grad():
+        rest = model(betas=torch.as_tensor(truth["betas"], dtype=torch.float32)[None]).vertices[0].numpy()
+    assert doc["stature_m"] == pytest.approx(np.ptp(rest[:, 1]), abs=0.01)
 
 
 def test_joints_without_the_mesh_are_the_posed_meshs_and_the_json_has_a_line_per_frame(posed_result, tmp_path):

@@ -57,8 +57,9 @@ def _vertex_frames(motion: FittedMotion, chunk: int = 32):
 def write_json(path: str | Path, motion: FittedMotion) -> Path:
     """Per-frame joints and parameters as JSON.
 
-    Layout: ``{"format": "flowmocap-motion", "fps", "gender", "betas" (10),
-    "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
+    Layout: ``{"format": "flowmocap-motion", "fps", "gender", "betas" (10), "stature_m" (the
+    body's standing height, sole to crown, :mod:`flowmocap.body.stature`; null for a model
+    without a midline to measure), "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
     to the result's world), "camera" (the result's camera, world frame), "units",
     "frames": [{"index", "time_s", "pose" (72, radians), "trans" (3, metres),
     "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels), and where the result
@@ -67,8 +68,14 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     :mod:`flowmocap.fit.disagreement`)}, ...]}``.
     """
     from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
+    from flowmocap.body.stature import stature
+    from flowmocap.errors import ModelFileError
 
     j3d = motion.joints()
+    try:
+        tall = round(stature(motion.model, motion.betas), 4)
+    except ModelFileError:
+        tall = None
     r = lambda a, n=6: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
 
     def frame(k):
@@ -86,7 +93,7 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
 
     doc = {
         "format": "flowmocap-motion", "version": 1, "fps": motion.fps, "gender": motion.gender,
-        "betas": r(motion.betas), "joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
+        "betas": r(motion.betas), "stature_m": tall, "joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
         "frame": motion.frame,
         "rotation": r(motion.rotation, 9), "offset": r(motion.offset, 9), "camera": motion.camera.to_dict(),
         "smoothed": motion.smoothed,
