@@ -1,7 +1,9 @@
-"""Shared test fixtures: a small synthetic SMPL-format body written in the real layouts."""
+"""Shared test fixtures: a small synthetic SMPL-format body written in the real layouts; and
+:func:`load_script`, a benchmark's or tool's script loaded as a module."""
 
 from __future__ import annotations
 
+import importlib.util
 import pickle
 import sys
 import types
@@ -14,6 +16,16 @@ import scipy.sparse as sp
 from flowmocap.body.skeleton import PARENTS, children
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def load_script(path: str | Path, name: str | None = None) -> types.ModuleType:
+    """The script at ``path`` (a ``benchmarks/`` or ``tools/`` file, not a package module)
+    loaded as a module named ``name`` (default: the file's stem)."""
+    path = Path(path)
+    spec = importlib.util.spec_from_file_location(name or path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 # Rest-pose joint positions of a T-posed person (metres; y up, facing +z, left = +x).
 TOY_JOINTS = np.array([

@@ -6,21 +6,19 @@ benchmarks/error_over_time.py (a clip's error by time), benchmarks/prior_flip.py
 pose prior against a limb mirrored in depth), and benchmarks/mediapipe_image_depth.py
 (MediaPipe's image-landmark depth)."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import load_script
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def _load(name):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(BENCH / f"{name}.py")
 
 
 @pytest.fixture(scope="module")

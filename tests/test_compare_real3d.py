@@ -1,6 +1,5 @@
 """benchmarks/compare_real3d.py: the per-person-view comparison of two real3d runs."""
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -9,15 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import load_script
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_real3d.py"
 
 
 @pytest.fixture(scope="module")
 def cr():
-    spec = importlib.util.spec_from_file_location("compare_real3d", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 def _run(per_frame, per_seq, detector=None, skip=()):

@@ -5,7 +5,6 @@ says whose joints it gives, and the learning tool recovers known offsets."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from flowmocap.vision.detect import SMPL_KEYPOINTS
 from flowmocap.vision.keypoint_map import KEYPOINT_OFFSETS_FILE, detector_points, load_keypoint_map
 
 from test_learned_prior_terms import scene64  # noqa: F401  (the float64 scene fixture)
+from conftest import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 ALL_OFF = dict(flow_weight=0.0, silhouette_weight=0.0, limit_weight=0.0, penetration_weight=0.0,
@@ -157,10 +157,7 @@ def test_a_bad_offset_file_gets_the_projects_error(tmp_path):
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("learn_keypoint_offsets", ROOT / "tools" / "learn_keypoint_offsets.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "tools" / "learn_keypoint_offsets.py")
 
 
 def test_the_learning_tool_recovers_a_known_offset_despite_outliers():

@@ -17,6 +17,8 @@ from flowmocap.vision.detect import KEYPOINT_NAMES
 from flowmocap.vision.keypoint_map import load_keypoint_map
 from flowmocap.vision.lifter import HIPS, POINTS, Lifter, LifterNet, lifted_track, load_lifter, normalise_2d, window_indices
 
+from conftest import load_script
+
 
 def _pose(**joints_deg):
     p = np.zeros(72)
@@ -288,15 +290,11 @@ PRIOR_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "m
 
 
 def _train_tool():
-    import importlib.util
     import sys
 
     tools = Path(__file__).resolve().parents[1] / "tools"
     sys.path.insert(0, str(tools))  # it imports train_pose_prior beside it
-    spec = importlib.util.spec_from_file_location("train_lifter", tools / "train_lifter.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(tools / "train_lifter.py")
 
 
 def test_training_windows_stay_inside_their_clip_and_target_the_middle_frame():

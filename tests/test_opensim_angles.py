@@ -1,7 +1,6 @@
 """benchmarks/opensim_angles.py: the file handling around OpenSim (OpenSim itself is not
 needed here: the benchmark runs it in an environment of its own)."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -9,15 +8,14 @@ import pytest
 
 from flowmocap.export.markers import write_trc
 
+from conftest import load_script
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "opensim_angles.py"
 
 
 @pytest.fixture(scope="module")
 def oa():
-    spec = importlib.util.spec_from_file_location("opensim_angles", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 def test_scaling_reads_only_the_frames_with_every_marker(oa, tmp_path):

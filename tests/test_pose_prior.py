@@ -23,6 +23,8 @@ from flowmocap.fit.pose_prior import (
 )
 from flowmocap.geometry import axis_angle_to_matrix
 
+from conftest import load_script
+
 PRIOR_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap" / "prior"
 TEST_SUBJECTS = {2, 8, 13, 61}
 # Held-out clips (test split: subjects never used for training): walk, bend/pick up, jump, salsa.
@@ -267,15 +269,10 @@ def test_held_out_poses_beat_their_limbs_mirrored_in_depth(prior, held_out):
     mirrored bends its elbow or knee the wrong way and nearly always loses; an upper arm
     or thigh mirrored is often a plausible pose too (benchmarks/results/prior_flip_test.md:
     0.82-0.93 on the whole test split)."""
-    import importlib.util
-
     from flowmocap.body import load_body_model
     from flowmocap.fit.energies import DEPTH_LIMBS
 
-    spec = importlib.util.spec_from_file_location("prior_flip", Path(__file__).resolve().parents[1] / "benchmarks"
-                                                  / "prior_flip.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script(Path(__file__).resolve().parents[1] / "benchmarks" / "prior_flip.py")
     poses = np.asarray(held_out[::3], np.float64)
     model = load_body_model("default", dtype=torch.float64)
     index, which, flipped, moved = mod.mirrors(model, poses, DEPTH_LIMBS, np.random.default_rng(0))

@@ -1,16 +1,14 @@
 """benchmarks/post_steps_cost.py: the run's events follow the motion when it is repeated."""
 
-import importlib.util
 from pathlib import Path
+
+from conftest import load_script
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "post_steps_cost.py"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("post_steps_cost", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 def test_a_repeated_run_repeats_its_events_at_each_copy_and_drops_the_post_steps_records():
