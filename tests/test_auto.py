@@ -242,7 +242,7 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     video = write_video(tmp_path / "walk.mp4", [seq.frame(i) for i in range(len(seq))])
     fake = GroundTruthDetector(seq, absent={0, 4})
     monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
-    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: fake if augment else Nobody())
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": fake if augment else Nobody())
     cfg = tmp_path / "fast.json"
     cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
     out = tmp_path / "out"
@@ -265,10 +265,12 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     assert run["config"]["iterations"] == 4
 
 
-@pytest.mark.parametrize("fast, made", [(False, [True, False]), (True, [False, False])])
-def test_fast_runs_the_detector_without_its_mask_augmentation(small_clip, tmp_path, monkeypatch, fast, made):
+@pytest.mark.parametrize("fast, model, made", [(False, "full", [True, False]), (True, "full", [False, False]),
+                                               (False, "heavy", [True, False])])
+def test_fast_runs_the_detector_without_its_mask_augmentation(small_clip, tmp_path, monkeypatch, fast, model, made):
     """--fast: the detector without the mask augmentation (augment=False); the searcher
-    for other people (also augment=False) stays either way."""
+    for other people (also augment=False) stays either way. Both are made with the
+    config's ``detector_model``."""
     import flowmocap
     import flowmocap.vision.detect as detect
     from flowmocap.io.sequence import load_sequence
@@ -276,11 +278,26 @@ def test_fast_runs_the_detector_without_its_mask_augmentation(small_clip, tmp_pa
     built = []
     monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
     monkeypatch.setattr(detect, "MediaPipePoseDetector",
-                        lambda augment=True: built.append(augment) or GroundTruthDetector(load_sequence(small_clip)))
+                        lambda augment=True, model="full": built.append((augment, model))
+                        or GroundTruthDetector(load_sequence(small_clip)))
     res = flowmocap.track(small_clip, tmp_path / "out", masks="auto", frames="0:3", log=None, progress=False,
-                          config={"init_iterations": 4, "init_flow_iterations": 2, "iterations": 2}, fast=fast)
+                          config={"init_iterations": 4, "init_flow_iterations": 2, "iterations": 2,
+                                  "detector_model": model}, fast=fast)
     assert len(res) == 3 and np.isfinite(res.poses).all()
-    assert built == made
+    assert built == [(a, model) for a in made]
+
+
+def test_an_unknown_detector_model_is_refused_before_any_work(small_clip, tmp_path):
+    import flowmocap
+    from flowmocap.errors import InputError
+    from flowmocap.fit.config import TrackerConfig
+
+    with pytest.raises(InputError, match="unknown detector model 'huge'; choose one of full, heavy"):
+        flowmocap.track(small_clip, tmp_path / "out", masks="auto", detector="huge", log=None, progress=False)
+    assert not (tmp_path / "out" / "detections").exists()
+    with pytest.raises(InputError, match="'detector_model' must be one of 'full', 'heavy'"):
+        TrackerConfig.load(None, detector_model="huge")
+    assert TrackerConfig.load(None, detector_model="full").detector_model == "full"
 
 
 def test_unknown_detector_name_is_refused(tmp_path):
@@ -333,7 +350,7 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     assert old.world is None and old.smpl_joints3d(2) is None
     # the tracker's source of them for an input with its own masks and init.json
     monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
-    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": WorldDetector(seq))
     joints3d, note = detect_joints3d(seq, tmp_path / "b", progress=False)
     assert joints3d is not None and joints3d(2) is not None and "3D joints" in note
     # the same from flowmocap's lifter of the 2D keypoints (detector3d_source "lifter"): other
@@ -345,7 +362,7 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     ok = ca > 0
     assert (cb == ca).all() and not np.allclose(a[ok], b[ok])
     assert np.linalg.norm(similarity_procrustes(b[ok], a[ok])[0] - a[ok], axis=-1).mean() < 0.04  # 1.7 cm
-    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: Nobody())
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": Nobody())
     joints3d, note = detect_joints3d(seq, tmp_path / "c", progress=False)
     assert joints3d is None and "no 3D joints" in note
 
@@ -379,7 +396,7 @@ def test_own_masks_and_init_can_use_the_detectors_joints_in_every_frame(small_cl
 
     seq = load_sequence(small_clip)
     monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)  # the stand-in detectors live in this process
-    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True: WorldDetector(seq))
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": WorldDetector(seq))
     judged = []
 
     class Spy(ReinitMonitor):

@@ -157,3 +157,116 @@ def test_mediapipe_prints_nothing_to_stderr(capfd):
     det.detect(img)
     det.close()
     assert capfd.readouterr().err == ""
+
+
+def test_the_heavy_model_ships_whole():
+    from flowmocap.vision.detect import HEAVY_MD5, HEAVY_MODEL, _md5
+
+    assert HEAVY_MODEL.is_file() and _md5(HEAVY_MODEL) == HEAVY_MD5
+
+
+def test_install_model_copies_the_heavy_model_where_mediapipe_reads_it_once(tmp_path):
+    """MediaPipe's legacy Pose reads ``modules/pose_landmark/pose_landmark_heavy.tflite`` from
+    its own folder (and would download it there); the shipped copy goes there instead, is
+    left alone once it is there, and a different file in its place is replaced."""
+    import os
+
+    from flowmocap.vision.detect import HEAVY_MD5, _md5, install_model
+
+    assert install_model("full", tmp_path) is None and not any(tmp_path.iterdir())
+    target = install_model("heavy", tmp_path)
+    assert target == tmp_path / "modules" / "pose_landmark" / "pose_landmark_heavy.tflite"
+    assert _md5(target) == HEAVY_MD5 and os.listdir(target.parent) == [target.name]  # no temporary file left
+    os.utime(target, (1, 1))
+    assert install_model("heavy", tmp_path) == target and target.stat().st_mtime == 1  # not copied again
+    target.write_bytes(b"not a model")
+    install_model("heavy", tmp_path)
+    assert _md5(target) == HEAVY_MD5
+
+
+def test_install_model_refuses_what_it_cannot_do(tmp_path, monkeypatch):
+    from flowmocap.errors import InputError
+    from flowmocap.vision import detect
+
+    with pytest.raises(InputError, match="unknown detector model 'huge'"):
+        detect.install_model("huge", tmp_path)
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where MediaPipe's folder should be")
+    with pytest.raises(InputError, match="copy .*pose_landmark_heavy.tflite to .*or use the detector model 'full'"):
+        detect.install_model("heavy", blocked)
+    monkeypatch.setattr(detect, "HEAVY_MODEL", tmp_path / "missing.tflite")
+    monkeypatch.setattr(detect, "_SHIPPED_OK", [])
+    with pytest.raises(InputError, match="missing or damaged; reinstall flowmocap"):
+        detect.install_model("heavy", tmp_path)
+
+
+def test_the_detectors_name_says_its_model():
+    pytest.importorskip("mediapipe")
+    from flowmocap.errors import InputError
+    from flowmocap.vision.detect import MediaPipePoseDetector
+
+    full, heavy = (MediaPipePoseDetector.describe(augment=False, version="0.10.21", model=m) for m in ("full", "heavy"))
+    assert "-full-3d" in full and "-heavy-v" in heavy  # heavy's tag names its visibility map (stored detections follow it)
+    with pytest.raises(InputError, match="unknown detector model"):
+        MediaPipePoseDetector(model="huge")
+
+
+@pytest.mark.skipif(not DAVIS.exists(), reason=f"shared data not found at {DAVIS} (real frames for MediaPipe)")
+def test_the_heavy_model_on_a_real_frame():
+    """The heavy landmark model runs offline (from the shipped file) and finds the dancer's
+    joints on her; its keypoints differ from the full model's (another network), by a few
+    pixels on this clear frame."""
+    from flowmocap.io.sequence import read_image
+    from flowmocap.vision.detect import MediaPipePoseDetector
+    from flowmocap.vision.masks import load_mask
+
+    img = read_image(DAVIS / "JPEGImages" / "00000.jpg")
+    gt = load_mask(DAVIS / "Annotations" / "00000.png")
+    heavy = MediaPipePoseDetector(augment=False, model="heavy")
+    assert "-heavy-" in heavy.name
+    det = heavy.detect(img)
+    full = MediaPipePoseDetector(augment=False).detect(img)
+    assert det is not None and full is not None and det.world is not None
+    ok = det.confidence[:12] > 0.5
+    assert ok.sum() >= 10
+    xy = det.keypoints[:12][ok].astype(int)
+    assert gt[xy[:, 1].clip(0, 479), xy[:, 0].clip(0, 853)].mean() > 0.7
+    d = np.linalg.norm(det.keypoints[:12] - full.keypoints[:12], axis=1)
+    assert 0.0 < np.median(d) < 15.0
+
+
+def test_the_heavy_models_visibility_map_is_monotone_from_0_to_1_and_checked(tmp_path, monkeypatch):
+    from flowmocap.errors import InputError
+    from flowmocap.vision import detect
+
+    assert detect.visibility_map("full") is None
+    x, y = detect.visibility_map("heavy")
+    assert x[0] == y[0] == 0.0 and x[-1] == y[-1] == 1.0
+    assert (np.diff(x) > 0).all() and (np.diff(y) >= 0).all()
+    bad = tmp_path / "map.json"
+    monkeypatch.setattr(detect, "HEAVY_VISIBILITY", bad)
+    with pytest.raises(InputError, match="missing or damaged"):
+        detect.visibility_map("heavy")
+    bad.write_text('{"heavy": [0, 0.5, 1], "full": [0, 0.7, 0.6]}')  # not monotone
+    with pytest.raises(InputError, match="not a monotone map"):
+        detect.visibility_map("heavy")
+
+
+def test_visibility_quantile_map_sends_one_distribution_onto_the_other():
+    """tools/calibrate_visibility.py: the map sends the source sample's quantiles onto the
+    target's, so as many values pass any threshold after it as in the target."""
+    from conftest import load_script
+
+    tool = load_script(Path(__file__).resolve().parents[1] / "tools" / "calibrate_visibility.py")
+    rng = np.random.default_rng(0)
+    target = rng.beta(5.0, 1.0, 20000)  # piled up near 1, like MediaPipe's visibilities
+    source = target ** 2.5  # the same order, lower values (a more cautious model)
+    x, y = tool.quantile_map(source, target)
+    assert x[0] == y[0] == 0.0 and x[-1] == y[-1] == 1.0 and (np.diff(x) > 0).all() and (np.diff(y) >= 0).all()
+    mapped = np.interp(source, x, y)
+    for t in (0.3, 0.5, 0.8, 0.9):
+        assert abs((mapped >= t).mean() - (target >= t).mean()) < 0.01
+    assert abs((source >= 0.5).mean() - (target >= 0.5).mean()) > 0.1  # it had something to do
+    # ties in the source (many exact ones) still give a strictly increasing x
+    x, y = tool.quantile_map(np.minimum(source * 1.5, 1.0), target)
+    assert (np.diff(x) > 0).all() and x[-1] == 1.0

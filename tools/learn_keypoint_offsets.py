@@ -73,15 +73,19 @@ def choose_clips(data: Path, per_category: int) -> list[dict]:
     return chosen
 
 
-def render_and_detect(rows: list[dict], data: Path, work: Path, frames: int) -> list[dict]:
+def render_and_detect(rows: list[dict], data: Path, work: Path, frames: int, models=("full",)) -> list[dict]:
     """Each clip's ground-truth joints, part rotations and camera, with MediaPipe's
-    keypoints of every frame (cached in ``work``)."""
+    keypoints of every frame (cached in ``work``): ``keypoints`` and ``confidence`` of the
+    first of ``models`` (:data:`flowmocap.vision.detect.MODELS`), and of every model
+    ``by_model[name] = (keypoints (T, K, 2), confidence (T, K), found (T,))``."""
     from flowmocap.body import load_body_model
     from flowmocap.errors import InputError
     from flowmocap.eval.bench import most_active_window
     from flowmocap.io.sequence import load_sequence
     from flowmocap.synth import synthesize
-    from flowmocap.vision.auto import detect_for_given_masks
+    from flowmocap.errors import NoPersonError
+    from flowmocap.vision.auto import detect_for_given_masks, detect_sequence
+    from flowmocap.vision.detect import MediaPipePoseDetector
 
     model = load_body_model("default")
     clips = []
@@ -101,10 +105,27 @@ def render_and_detect(rows: list[dict], data: Path, work: Path, frames: int) -> 
             except InputError:
                 synthesize(str(path), seq_dir, frames=None, **kw)
         seq = load_sequence(seq_dir)
-        track, note = detect_for_given_masks(seq, d / "run", progress=False)
+        by_model = {}
+        for m in models:
+            if m.endswith("-raw"):  # the model's visibility as it comes (tools/calibrate_visibility.py)
+                detector = MediaPipePoseDetector(augment=False, model=m[:-4], calibrated=False)
+                try:
+                    track = detect_sequence(seq, d / f"run-{m}", detector=detector, searcher=None, progress=False)
+                except NoPersonError as e:
+                    track, note = None, str(e)
+                finally:
+                    detector.close()
+            else:
+                track, note = detect_for_given_masks(seq, d / ("run" if m == "full" else f"run-{m}"), progress=False,
+                                                     model=m)
+            if track is None:
+                break
+            by_model[m] = (np.asarray(track.keypoints, np.float64), np.asarray(track.confidence, np.float64),
+                           np.asarray(track.found, bool))
         if track is None:
             print(f"  {r['file']}: {note}; skipped", flush=True)
             continue
+        first = by_model[models[0]]
         gt = seq.gt
         with torch.no_grad():
             out = model.forward(torch.as_tensor(gt["betas"], dtype=torch.float32).reshape(1, -1),
@@ -113,11 +134,9 @@ def render_and_detect(rows: list[dict], data: Path, work: Path, frames: int) -> 
         clips.append({"file": r["file"], "category": r["category"], "skeleton": r["skeleton"], "camera": seq.camera,
                       "joints": out.joints.numpy().astype(np.float64),
                       "rotations": out.transforms[..., :3, :3].numpy().astype(np.float64),
-                      "keypoints": np.asarray(track.keypoints, np.float64),
-                      "confidence": np.asarray(track.confidence, np.float64),
-                      "found": np.asarray(track.found, bool)})
+                      "keypoints": first[0], "confidence": first[1], "found": first[2], "by_model": by_model})
         print(f"  {r['file']:24s} {r['category']:24s} {len(seq)} frames, azimuth {azimuth:5.1f}, "
-              f"{int(track.found.sum())} with a person ({time.perf_counter() - t0:.0f} s)", flush=True)
+              f"{int(first[2].sum())} with a person ({time.perf_counter() - t0:.0f} s)", flush=True)
     return clips
 
 

@@ -63,7 +63,7 @@ def cmd_track(args) -> int:
                 "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
                 "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow,
-                "fast": args.fast, "height": args.height}
+                "fast": args.fast, "height": args.height, "detector": args.detector}
     lists = [args.list] if args.list else []
     if not args.input and not lists:
         raise InputError("track needs an input: a video file, a folder of frames, a sequence folder, or a batch "
@@ -237,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "
                    "OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for videos: "
                    "about 2.5 MB a frame at 640x480)")
+    t.add_argument("--detector", default=None, choices=["full", "heavy"],
+                   help="MediaPipe's landmark model for the 2D and 3D joints: 'heavy' (the default: nearer the "
+                        "truth, about 0.1 s more a frame) or 'full' (MediaPipe's own wheel's; --fast's)")
     t.add_argument("--fast", action="store_true", help="faster, at some cost in the 2D fit: every optimisation "
                    "stops at a coarser stall, refits take fewer iterations, a refit turned down waits longer "
                    "before the next and the detector runs without its mask augmentation (docs/settings.md has the "

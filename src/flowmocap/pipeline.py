@@ -66,6 +66,7 @@ from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
 from flowmocap.vision import FlowCache, flow_region
+from flowmocap.vision.detect import MODELS
 from flowmocap.vision.auto import (
     PersonTrack,
     auto_init,
@@ -204,7 +205,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           max_size: int | None = 640, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
           force: bool = False, keep_flow: bool | None = None, fast: bool = False,
-          height: float | None = None) -> Result:
+          height: float | None = None, detector: str | None = None) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -270,6 +271,9 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             and placed at the depth that goes with it, so lengths, speeds and positions in
             metres are the person's. None: the size the fit gives the body (one camera leaves
             it open). The result's ``run.json`` records the body's stature either way (``body``).
+        detector: MediaPipe's landmark model for the detections, "full" or "heavy"
+            (``TrackerConfig.detector_model``; :data:`flowmocap.vision.detect.MODELS`); None:
+            the profile's and ``config``'s.
 
     Returns:
         the :class:`Result`.
@@ -291,11 +295,13 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     parse_person(person)
     if height is not None:
         check_height(height)
+    if detector is not None and detector not in MODELS:
+        raise InputError(f"unknown detector model {detector!r}; choose one of {', '.join(MODELS)}.")
     _check_out(out, force)
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height)
+                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height, detector)
         except BaseException as e:
             _failed_before_tracking(out, e)
             if not isinstance(e, OSError):
@@ -323,7 +329,8 @@ def _failed_before_tracking(out: Path, error: BaseException) -> None:
 
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False, height=None) -> Result:
+           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False, height=None,
+           detector=None) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -352,7 +359,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if profile not in PROFILES:
         raise InputError(f"unknown profile {profile!r}; use one of {sorted(PROFILES)}.")
     cfg = TrackerConfig.load(config, profile=profile, base=FAST_SETTINGS if fast else None, flow_method=flow,
-                             body_height_m=None if height is None else float(height))
+                             body_height_m=None if height is None else float(height), detector_model=detector)
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
     if choice[0] != "largest" and not (auto_masks or auto_init):
         raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
@@ -413,7 +420,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # --fast: MediaPipe without the mask augmentation (its three extra runs a frame); the
         # search for other people stays (without it the tracked person can be the wrong one)
         detections = detect_sequence(seq, out, progress=progress, detector="unaugmented" if fast else None,
-                                     person="largest" if choice[0] == "largest" else choice[1])
+                                     person="largest" if choice[0] == "largest" else choice[1], model=cfg.detector_model)
         if auto_masks:
             seq.masks = list(detections.mask_paths)
     notes: dict = {"camera_source": camera_source,
@@ -455,7 +462,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
-        watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress)
+        watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress, model=cfg.detector_model)
         seen2d = watch
         if watch is not None:
             if lift:
@@ -464,7 +471,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
             j3d = lambda i: watch.smpl_joints3d(i, cam)
     elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
-        j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress, lift=lift, mix=mix)
+        j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress, lift=lift, mix=mix,
+                                                 model=cfg.detector_model)
     if (out / "detections").is_dir():
         write_json(out / "detections" / "source.json", {"input": cache_key})
     write_json(out / "input.json", notes)

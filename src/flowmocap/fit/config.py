@@ -49,10 +49,12 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: at some cost in the 2D fit on real video (docs/settings.md, "Speed and --fast", has the
 #: measurements): every L-BFGS run stops at a stall ten times larger than the default's, a
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
-#: down doubles the wait before the next attempt, up to 8 frames. ``track(fast=True)`` also
-#: runs the detector without its mask augmentation (flowmocap.pipeline); together, on the
-#: real clips, 0.74x the defaults' time (docs/settings.md).
-FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8}
+#: down doubles the wait before the next attempt, up to 8 frames, and the detector runs
+#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one). ``track(fast=True)`` also runs the detector without its mask augmentation
+#: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
+#: heavy model became the default (docs/settings.md).
+FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8,
+                                 "detector_model": "full"}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
@@ -116,6 +118,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "detector3d_source": ("mediapipe", "lifter", "both"),
     "lifter_refit_blend": ("full", "depth"),
     "lifter_refit_vote_sources": ("detector", "lifter", "both"),
+    "detector_model": ("full", "heavy"),
 }
 
 
@@ -171,6 +174,9 @@ class TrackerConfig:
     detector_swap_check: bool = True   # per frame, a detection that labels the whole body left for right
     #                                    against the prediction is exchanged back, 2D and 3D, for the frame's
     #                                    terms and its re-initialisation check (fit.swap); False: as it comes
+    detector_model: str = "heavy"      # MediaPipe's landmark model for the 2D and 3D joints (vision.detect.MODELS):
+    #                                    "heavy" (shipped with flowmocap; its visibility put on full's scale) or "full"
+    #                                    (in mediapipe's wheel; faster)
     detector_keypoints: bool = True    # input with its own masks and init: the detector's 2D joints of
     #                                    every frame too (E_j, and refits where tracking fails)
     keypoint_offsets: bool = True      # compare the body with the detector's joints where the detector

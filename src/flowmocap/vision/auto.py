@@ -241,7 +241,7 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
                     reuse: bool = True, searcher: PersonDetector | None | str = "default",
-                    person="largest") -> PersonTrack:
+                    person="largest", model: str = "full") -> PersonTrack:
     """Masks and keypoints of one person in every frame of ``seq``, stored in ``out_dir``.
 
     A detector that tracks follows the first person it finds. To find the others, the
@@ -268,6 +268,9 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
             the largest. Any other choice, and the largest where someone else shares
             a quarter of their frames (:data:`LARGEST_FOLLOW_SHARE`), runs the detector
             a second time (:func:`follow_person`).
+        model: the landmark model of the MediaPipe detectors made here
+            (:data:`~flowmocap.vision.detect.MODELS`: "full" or "heavy"); not used with a
+            detector object.
 
     Raises:
         NoPersonError: no frame shows a person.
@@ -279,18 +282,20 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     if choice == ("index", 0):
         choice = ("largest", None)
     out_dir = Path(out_dir)
-    from flowmocap.vision.detect import MediaPipePoseDetector
+    from flowmocap.vision.detect import MediaPipePoseDetector, install_model
 
     if isinstance(detector, str) and detector not in ("plain", "unaugmented"):
         raise InputError(f"detector must be None, 'plain', 'unaugmented' or a detector object; got {detector!r}.")
     plain = detector == "plain"
     augment = detector is None
+    if detector is None or isinstance(detector, str):  # here, before any pass: a failure is clear and early
+        install_model(model)
     if (detector is None or isinstance(detector, str)) and searcher in ("default", None) and DETECT_IN_CHILD \
             and _picklable(seq):
-        spec = {"augment": augment, "search": searcher == "default" and not plain}
-        name = MediaPipePoseDetector.describe(augment=spec["augment"])
+        spec = {"augment": augment, "search": searcher == "default" and not plain, "model": model}
+        name = MediaPipePoseDetector.describe(augment=spec["augment"], model=model)
         if spec["search"]:
-            name += f"+search:{MediaPipePoseDetector.describe(augment=False)}"
+            name += f"+search:{MediaPipePoseDetector.describe(augment=False, model=model)}"
         name += _choice_suffix(choice, spec["search"])
         passes = _InChildren(seq, out_dir, spec, name, progress)
         track = _detect_sequence(seq, out_dir, passes, name, choice, reuse)
@@ -298,9 +303,9 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         return track
     own = detector is None or isinstance(detector, str)  # made here: closed here once the pass is over
     if own:
-        detector = MediaPipePoseDetector(augment=augment)
+        detector = MediaPipePoseDetector(augment=augment, model=model)
         if searcher == "default" and not plain:
-            searcher = MediaPipePoseDetector(augment=False)
+            searcher = MediaPipePoseDetector(augment=False, model=model)
     if searcher == "default":
         searcher = None
     name = detector.name + (f"+search:{searcher.name}" if searcher is not None else "")
@@ -346,7 +351,7 @@ class _InChildren:
     Each stretch's candidates are stored in ``OUT/detections/chunks/`` as it finishes, so
     a pass that is stopped (Ctrl-C, ``kill``, the detector's process killed for memory)
     goes on from the first stretch not stored; :meth:`clear` removes them once the
-    detections are written. ``spec``: ``{"augment": bool, "search": bool}``.
+    detections are written. ``spec``: ``{"augment": bool, "search": bool, "model": str}``.
     """
 
     def __init__(self, seq, out_dir: Path, spec: dict, name: str, progress: bool):
@@ -418,8 +423,10 @@ def run_chunk(task: dict) -> None:
     from flowmocap.vision.detect import MediaPipePoseDetector
 
     seq, (a, b) = task["seq"], task["frames"]
-    detector = MediaPipePoseDetector(augment=task["spec"]["augment"])
-    searcher = MediaPipePoseDetector(augment=False) if task["spec"]["search"] and task["kind"] == "find" else None
+    model = task["spec"].get("model", "full")
+    detector = MediaPipePoseDetector(augment=task["spec"]["augment"], model=model)
+    searcher = (MediaPipePoseDetector(augment=False, model=model) if task["spec"]["search"] and task["kind"] == "find"
+                else None)
     try:
         if task["kind"] == "find":
             start = max(0, a - task.get("warm_up", DETECT_WARM_UP))
@@ -992,10 +999,11 @@ def _continues(det: Candidate, ref: Candidate, gap: int, others: list) -> bool:
     return all(box_iou(c.box, det.box) < max(mine, 0.1) for c in others)
 
 
-def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> tuple:
+def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True, model: str = "full") -> tuple:
     """The detector's keypoints and 3D joints when nothing else runs the detector (an
     input with its own masks and init.json): MediaPipe without the mask augmentation
-    (about 0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
+    (about 0.05 s per frame with the "full" ``model``), stored in ``out_dir/detections`` like
+    :func:`detect_sequence`.
 
     Returns:
         ``(track, note)``: the :class:`PersonTrack` (2D joints in pixels of ``seq``'s
@@ -1005,14 +1013,14 @@ def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True) -> t
     from flowmocap.errors import InputError
 
     try:
-        track = detect_sequence(seq, out_dir, detector="plain", progress=progress)
+        track = detect_sequence(seq, out_dir, detector="plain", progress=progress, model=model)
     except (InputError, NoPersonError) as e:
         return None, f"no detector joints: {e}"
     return track, f"detector joints: {track.info['detector']}, {track.info['frames_with_person']} frames"
 
 
 def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True, lift: bool = False,
-                    mix: bool = False) -> tuple:
+                    mix: bool = False, model: str = "full") -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
     0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
@@ -1023,9 +1031,10 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
         ``camera`` when given), or None when no detector is installed or it finds no
         person; and a sentence for ``input.json``. ``lift``: the 3D joints from
         :func:`flowmocap.vision.lifter.lifted_track` (``mix``: its mean with the
-        detector's own) instead of the detector's own.
+        detector's own) instead of the detector's own. ``model``: as
+        :func:`detect_for_given_masks`.
     """
-    track, note = detect_for_given_masks(seq, out_dir, progress)
+    track, note = detect_for_given_masks(seq, out_dir, progress, model)
     if track is None:
         return None, note.replace("no detector joints", "no 3D joints for E_d")
     if lift:

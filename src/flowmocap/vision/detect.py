@@ -3,8 +3,13 @@
 A detector is anything with ``detect(image_rgb) -> Detection | None`` (the
 :class:`PersonDetector` protocol); ``None`` means no person in the image. The default is
 :class:`MediaPipePoseDetector`, MediaPipe's legacy ``solutions.pose`` (BlazePose GHUM
-"full" landmarks and its person segmentation), whose models ship inside the
-``mediapipe==0.10.21`` wheel: it runs offline and downloads nothing.
+landmarks and its person segmentation). It runs offline and downloads nothing: the
+"full" landmark model ships inside the ``mediapipe==0.10.21`` wheel, and the "heavy" one
+(:data:`MODELS`) inside this package (``vision/data/pose_landmark_heavy.tflite``, from
+MediaPipe's own ``@mediapipe/pose`` package, Apache-2.0; ``vision/data/README.md``).
+MediaPipe's Python solution reads the heavy model only from its own package folder, where
+it would otherwise download it, so :func:`install_model` copies the shipped file there
+first (checked by its digest).
 
 Keypoints come in the order of :data:`KEYPOINT_NAMES`: the twelve SMPL joints an
 ``init.json`` takes (hips, knees, ankles, shoulders, elbows, wrists, by SMPL's names,
@@ -22,9 +27,11 @@ fd 2 at ``/dev/null`` for the duration of each of those calls.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -32,7 +39,7 @@ import numpy as np
 from flowmocap.errors import InputError
 
 __all__ = ["KEYPOINT_NAMES", "SMPL_KEYPOINTS", "Detection", "PersonDetector", "MediaPipePoseDetector",
-           "MEDIAPIPE_LANDMARKS"]
+           "MEDIAPIPE_LANDMARKS", "MODELS", "install_model", "visibility_map"]
 
 #: Keypoints that are SMPL joints (the joints of an init.json), in this order.
 SMPL_KEYPOINTS: tuple[str, ...] = (
@@ -49,6 +56,121 @@ MEDIAPIPE_LANDMARKS: dict[str, int] = {
     "left_wrist": 15, "right_wrist": 16, "left_hip": 23, "right_hip": 24,
     "left_knee": 25, "right_knee": 26, "left_ankle": 27, "right_ankle": 28,
 }
+
+
+#: BlazePose GHUM landmark models MediaPipe's legacy Pose runs: name -> its
+#: ``model_complexity``. "heavy" is the larger network (about 2.2x the time of "full" a
+#: run, benchmarks/detector_models.py): on the real four-camera recording its 2D keypoints
+#: are nearer the other views' triangulation (mean 13.3 px against 17.7 for "full";
+#: docs/experiments.md, "MediaPipe's heavy landmark model").
+MODELS: dict[str, int] = {"full": 1, "heavy": 2}
+
+#: The heavy landmark model shipped with this package, and its MD5 digest (the file of
+#: ``@mediapipe/pose`` 0.5.1675469404; the "full" file there is byte for byte the one in
+#: the ``mediapipe==0.10.21`` wheel).
+HEAVY_MODEL = Path(__file__).parent / "data" / "pose_landmark_heavy.tflite"
+HEAVY_MD5 = "52337aea988efa7ce17851641f4b730a"
+
+#: The heavy model's landmark visibility put on the full model's scale, the one the
+#: tracker's confidence thresholds were set on: knots of a monotone map made by
+#: ``tools/calibrate_visibility.py`` (quantile matching on rendered training clips).
+HEAVY_VISIBILITY = Path(__file__).parent / "data" / "heavy_visibility.json"
+
+
+def visibility_map(model: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(x, y)`` knots that turn ``model``'s landmark visibility into flowmocap's keypoint
+    confidence (``np.interp(v, x, y)``, 0 -> 0, 1 -> 1, non-decreasing), or None where it is
+    used as it comes ("full").
+
+    Raises:
+        InputError: an unknown model, or the shipped map is missing or malformed.
+    """
+    if model not in MODELS:
+        raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
+    if model == "full":
+        return None
+    import json
+
+    try:
+        doc = json.loads(HEAVY_VISIBILITY.read_text())
+        x, y = np.asarray(doc["heavy"], np.float64), np.asarray(doc["full"], np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"the heavy model's visibility map ({HEAVY_VISIBILITY}) is missing or damaged ({e}); "
+                         "reinstall flowmocap, or use the detector model 'full'.") from e
+    if (x.ndim != 1 or x.shape != y.shape or len(x) < 2 or x[0] != 0 or x[-1] != 1 or y[0] != 0 or y[-1] != 1
+            or (np.diff(x) <= 0).any() or (np.diff(y) < 0).any()):
+        raise InputError(f"the heavy model's visibility map ({HEAVY_VISIBILITY}) is not a monotone map of [0, 1] "
+                         "onto itself; reinstall flowmocap, or use the detector model 'full'.")
+    return x, y
+
+
+def _md5(path: Path) -> str:
+    h = hashlib.md5()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+_SHIPPED_OK: list = []
+
+
+def _shipped_ok() -> bool:
+    """Whether the shipped heavy model is whole (checked once per process)."""
+    if not _SHIPPED_OK:
+        _SHIPPED_OK.append(HEAVY_MODEL.is_file() and _md5(HEAVY_MODEL) == HEAVY_MD5)
+    return _SHIPPED_OK[0]
+
+
+def install_model(model: str, mediapipe_dir: str | Path | None = None) -> Path | None:
+    """Make MediaPipe's legacy Pose able to run ``model`` without downloading it.
+
+    "full" ships inside MediaPipe's wheel: nothing to do. For "heavy", MediaPipe looks for
+    ``modules/pose_landmark/pose_landmark_heavy.tflite`` in its own package folder and
+    downloads it there when missing; this copies the file shipped with flowmocap there
+    instead (atomically), unless an identical file is already in place.
+
+    Args:
+        model: a key of :data:`MODELS`.
+        mediapipe_dir: MediaPipe's package folder (default: the installed one's).
+
+    Returns:
+        The model file MediaPipe will read, or None for "full".
+
+    Raises:
+        InputError: an unknown model; the shipped file is missing or damaged; MediaPipe's
+            folder cannot be written (the message says which file to copy where).
+    """
+    if model not in MODELS:
+        raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
+    if model == "full":
+        return None
+    if not _shipped_ok():
+        raise InputError(f"the heavy pose model shipped with flowmocap ({HEAVY_MODEL}) is missing or damaged; "
+                         "reinstall flowmocap, or use the detector model 'full'.")
+    if mediapipe_dir is None:  # found without importing MediaPipe (seconds, and its graphs' threads)
+        import importlib.util
+
+        spec = importlib.util.find_spec("mediapipe")
+        if spec is None or spec.origin is None:  # pragma: no cover - depends on the environment
+            raise InputError(MediaPipePoseDetector.NOT_INSTALLED)
+        mediapipe_dir = Path(spec.origin).parent
+    target = Path(mediapipe_dir) / "modules" / "pose_landmark" / "pose_landmark_heavy.tflite"
+    if target.is_file() and target.stat().st_size == HEAVY_MODEL.stat().st_size and _md5(target) == HEAVY_MD5:
+        return target
+    import shutil
+
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(HEAVY_MODEL, tmp)
+        os.replace(tmp, target)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise InputError(f"cannot put the heavy pose model where MediaPipe reads it ({e}); copy {HEAVY_MODEL} "
+                         f"to {target} by hand, or use the detector model 'full'.") from e
+    return target
 
 
 @contextlib.contextmanager
@@ -135,31 +257,41 @@ class MediaPipePoseDetector:
         augment: average the segmentation over the four runs described above.
         min_confidence: MediaPipe's detection and tracking confidence thresholds.
         threshold: the soft mask's person probability above which a pixel is the person.
+        model: the landmark model of the main run, which gives the keypoints, the 3D
+            joints and the first mask (:data:`MODELS`); the three augmentation runs,
+            which only add to the mask, stay "full".
+        calibrated: put the model's landmark visibility on the full model's scale
+            (:func:`visibility_map`) as the keypoints' confidence; False: as it comes (for
+            ``tools/calibrate_visibility.py``).
     """
 
     #: What to do when MediaPipe is not installed.
     NOT_INSTALLED = ("automatic masks and joints need mediapipe 0.10.21 (pip install mediapipe==0.10.21, "
                      "which ships its models); or give --init init.json and --masks FOLDER.")
 
-    def __init__(self, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5):
+    def __init__(self, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5,
+                 model: str = "full", calibrated: bool = True):
         try:
             import mediapipe as mp
         except ImportError as e:  # pragma: no cover - depends on the environment
             raise InputError(self.NOT_INSTALLED) from e
         if not 0.0 < threshold < 1.0:
             raise InputError(f"threshold must be in (0, 1); got {threshold}.")
+        install_model(model, Path(mp.__file__).parent)
+        self._visibility = visibility_map(model) if calibrated else None
         self._mp = mp
         self.augment = bool(augment)
         self.min_confidence = float(min_confidence)
         self.threshold = float(threshold)
-        self.name = self.describe(self.augment, self.min_confidence, self.threshold, mp.__version__)
+        self.model = model
+        self.name = self.describe(self.augment, self.min_confidence, self.threshold, mp.__version__, model, calibrated)
         self._runs: dict = {}
         self._pool = None  # threads for the augmented runs, made with them
         self.reset()
 
     @classmethod
     def describe(cls, augment: bool = True, min_confidence: float = 0.5, threshold: float = 0.5,
-                 version: str | None = None) -> str:
+                 version: str | None = None, model: str = "full", calibrated: bool = True) -> str:
         """The :attr:`name` a detector of these settings has, without loading MediaPipe
         (its installed version read from the package metadata unless given).
 
@@ -174,11 +306,18 @@ class MediaPipePoseDetector:
                 version = installed("mediapipe")
             except PackageNotFoundError as e:  # pragma: no cover - depends on the environment
                 raise InputError(cls.NOT_INSTALLED) from e
-        return f"mediapipe-pose-{version}-full-3d{'-tta4' if augment else ''}-c{min_confidence:g}-t{threshold:g}"
+        if model not in MODELS:
+            raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
+        if model == "full" or not calibrated:
+            tag = model if model == "full" else f"{model}-raw"
+        else:  # stored detections follow the visibility map (a bad one is refused here too)
+            visibility_map(model)
+            tag = f"{model}-v{_md5(HEAVY_VISIBILITY)[:6]}"
+        return f"mediapipe-pose-{version}-{tag}-3d{'-tta4' if augment else ''}-c{min_confidence:g}-t{threshold:g}"
 
-    def _pose(self, static: bool):
+    def _pose(self, static: bool, model: str = "full"):
         return self._mp.solutions.pose.Pose(
-            static_image_mode=static, model_complexity=1, smooth_landmarks=True, enable_segmentation=True,
+            static_image_mode=static, model_complexity=MODELS[model], smooth_landmarks=True, enable_segmentation=True,
             smooth_segmentation=not static, min_detection_confidence=self.min_confidence,
             min_tracking_confidence=self.min_confidence)
 
@@ -186,7 +325,7 @@ class MediaPipePoseDetector:
         """Forget the tracked person (call between videos)."""
         self.close()
         with _native_stderr_to_devnull():
-            self._runs = {"main": self._pose(False)}
+            self._runs = {"main": self._pose(False, self.model)}
             if self.augment:
                 self._runs.update({"mirror": self._pose(False), "border": self._pose(False),
                                    "single": self._pose(True)})
@@ -229,6 +368,8 @@ class MediaPipePoseDetector:
             kp[k] = (p.x * W, p.y * H)
             inside = 0.0 <= kp[k, 0] <= W and 0.0 <= kp[k, 1] <= H
             conf[k] = float(np.clip(p.visibility, 0.0, 1.0)) if inside else 0.0
+        if self._visibility is not None:  # the heavy model's visibility on the full model's scale
+            conf = np.interp(conf, *self._visibility)
         if not self.augment:
             soft = np.asarray(res.segmentation_mask, np.float32)
         soft = cv2.ximgproc.guidedFilter(img, soft, 4, 1e-3 * 255.0 ** 2) if hasattr(cv2, "ximgproc") else soft
