@@ -17,7 +17,7 @@ triangulated without the view and projected into it (pixels of the 640-high fram
 each run alone, the mean and the coordinate-wise median of the runs, the mean of the
 image and mirror runs, and the mean of the runs that agree with the median.
 
-Usage: python benchmarks/detector_runs_2d.py REAL3D_DIR [--views cam01,cam02] [--out PREFIX]
+Usage: python benchmarks/detector_runs_2d.py REAL3D_DIR [--views cam01,cam02] [--out PREFIX] [--model heavy]
        (REAL3D_DIR: a ``flowmocap bench --suite real3d`` folder, for its reference; about
        3 minutes a view on one core)
 """
@@ -57,8 +57,8 @@ class RecordingDetector(MediaPipePoseDetector):
     """The augmented detector, also keeping the other runs' keypoints of each detection
     in :attr:`log` as ``(main keypoints, {run: keypoints or None})``."""
 
-    def __init__(self):
-        super().__init__(augment=True)
+    def __init__(self, model: str = "full"):
+        super().__init__(augment=True, model=model)
         self.log: list = []
         self._last: dict = {}
 
@@ -107,7 +107,7 @@ def hypotheses(main: np.ndarray, others: dict) -> dict:
     return h
 
 
-def score_view(view: str, reference: dict, min_frames: int = 10) -> dict:
+def score_view(view: str, reference: dict, min_frames: int = 10, model: str = "full") -> dict:
     """``{person: {hypothesis: per-keypoint errors (N, K) px}}`` of one view."""
     from flowmocap.eval import real3d as R
     from flowmocap.io.video import load_video
@@ -115,8 +115,8 @@ def score_view(view: str, reference: dict, min_frames: int = 10) -> dict:
 
     seq = load_video(Path(R.DATA) / "videos" / f"{view}.mp4", max_side=640)
     W = seq.size[0]
-    cands = auto.find_people(seq, MediaPipePoseDetector(augment=True), MediaPipePoseDetector(augment=False),
-                             progress=False)
+    cands = auto.find_people(seq, MediaPipePoseDetector(augment=True, model=model),
+                             MediaPipePoseDetector(augment=False, model=model), progress=False)
     tracks = auto.split_tracks(cands)
     cam, offset = reference["cameras"][view], reference["offsets"][view]
     scale = W / cam.width
@@ -124,7 +124,7 @@ def score_view(view: str, reference: dict, min_frames: int = 10) -> dict:
     for k, t in enumerate(tracks):
         if len(t) < min_frames:
             continue
-        det = RecordingDetector()
+        det = RecordingDetector(model)
         found = auto.follow_person(seq, det, cands, tracks, k, progress=False)
         det.close()
         best = None
@@ -164,18 +164,20 @@ def main() -> int:
     ap.add_argument("bench", type=Path)
     ap.add_argument("--views", default=",".join(R.VIEWS))
     ap.add_argument("--out")
+    ap.add_argument("--model", default="full", choices=["full", "heavy"],
+                    help="the landmark model of the main run (and the search's); the other three runs stay full")
     a = ap.parse_args()
     reference = R.build_reference(a.bench, progress=False, log=None)
     rows, pooled = {}, {h: [] for h in RUNS + COMBINED}
     for view in a.views.split(","):
-        for person, e in score_view(view, reference).items():
+        for person, e in score_view(view, reference, model=a.model).items():
             rows[f"{person}-{view}"] = {"frames": int(len(e["main"])), **{h: summary(v) for h, v in e.items()}}
             for h, v in e.items():
                 pooled[h].append(v)
     allrow = {h: summary(np.concatenate(v)) for h, v in pooled.items() if v}
     cols = RUNS + COMBINED
     lines = ["# The augmented detector's four runs as 2D hypotheses (real3d)", "",
-             f"`python benchmarks/detector_runs_2d.py {a.bench}`: per body keypoint, pixels of the 640-high frames "
+             f"`python benchmarks/detector_runs_2d.py {a.bench} --model {a.model}`: per body keypoint, pixels of the 640-high frames "
              "against the reference triangulated without the view; median / 90th percentile / mean.", "",
              "| person-view | frames | " + " | ".join(cols) + " |", "|---|---:|" + "---|" * len(cols)]
     fmt = lambda s: f"{s['p50']:.1f} / {s['p90']:.1f} / {s['mean']:.1f}" if s else "--"  # noqa: E731
@@ -187,7 +189,8 @@ def main() -> int:
     print(md)
     if a.out:
         Path(a.out + ".md").write_text(md)
-        Path(a.out + ".json").write_text(json.dumps({"bench": str(a.bench), "rows": rows, "all": allrow}, indent=1))
+        Path(a.out + ".json").write_text(json.dumps({"bench": str(a.bench), "model": a.model, "rows": rows,
+                                                     "all": allrow}, indent=1))
     return 0
 
 
