@@ -66,7 +66,6 @@ from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
 from flowmocap.vision import FlowCache, flow_region
-from flowmocap.vision.detect import MODELS
 from flowmocap.vision.auto import (
     PersonTrack,
     auto_init,
@@ -77,6 +76,7 @@ from flowmocap.vision.auto import (
     frame_runs,
     load_detections,
 )
+from flowmocap.vision.detect import check_model
 from flowmocap.vision.lifter import lifted_track
 from flowmocap.vision.person import describe_person, parse_person
 
@@ -295,8 +295,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     parse_person(person)
     if height is not None:
         check_height(height)
-    if detector is not None and detector not in MODELS:
-        raise InputError(f"unknown detector model {detector!r}; choose one of {', '.join(MODELS)}.")
+    if detector is not None:
+        check_model(detector)
     _check_out(out, force)
     with FolderLock(out):
         try:

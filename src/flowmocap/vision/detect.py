@@ -39,7 +39,7 @@ import numpy as np
 from flowmocap.errors import InputError
 
 __all__ = ["KEYPOINT_NAMES", "SMPL_KEYPOINTS", "Detection", "PersonDetector", "MediaPipePoseDetector",
-           "MEDIAPIPE_LANDMARKS", "MODELS", "install_model", "visibility_map"]
+           "MEDIAPIPE_LANDMARKS", "MODELS", "check_model", "install_model", "visibility_map"]
 
 #: Keypoints that are SMPL joints (the joints of an init.json), in this order.
 SMPL_KEYPOINTS: tuple[str, ...] = (
@@ -77,6 +77,17 @@ HEAVY_MD5 = "52337aea988efa7ce17851641f4b730a"
 HEAVY_VISIBILITY = Path(__file__).parent / "data" / "heavy_visibility.json"
 
 
+def check_model(model) -> str:
+    """``model`` when it names one of :data:`MODELS`.
+
+    Raises:
+        InputError: it does not.
+    """
+    if model not in MODELS:
+        raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
+    return model
+
+
 def visibility_map(model: str) -> tuple[np.ndarray, np.ndarray] | None:
     """``(x, y)`` knots that turn ``model``'s landmark visibility into flowmocap's keypoint
     confidence (``np.interp(v, x, y)``, 0 -> 0, 1 -> 1, non-decreasing), or None where it is
@@ -85,9 +96,7 @@ def visibility_map(model: str) -> tuple[np.ndarray, np.ndarray] | None:
     Raises:
         InputError: an unknown model, or the shipped map is missing or malformed.
     """
-    if model not in MODELS:
-        raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
-    if model == "full":
+    if check_model(model) == "full":
         return None
     import json
 
@@ -141,9 +150,7 @@ def install_model(model: str, mediapipe_dir: str | Path | None = None) -> Path |
         InputError: an unknown model; the shipped file is missing or damaged; MediaPipe's
             folder cannot be written (the message says which file to copy where).
     """
-    if model not in MODELS:
-        raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
-    if model == "full":
+    if check_model(model) == "full":
         return None
     if not _shipped_ok():
         raise InputError(f"the heavy pose model shipped with flowmocap ({HEAVY_MODEL}) is missing or damaged; "
@@ -306,9 +313,7 @@ class MediaPipePoseDetector:
                 version = installed("mediapipe")
             except PackageNotFoundError as e:  # pragma: no cover - depends on the environment
                 raise InputError(cls.NOT_INSTALLED) from e
-        if model not in MODELS:
-            raise InputError(f"unknown detector model {model!r}; choose one of {', '.join(MODELS)}.")
-        if model == "full" or not calibrated:
+        if check_model(model) == "full" or not calibrated:
             tag = model if model == "full" else f"{model}-raw"
         else:  # stored detections follow the visibility map (a bad one is refused here too)
             visibility_map(model)
