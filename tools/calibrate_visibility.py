@@ -62,13 +62,6 @@ def quantile_map(source: np.ndarray, target: np.ndarray, levels=LEVELS) -> tuple
     return x, np.maximum.accumulate(y)
 
 
-def project(cam, X: np.ndarray) -> np.ndarray:
-    """``(..., 2)`` pixels of world points ``X (..., 3)`` metres through a pinhole camera."""
-    P = np.asarray(X, np.float64) @ np.asarray(cam.R, np.float64).T + np.asarray(cam.t, np.float64).reshape(3)
-    fx, fy = float(cam.fx), float(getattr(cam, "fy", cam.fx))
-    return np.stack([fx * P[..., 0] / P[..., 2] + float(cam.cx), fy * P[..., 1] / P[..., 2] + float(cam.cy)], -1)
-
-
 def band_table(conf: np.ndarray, err: np.ndarray) -> list[dict]:
     """Per confidence band: how many keypoints and their median / mean 2D error (px)."""
     rows = []
@@ -105,7 +98,7 @@ def main(argv=None) -> int:
     err = {"full": [], "heavy": []}
     for c in clips:
         both = c["by_model"]["full"][2] & c["by_model"]["heavy-raw"][2]
-        uv = project(c["camera"], c["joints"][:, idx])
+        uv = np.asarray(c["camera"].project(c["joints"][:, idx]), np.float64)
         for m in vis:
             kp, conf, _ = c["by_model"]["heavy-raw" if m == "heavy" else m]
             vis[m].append(conf[both][:, :K].ravel())

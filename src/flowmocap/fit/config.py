@@ -50,7 +50,8 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: measurements): every L-BFGS run stops at a stall ten times larger than the default's, a
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
 #: down doubles the wait before the next attempt, up to 8 frames, and the detector runs
-#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one). ``track(fast=True)`` also runs the detector without its mask augmentation
+#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one).
+#: ``track(fast=True)`` also runs the detector without its mask augmentation
 #: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
 #: heavy model became the default (docs/settings.md).
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8,
