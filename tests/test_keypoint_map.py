@@ -20,7 +20,8 @@ from flowmocap.fit.objective import FrameData, FrameState, Scene, frame_energy, 
 from flowmocap.geometry import PinholeCamera, look_at
 from flowmocap.io import walk_poses
 from flowmocap.vision.detect import SMPL_KEYPOINTS
-from flowmocap.vision.keypoint_map import KEYPOINT_OFFSETS_FILE, detector_points, load_keypoint_map
+from flowmocap.vision.keypoint_map import (KEYPOINT_OFFSETS_FILE, KEYPOINT_OFFSETS_FILES, detector_points,
+                                           load_keypoint_map)
 
 from test_learned_prior_terms import scene64  # noqa: F401  (the float64 scene fixture)
 from conftest import load_script
@@ -31,18 +32,32 @@ ALL_OFF = dict(flow_weight=0.0, silhouette_weight=0.0, limit_weight=0.0, penetra
                detector3d_weight=0.0, pose_prior_weight=0.0)
 
 
-def test_the_shipped_offsets_load_and_are_small():
-    kmap = load_keypoint_map()
-    assert kmap is load_keypoint_map()  # read once
+@pytest.mark.parametrize("model", ["full", "heavy"])
+def test_the_shipped_offsets_load_and_are_small(model):
+    kmap = load_keypoint_map(model=model)
+    assert kmap is load_keypoint_map(model=model)  # read once
     assert kmap.offset.shape == (24, 3) and kmap.part.shape == (24,)
     moved = {j for j in range(24) if np.abs(kmap.offset[j]).max() > 0}
     assert moved <= {JOINT_INDEX[n] for n in SMPL_KEYPOINTS}  # only the detector's joints move
     assert {JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]} <= moved  # the largest and surest offsets
     assert np.linalg.norm(kmap.offset, axis=1).max() < 0.08
-    doc = json.loads(KEYPOINT_OFFSETS_FILE.read_text())
+    doc = json.loads(KEYPOINT_OFFSETS_FILES[model].read_text())
+    assert doc["landmark_model"] == model  # learned from that network's keypoints
     for name, e in doc["keypoints"].items():  # kept only where it predicts held-out clips better
         assert e["held_out_median_px_after"] <= e["held_out_median_px_before"], name
     assert not any(f"/{s:02d}_" in f for f in doc["training_clips"] for s in (2, 8, 13, 61))  # no test subject
+
+
+def test_each_landmark_network_has_its_own_offsets_and_the_tracker_uses_its_networks(scene64):
+    full, heavy = load_keypoint_map(), load_keypoint_map(model="heavy")
+    assert full is load_keypoint_map(model="full") and KEYPOINT_OFFSETS_FILES["full"] == KEYPOINT_OFFSETS_FILE
+    assert not np.allclose(full.offset, heavy.offset)  # the networks place some keypoints differently
+    out = scene64.model(betas=scene64.betas, pose=torch.tensor(walk_poses(np.array([0.3]))[0])[None])
+    for model, kmap in (("full", full), ("heavy", heavy)):
+        got = detector_points(out, TrackerConfig(keypoint_offsets=True, detector_model=model))
+        torch.testing.assert_close(got, kmap.apply(out.joints, out.transforms))
+    with pytest.raises(InputError, match="unknown detector model"):
+        load_keypoint_map(model="lite")
 
 
 def test_apply_is_the_closed_form_and_follows_the_body(scene64):

@@ -337,7 +337,8 @@ def test_pipeline_smooths_the_refitted_depth_and_keeps_the_tracked_translation(t
     run = pipeline._lifter_refit(out, track, model, cfg, {"status": "finished", "events": []}, lambda s: None)
     got, _ = read_result(out)
     refit, _ = lifter_refit_motion(motion, track, model, weight=cfg.lifter_refit_weight,
-                                   pixel_sigma=cfg.lifter_refit_pixel_sigma, blend=cfg.lifter_refit_blend)
+                                   pixel_sigma=cfg.lifter_refit_pixel_sigma, blend=cfg.lifter_refit_blend,
+                                   detector_model=cfg.detector_model)
     want = depth_smoothed_motion(refit, cfg.depth_smoothing_s) if smooth else refit
     np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-5)
     np.testing.assert_allclose(got["joints3d"], want["joints3d"], atol=1e-5)
@@ -389,7 +390,7 @@ def test_pipeline_eases_a_3d_seam_and_smooths_the_depth_across_it(tmp_path, seam
     got, _ = read_result(out)
     refit, _ = lifter_refit_motion(motion, track, model, weight=cfg.lifter_refit_weight,
                                    pixel_sigma=cfg.lifter_refit_pixel_sigma, blend=cfg.lifter_refit_blend,
-                                   seams=[6], seam_s=seam_s)
+                                   seams=[6], seam_s=seam_s, detector_model=cfg.detector_model)
     # an eased seam has no jump left: the depth is smoothed across it; otherwise it starts again there
     want = depth_smoothed_motion(refit, cfg.depth_smoothing_s, breaks=[] if seam_s else [6])
     np.testing.assert_allclose(got["trans"], want["trans"], atol=1e-5)
@@ -486,10 +487,13 @@ def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkey
         return real(*a, **{**k, "lifter": TruthLifter(truth_kp), "iterations": 2})
 
     monkeypatch.setattr(lift_refit, "lifter_refit_motion", spy)
-    cfg = TrackerConfig(lifter_refit_hidden_share=0.25, lifter_refit_bridge_s=0.2)
+    cfg = TrackerConfig(lifter_refit_hidden_share=0.25, lifter_refit_bridge_s=0.2, detector_model="full")
     pipeline._lifter_refit(out, track_sw, model, cfg, {"status": "finished", "events": events}, lambda s: None)
     assert seen["exchanged"] == [2]
     assert seen["hidden_share"] == 0.25 and seen["bridge_s"] == 0.2  # the settings reach the refit
+    assert seen["detector_model"] == "full"  # the body's keypoints placed with that network's offsets
+    with pytest.raises(InputError, match="unknown detector model"):
+        lifter_refit_motion(motion, track_sw, model, weight=0.5, lifter=lifter, iterations=2, detector_model="lite")
 
 
 @pytest.mark.parametrize("bridge_s", [0.0, 0.1, 0.05])

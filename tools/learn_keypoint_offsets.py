@@ -29,6 +29,7 @@ shoulders got 4 cm offsets that fit the DAZ clips and made the MotionBuilder one
 4.1 -> 5.7 px.)
 
     python tools/learn_keypoint_offsets.py                 # writes src/flowmocap/vision/data/keypoint_offsets.json
+    python tools/learn_keypoint_offsets.py --model heavy   # ... keypoint_offsets_heavy.json (the heavy network's)
     python tools/learn_keypoint_offsets.py --work /tmp/kpo --out /tmp/offsets.json
 
 About 10 minutes on 2 CPU cores (rendering and MediaPipe; the fit takes seconds).
@@ -49,7 +50,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "mocap" / "prior"
-OUT = ROOT / "src" / "flowmocap" / "vision" / "data" / "keypoint_offsets.json"
+DATA_DIR = ROOT / "src" / "flowmocap" / "vision" / "data"
+#: where each landmark network's offsets are written (flowmocap.vision.keypoint_map.KEYPOINT_OFFSETS_FILES)
+OUT = {"full": DATA_DIR / "keypoint_offsets.json", "heavy": DATA_DIR / "keypoint_offsets_heavy.json"}
 TEST_SUBJECTS = {"2", "8", "13", "61"}
 FPS = 30.0
 
@@ -202,17 +205,21 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, default=DATA)
     p.add_argument("--work", type=Path, default=Path("/tmp/flowmocap_keypoint_offsets"))
-    p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--out", type=Path, default=None, help="default: the package's file for --model")
     p.add_argument("--per-category", type=int, default=3)
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--min-confidence", type=float, default=0.5)
+    p.add_argument("--model", default="full", choices=sorted(OUT),
+                   help="the detector's landmark network (flowmocap.vision.detect.MODELS); its visibility is "
+                        "put on the full network's scale as the tracker does (vision/data/heavy_visibility.json)")
     a = p.parse_args(argv)
+    a.out = a.out or OUT[a.model]
     if not (a.data / "index.csv").exists():
         sys.exit(f"{a.data}/index.csv not found: the training data (../shared/data/mocap/prior) is needed.")
     rows = choose_clips(a.data, a.per_category)
     print(f"{len(rows)} train clips, {a.frames} frames each at {FPS:g} fps", flush=True)
     a.work.mkdir(parents=True, exist_ok=True)
-    clips = render_and_detect(rows, a.data, a.work, a.frames)
+    clips = render_and_detect(rows, a.data, a.work, a.frames, models=(a.model,))
 
     def keypoint_target(name):
         k = KEYPOINT_NAMES.index(name)
@@ -270,6 +277,7 @@ def main(argv=None) -> int:
                           "joint + R_part @ offset_m (R_part the posed rotation of the named part, metres in the "
                           "rest pose's axes). Made by tools/learn_keypoint_offsets.py.",
            "detector": "mediapipe pose landmarker (flowmocap.vision.detect.MediaPipePoseDetector, augment=False)",
+           "landmark_model": a.model,
            "training_clips": [c["file"] for c in clips], "frames_per_clip": a.frames, "fps": FPS,
            "data": "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu), train split of "
                    "../shared/data/mocap/prior (see its ATTRIBUTION.md); test subjects 2, 8, 13, 61 not used",

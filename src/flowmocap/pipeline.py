@@ -1045,7 +1045,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           shape_girth_sigma=cfg.lifter_refit_shape_girth or None,
                                           bridge_s=cfg.lifter_refit_bridge_s,
                                           hidden_share=cfg.lifter_refit_hidden_share,
-                                          height=cfg.body_height_m or None)
+                                          height=cfg.body_height_m or None,
+                                          detector_model=cfg.detector_model)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

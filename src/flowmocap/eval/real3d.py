@@ -629,7 +629,8 @@ def keypoint_joints(res) -> np.ndarray:
     moved by the learned keypoint offsets and the head at the middle of the ears
     (:class:`~flowmocap.vision.keypoint_map.KeypointMap`), in the order of
     :data:`EVAL_NAMES`, so they are scored in the reference's own convention (the
-    reference is triangulated from the detector's keypoints)."""
+    reference is triangulated from the "full" landmark network's keypoints, so its
+    offsets, whichever network the run used)."""
     import torch
 
     from flowmocap.body import load_body_model
@@ -642,7 +643,7 @@ def keypoint_joints(res) -> np.ndarray:
                     trans=torch.as_tensor(np.asarray(res.trans), dtype=torch.float32))
     joints = out.joints.double().numpy()
     transforms = out.transforms.double().numpy()
-    kmap = load_keypoint_map()
+    kmap = load_keypoint_map(model="full")
     pts = kmap.apply(joints, transforms)[:, list(EVAL_JOINTS)]
     pts[:, 0] = kmap.ears_middle(joints, transforms)
     return pts

@@ -353,7 +353,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
                         ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
                         bridge_s: float = 0.0, hidden_share: float = 0.0,
-                        height: float | None = None) -> tuple[dict, dict]:
+                        height: float | None = None, detector_model: str = "full") -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -401,6 +401,10 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         height: metres or None: with ``shape_share``, the refitted shape is given this
             stature afterwards (:func:`flowmocap.body.stature.with_stature`: the person's
             stated height, which the tracked body already had).
+        detector_model: the landmark network the detections came from
+            (:data:`flowmocap.vision.detect.MODELS`; the pipeline passes its run's
+            ``TrackerConfig.detector_model``): the body's keypoints are placed with its
+            learned offsets (:func:`flowmocap.vision.keypoint_map.load_keypoint_map`).
         bridge_s: seconds: with ``lifter_input`` ``"detector"`` or ``"unswap"``, a detected
             point missing (confidence below 0.5) for at most this long between two frames
             that have it is filled by a straight line between them before lifting
@@ -464,7 +468,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     if idx.size and (idx.min() < 0 or idx.max() >= len(track)):
         raise InputError(f"the result's frames reach {idx.max()} but the detections have {len(track)} frames.")
     body = copy.deepcopy(model).double()
-    kmap = load_keypoint_map()
+    kmap = load_keypoint_map(model=detector_model)
     poses0 = torch.as_tensor(np.asarray(motion["poses"], np.float64))
     trans0 = torch.as_tensor(np.asarray(motion["trans"], np.float64))
     betas = torch.as_tensor(np.asarray(motion["betas"], np.float64)).reshape(1, -1)

@@ -12,13 +12,17 @@ keypoint on such a body::
 ``J_j`` the posed joint (metres), ``R_p(j)`` the posed rotation of one body part (the
 joint's own bone or its parent's), ``o_j`` a fixed offset (metres, in the rest pose's
 axes). The offsets are learned by ``tools/learn_keypoint_offsets.py`` from MediaPipe run on
-rendered ``train`` clips of the CMU collection with known poses; they ship in
-``vision/data/keypoint_offsets.json``. The same file gives the middle of the ears (the
-head of :mod:`flowmocap.eval.real3d`'s reference) from the head joint.
+rendered ``train`` clips of the CMU collection with known poses, once for each of the
+detector's landmark networks (:data:`~flowmocap.vision.detect.MODELS`: they place some
+keypoints differently, e.g. the heavy network's elbows by 2 cm); they ship in
+``vision/data/keypoint_offsets.json`` ("full") and ``keypoint_offsets_heavy.json``
+("heavy"). The same files give the middle of the ears (the head of
+:mod:`flowmocap.eval.real3d`'s reference) from the head joint.
 
 The tracker uses the map where it compares the body with the detector's joints (``E_j``,
 ``E_d``, ``E_3d``, the refits and their verdicts) when ``TrackerConfig.keypoint_offsets``
-is on (the default: docs/experiments.md, "Keypoint offsets"); joints given by the user
+is on (the default: docs/experiments.md, "Keypoint offsets"), with the offsets of the
+network it runs (``TrackerConfig.detector_model``); joints given by the user
 (``init.json``) are taken to be the body model's own.
 """
 
@@ -34,10 +38,13 @@ import torch
 
 from flowmocap.errors import ModelFileError
 
-__all__ = ["KEYPOINT_OFFSETS_FILE", "KeypointMap", "load_keypoint_map", "detector_points"]
+__all__ = ["KEYPOINT_OFFSETS_FILE", "KEYPOINT_OFFSETS_FILES", "KeypointMap", "load_keypoint_map", "detector_points"]
 
-#: The learned offsets shipped with the package.
+#: The learned offsets shipped with the package, of the "full" landmark network.
 KEYPOINT_OFFSETS_FILE = Path(__file__).resolve().parent / "data" / "keypoint_offsets.json"
+#: The offsets of each landmark network (:data:`flowmocap.vision.detect.MODELS`).
+KEYPOINT_OFFSETS_FILES = {"full": KEYPOINT_OFFSETS_FILE,
+                          "heavy": KEYPOINT_OFFSETS_FILE.with_name("keypoint_offsets_heavy.json")}
 
 
 @dataclass(frozen=True)
@@ -84,16 +91,25 @@ class KeypointMap:
         return head + rot @ self.ears_offset
 
 
-@lru_cache(maxsize=4)
-def load_keypoint_map(path: str | Path | None = None) -> KeypointMap:
-    """Read a keypoint-offset file (default :data:`KEYPOINT_OFFSETS_FILE`).
+def load_keypoint_map(path: str | Path | None = None, model: str = "full") -> KeypointMap:
+    """Read a keypoint-offset file: ``path``, or the shipped offsets of the landmark network
+    ``model`` (:data:`KEYPOINT_OFFSETS_FILES`; "full", the default, is the one the real-video
+    reference of :mod:`flowmocap.eval.real3d` is triangulated from).
 
     Raises:
         ModelFileError: the file is missing or is not a keypoint-offset file.
+        InputError: ``model`` is not a landmark network flowmocap knows.
     """
+    from flowmocap.vision.detect import check_model
+
+    return _read_keypoint_map(Path(path) if path is not None else KEYPOINT_OFFSETS_FILES[check_model(model)])
+
+
+@lru_cache(maxsize=4)
+def _read_keypoint_map(path: Path) -> KeypointMap:
+    """:func:`load_keypoint_map` of one file, read once."""
     from flowmocap.body.skeleton import JOINT_INDEX
 
-    path = Path(path) if path is not None else KEYPOINT_OFFSETS_FILE
     try:
         doc = json.loads(path.read_text())
         entries = doc["keypoints"]
@@ -121,8 +137,9 @@ def load_keypoint_map(path: str | Path | None = None) -> KeypointMap:
 
 def detector_points(out, cfg) -> torch.Tensor:
     """``(B, 24, 3)`` where the detector would put the joints of body ``out`` (a
-    :class:`~flowmocap.body.model.BodyOutput`): :meth:`KeypointMap.apply` when
-    ``cfg.keypoint_offsets`` is on, else the joints themselves."""
+    :class:`~flowmocap.body.model.BodyOutput`): :meth:`KeypointMap.apply` with the offsets of
+    ``cfg.detector_model``'s network when ``cfg.keypoint_offsets`` is on, else the joints
+    themselves."""
     if not getattr(cfg, "keypoint_offsets", False):
         return out.joints
-    return load_keypoint_map().apply(out.joints, out.transforms)
+    return load_keypoint_map(model=getattr(cfg, "detector_model", "full")).apply(out.joints, out.transforms)
