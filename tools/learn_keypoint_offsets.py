@@ -50,9 +50,6 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "mocap" / "prior"
-DATA_DIR = ROOT / "src" / "flowmocap" / "vision" / "data"
-#: where each landmark network's offsets are written (flowmocap.vision.keypoint_map.KEYPOINT_OFFSETS_FILES)
-OUT = {"full": DATA_DIR / "keypoint_offsets.json", "heavy": DATA_DIR / "keypoint_offsets_heavy.json"}
 TEST_SUBJECTS = {"2", "8", "13", "61"}
 FPS = 30.0
 
@@ -82,11 +79,10 @@ def render_and_detect(rows: list[dict], data: Path, work: Path, frames: int, mod
     first of ``models`` (:data:`flowmocap.vision.detect.MODELS`), and of every model
     ``by_model[name] = (keypoints (T, K, 2), confidence (T, K), found (T,))``."""
     from flowmocap.body import load_body_model
-    from flowmocap.errors import InputError
+    from flowmocap.errors import InputError, NoPersonError
     from flowmocap.eval.bench import most_active_window
     from flowmocap.io.sequence import load_sequence
     from flowmocap.synth import synthesize
-    from flowmocap.errors import NoPersonError
     from flowmocap.vision.auto import detect_for_given_masks, detect_sequence
     from flowmocap.vision.detect import MediaPipePoseDetector
 
@@ -201,6 +197,7 @@ def median_error(clips, X, R, uv, ci, o) -> float:
 def main(argv=None) -> int:
     from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
     from flowmocap.vision.detect import KEYPOINT_NAMES, SMPL_KEYPOINTS
+    from flowmocap.vision.keypoint_map import KEYPOINT_OFFSETS_FILES
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, default=DATA)
@@ -209,11 +206,11 @@ def main(argv=None) -> int:
     p.add_argument("--per-category", type=int, default=3)
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--min-confidence", type=float, default=0.5)
-    p.add_argument("--model", default="full", choices=sorted(OUT),
+    p.add_argument("--model", default="full", choices=sorted(KEYPOINT_OFFSETS_FILES),
                    help="the detector's landmark network (flowmocap.vision.detect.MODELS); its visibility is "
                         "put on the full network's scale as the tracker does (vision/data/heavy_visibility.json)")
     a = p.parse_args(argv)
-    a.out = a.out or OUT[a.model]
+    a.out = a.out or KEYPOINT_OFFSETS_FILES[a.model]
     if not (a.data / "index.csv").exists():
         sys.exit(f"{a.data}/index.csv not found: the training data (../shared/data/mocap/prior) is needed.")
     rows = choose_clips(a.data, a.per_category)
