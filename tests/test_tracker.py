@@ -17,7 +17,7 @@ from flowmocap.errors import DataError, InputError, NoPersonError, OptimizationE
 from flowmocap.eval.protocol import evaluate, noisy_init
 from flowmocap.fit.config import DEPTH_CUES_OFF, TrackerConfig
 from flowmocap.fit.init import parse_init
-from flowmocap.fit.objective import FrameState, Scene, frame_data, keypoint_observation
+from flowmocap.fit.objective import FrameState, Scene, configured_keypoints, frame_data, keypoint_observation
 from flowmocap.fit.tracker import KnownStart, SequenceTracker, track_frames
 from flowmocap.io.results import read_result
 from flowmocap.io.sequence import load_sequence
@@ -78,7 +78,7 @@ def _track_direct(seq, out, model, cfg, frames, keypoints=None, joints3d=None, e
 
     def observe(i):
         mask = seq.mask(i)
-        kp = keypoint_observation(*keypoints(i)) if keypoints is not None else None
+        kp = configured_keypoints(*keypoints(i), cfg) if keypoints is not None else None
         data = frame_data(mask, cache.flow(i, seq.frame(i), seq.frame(i - 1)), cfg, float("nan"), kp)
         data.joints3d = joints3d(i) if joints3d is not None else None
         return mask, data
@@ -513,6 +513,44 @@ def test_keypoint_observation_checks():
     assert keypoint_observation(j, c) is None  # fewer than 4 confident joints: no term
     with pytest.raises(InputError, match="differ"):
         keypoint_observation(j, c[:12])
+
+
+def test_keypoint_observation_minimum_confidence_and_floor():
+    j = np.arange(48, dtype=float).reshape(24, 2)
+    c = np.linspace(0.0, 0.96, 24)  # 0, 0.04, ..., 0.96
+    _, conf = keypoint_observation(j, c)
+    assert (conf[c < 0.5] == 0).all() and np.allclose(conf[c >= 0.5], c[c >= 0.5])  # the default: as before
+    _, conf = keypoint_observation(j, c, min_confidence=0.0, floor=0.5)
+    assert conf[0] == 0  # a joint at confidence 0 is not detected, whatever the floor
+    assert np.allclose(conf[1:], np.maximum(c[1:], 0.5))  # the others weigh at least the floor
+    _, conf = keypoint_observation(j, c, min_confidence=0.2, floor=0.3)
+    assert (conf[c < 0.2] == 0).all() and np.allclose(conf[c >= 0.2], np.maximum(c[c >= 0.2], 0.3))
+
+
+def test_the_tracker_reads_e_j_confidence_settings_from_the_config(clip, model, tmp_path):
+    """(:func:`configured_keypoints`, as the pipeline reads the detections) Joints detected at
+    confidence 0.2 enter E_j at the defaults (every detected joint, weighed alike), not at
+    ``keypoint_min_confidence`` 0.5 (``--fast``'s), and a floor gives them more weight."""
+    cfg = TrackerConfig()
+    assert (cfg.keypoint_min_confidence, cfg.keypoint_confidence_floor) == (0.0, 1.0)
+    seq = load_sequence(clip)
+    truth = _true_joints2d(seq, model)
+    conf = np.full(24, 0.2)
+    conf[[10, 11, 22, 23]] = 0.0
+    base = dict(flow_weight=0.0, silhouette_weight=0.0, keypoint_weight=0.05, kalman=False, temporal_weight=0.0)
+    shifted = [j + 4.0 for j in truth]
+    settings = {"default": {}, "fast": {"keypoint_min_confidence": 0.5, "keypoint_confidence_floor": 0.0},
+                "low": {"keypoint_min_confidence": 0.1, "keypoint_confidence_floor": 0.0},
+                "floor": {"keypoint_min_confidence": 0.1, "keypoint_confidence_floor": 0.8}}
+    runs = {name: _track_direct(seq, tmp_path / name, model, TrackerConfig(**base, **kw), "0:3",
+                                keypoints=lambda i: (shifted[i], conf))
+            for name, kw in settings.items()}
+    assert not any("keypoints" in t for t in runs["fast"][1])
+    first = {k: [t["keypoints"] for t in runs[k][1] if "keypoints" in t] for k in ("default", "low", "floor")}
+    assert all(v and np.isfinite(v).all() for v in first.values())
+    low, floor, default = first["low"][0], first["floor"][0], first["default"][0]
+    assert floor > 2.0 * low  # the same residuals at four times the weight (0.8 against 0.2)
+    assert default > floor  # weight 1
 
 
 def test_rough_pose_weights_follow_the_joints_the_init_states(clip, model):

@@ -36,8 +36,8 @@ from flowmocap.fit.objective import (
     ENERGY_NAMES,
     FrameState,
     Scene,
+    configured_keypoints,
     frame_data,
-    keypoint_observation,
 )
 from flowmocap.fit.reinit import ReinitMonitor
 from flowmocap.fit.smooth import depth_smoothed_motion, pose_smoothed_motion
@@ -850,7 +850,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
 
     def detected(i: int) -> tuple | None:
         found = keypoints(i) if (keypoints is not None and cfg.keypoint_weight > 0) else None
-        return keypoint_observation(*found) if found is not None else None
+        return configured_keypoints(*found, cfg) if found is not None else None
 
     def detected3d(i: int) -> tuple | None:
         return joints3d(i) if (joints3d is not None and cfg.uses_detector3d) else None

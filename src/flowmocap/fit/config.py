@@ -50,12 +50,15 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: measurements): every L-BFGS run stops at a stall ten times larger than the default's, a
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
 #: down doubles the wait before the next attempt, up to 8 frames, and the detector runs
-#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one).
+#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one),
+#: whose ``E_j`` keeps the settings it was tuned with (joints below confidence 0.5 left out,
+#: the others weighed by their confidence: its low-confidence joints are 11-13 px off).
 #: ``track(fast=True)`` also runs the detector without its mask augmentation
 #: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
 #: heavy model became the default (docs/settings.md).
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8,
-                                 "detector_model": "full"}
+                                 "detector_model": "full", "keypoint_min_confidence": 0.5,
+                                 "keypoint_confidence_floor": 0.0}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
@@ -88,7 +91,8 @@ _RANGES: dict[str, str] = {
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
     "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
     "uncovered_prior_weight": _AT_LEAST_0,
-    "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0,
+    "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0, "keypoint_min_confidence": _UNIT,
+    "keypoint_confidence_floor": _UNIT,
     "keypoint_hold_sigma": _ABOVE_0, "keypoint_hold_weight": _AT_LEAST_0,
     "keypoint_hold_frames": _AT_LEAST_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
@@ -168,6 +172,11 @@ class TrackerConfig:
     #                                    (1e-4, once --fast, on all three suites: docs/settings.md "Speed")
     keypoint_weight: float = 0.05      # lambda_j: detected 2D joints keep the body on the person
     keypoint_sigma: float = 20.0       # its Geman-McClure scale, px: a left/right swap saturates
+    keypoint_min_confidence: float = 0.0  # E_j uses a detected joint at this confidence or more (0: every
+    #                                       joint detected), weighed by its confidence raised to at least ...
+    keypoint_confidence_floor: float = 1.0  # ... this (1: all alike); the lost-joint hold and the swap check
+    #                                       read the same weights. The heavy network places the joints it
+    #                                       calls hidden within 6-9 px (docs/settings.md); --fast's full: 0.5, 0
     keypoint_hold_frames: int = 5      # a joint whose confident detection the fit has been far from (and
     #                                    not swapped) for this many frames in a row gets ...; 0: off
     keypoint_hold_sigma: float = 80.0  # ... this E_j scale, px, and ...

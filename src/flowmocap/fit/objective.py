@@ -129,20 +129,29 @@ class FrameData:
     keypoint_hold: np.ndarray | None = None  # (24,) bool: joints E_j holds (SequenceTracker.keypoint_hold), or None
 
 
-def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4) -> tuple | None:
+def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4,
+                         floor: float = 0.0) -> tuple | None:
     """Detected joints for ``E_j``: ``(j2d (24, 2), conf (24,))`` float32 tensors with the
-    confidences below ``min_confidence`` (and non-finite joints) set to 0, or None when
-    fewer than ``min_joints`` joints are left (``j2d``: pixels, SMPL joint order)."""
+    confidences below ``min_confidence`` (and zero or non-finite ones) set to 0 and the others
+    raised to at least ``floor`` (``E_j`` weighs each joint by it), or None when fewer than
+    ``min_joints`` joints are left (``j2d``: pixels, SMPL joint order)."""
     j = np.asarray(j2d, np.float64).reshape(-1, 2)
     c = np.asarray(conf, np.float64).reshape(-1).copy()
     if j.shape[0] != c.shape[0]:
         raise InputError(f"detected joints {j.shape} and confidences {c.shape} differ in count.")
-    ok = np.isfinite(j).all(1) & np.isfinite(c) & (c >= min_confidence)
+    ok = np.isfinite(j).all(1) & np.isfinite(c) & (c >= min_confidence) & (c > 0)
     if ok.sum() < min_joints:
         return None
-    c[~ok] = 0.0
+    c = np.where(ok, np.maximum(c, floor), 0.0)
     j = np.where(ok[:, None], j, 0.0)
     return torch.as_tensor(j, dtype=torch.float32), torch.as_tensor(c, dtype=torch.float32)
+
+
+def configured_keypoints(j2d, conf, cfg: TrackerConfig) -> tuple | None:
+    """:func:`keypoint_observation` with ``cfg.keypoint_min_confidence`` and
+    ``cfg.keypoint_confidence_floor``: the detected joints as the tracker's ``E_j`` uses them."""
+    return keypoint_observation(j2d, conf, min_confidence=cfg.keypoint_min_confidence,
+                                floor=cfg.keypoint_confidence_floor)
 
 
 def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerConfig,

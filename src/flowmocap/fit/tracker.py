@@ -117,7 +117,9 @@ def _tensor(x) -> torch.Tensor:
 #: ``E_j``'s hold on a joint the fit has lost (``cfg.keypoint_hold_frames``): a detection
 #: at least this confident, further than :data:`HOLD_FAR` times ``keypoint_sigma`` from the
 #: fit's joint and further than :data:`HOLD_SWAP` times it from the fit's other-side joint
-#: (a detector's left/right swap is not followed), counts as a frame the joint is lost.
+#: (a detector's left/right swap is not followed), counts as a frame the joint is lost. The
+#: confidence is ``E_j``'s weight (:func:`~flowmocap.fit.objective.configured_keypoints`): at
+#: the default ``keypoint_confidence_floor`` 1 every detected joint is confident enough.
 HOLD_CONFIDENCE = 0.9
 HOLD_FAR = 1.25
 HOLD_SWAP = 0.75
