@@ -487,13 +487,36 @@ def test_the_lifter_reads_the_frames_the_tracker_exchanged_back(tmp_path, monkey
         return real(*a, **{**k, "lifter": TruthLifter(truth_kp), "iterations": 2})
 
     monkeypatch.setattr(lift_refit, "lifter_refit_motion", spy)
-    cfg = TrackerConfig(lifter_refit_hidden_share=0.25, lifter_refit_bridge_s=0.2, detector_model="full")
+    cfg = TrackerConfig(lifter_refit_hidden_share=0.25, lifter_refit_bridge_s=0.2, detector_model="full",
+                        lifter_refit_min_confidence=0.3)
     pipeline._lifter_refit(out, track_sw, model, cfg, {"status": "finished", "events": events}, lambda s: None)
     assert seen["exchanged"] == [2]
     assert seen["hidden_share"] == 0.25 and seen["bridge_s"] == 0.2  # the settings reach the refit
+    assert seen["min_confidence"] == 0.3
     assert seen["detector_model"] == "full"  # the body's keypoints placed with that network's offsets
     with pytest.raises(InputError, match="unknown detector model"):
         lifter_refit_motion(motion, track_sw, model, weight=0.5, lifter=lifter, iterations=2, detector_model="lite")
+
+
+def test_the_lifter_reads_points_at_its_minimum_confidence_as_given(tmp_path):
+    motion, track, truth_kp, _ = _setup(tmp_path, TRUTH)
+    model = load_body_model("default")
+    conf = track.confidence.copy()
+    wrist = KEYPOINT_NAMES.index("left_wrist")
+    conf[:, wrist] = 0.2  # a point the detector calls hidden
+    conf[:, KEYPOINT_NAMES.index("left_knee")] = 0.0  # and one it did not give
+    low = PersonTrack(track.keypoints, conf, track.found, track.mask_paths, {})
+    masks = {}
+    for m in (0.5, 0.1, 0.0):
+        lifter = TruthLifter(truth_kp)
+        lifter_refit_motion(motion, low, model, weight=0.5, lifter=lifter, iterations=2, min_confidence=m)
+        masks[m] = lifter.mask
+    w, k = POINTS.index("left_wrist"), POINTS.index("left_knee")
+    found = np.asarray(track.found, bool)
+    assert not masks[0.5][:, w].any() and masks[0.1][found, w].all() and masks[0.0][found, w].all()
+    assert not any(masks[m][:, k].any() for m in masks)  # confidence 0 is never given
+    others = [i for i in range(len(POINTS)) if i not in (w, k)]
+    assert (masks[0.5][:, others] == masks[0.0][:, others]).all()
 
 
 @pytest.mark.parametrize("bridge_s", [0.0, 0.1, 0.05])

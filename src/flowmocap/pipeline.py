@@ -1046,7 +1046,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           bridge_s=cfg.lifter_refit_bridge_s,
                                           hidden_share=cfg.lifter_refit_hidden_share,
                                           height=cfg.body_height_m or None,
-                                          detector_model=cfg.detector_model)
+                                          detector_model=cfg.detector_model,
+                                          min_confidence=cfg.lifter_refit_min_confidence)
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

@@ -51,14 +51,15 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
 #: down doubles the wait before the next attempt, up to 8 frames, and the detector runs
 #: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one),
-#: whose ``E_j`` keeps the settings it was tuned with (joints below confidence 0.5 left out,
-#: the others weighed by their confidence: its low-confidence joints are 11-13 px off).
+#: whose ``E_j`` and lifter refit keep the settings they were tuned with (joints below
+#: confidence 0.5 left out, ``E_j`` weighing the others by their confidence: that network's
+#: low-confidence joints are 11-13 px off).
 #: ``track(fast=True)`` also runs the detector without its mask augmentation
 #: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
 #: heavy model became the default (docs/settings.md).
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8,
                                  "detector_model": "full", "keypoint_min_confidence": 0.5,
-                                 "keypoint_confidence_floor": 0.0}
+                                 "keypoint_confidence_floor": 0.0, "lifter_refit_min_confidence": 0.5}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
@@ -105,6 +106,7 @@ _RANGES: dict[str, str] = {
     "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
     "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
     "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _AT_LEAST_0,
+    "lifter_refit_min_confidence": _UNIT,
     "lifter_refit_hidden_share": _UNIT,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
@@ -244,6 +246,8 @@ class TrackerConfig:
     lifter_refit_shape_girth: float = 0.0  # m: with lifter_refit_shape_share, the body's girth along its bones
     #                                    (fit.lift_refit.body_girth) held at this scale while its proportions move; 0: not held
     #                                    (the video profile: 0.005)
+    lifter_refit_min_confidence: float = 0.0  # the lifter reads a detected point at this confidence or more
+    #                                          as given (> 0), the others as missing; --fast's full network: 0.5
     lifter_refit_bridge_s: float = 0.0  # s: a detected point missing for at most this long between two frames that
     #                                    have it is filled by a straight line before the refit's lifter reads the
     #                                    2D (vision.lifter.bridge_gaps); 0: the lifter guesses it

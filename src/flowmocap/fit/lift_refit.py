@@ -353,7 +353,8 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         vote_check_2d: bool = True, seams=(), seam_s: float = 0.0,
                         ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
                         bridge_s: float = 0.0, hidden_share: float = 0.0,
-                        height: float | None = None, detector_model: str = "full") -> tuple[dict, dict]:
+                        height: float | None = None, detector_model: str = "full",
+                        min_confidence: float = 0.5) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -405,8 +406,11 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             (:data:`flowmocap.vision.detect.MODELS`; the pipeline passes its run's
             ``TrackerConfig.detector_model``): the body's keypoints are placed with its
             learned offsets (:func:`flowmocap.vision.keypoint_map.load_keypoint_map`).
+        min_confidence: with ``lifter_input`` ``"detector"`` or ``"unswap"``, the lifter reads
+            a detected point at this confidence or more (and above 0) as given, the others as
+            missing (``TrackerConfig.lifter_refit_min_confidence``).
         bridge_s: seconds: with ``lifter_input`` ``"detector"`` or ``"unswap"``, a detected
-            point missing (confidence below 0.5) for at most this long between two frames
+            point missing (confidence below ``min_confidence``) for at most this long between two frames
             that have it is filled by a straight line between them before lifting
             (:func:`~flowmocap.vision.lifter.bridge_gaps`); 0: the lifter guesses it.
         hidden_share: in [0, 1]: for a keypoint the detector gives below confidence 0.5 (a
@@ -490,7 +494,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     n_exchanged = 0
     if lifter_input in ("detector", "unswap"):  # every frame of the track (a temporal lifter reads neighbours)
         pts_all, conf_all = eval_points_2d(track.keypoints, track.confidence)
-        given_all = conf_all >= 0.5
+        given_all = (conf_all >= min_confidence) & (conf_all > 0)
         back = np.asarray(sorted({int(f) for f in (exchanged or ()) if 0 <= int(f) < len(pts_all)}), int)
         n_exchanged = int(back.size)
         if back.size:  # the tracker's own decision, frame by frame
