@@ -124,6 +124,24 @@ def test_profile_can_be_chosen_and_is_recorded(seq_dir, tmp_path):
     assert res.frame_index.tolist() == [0, 1, 2]
 
 
+def test_the_detector_named_brings_its_network_settings_under_the_config(seq_dir, tmp_path):
+    from flowmocap.fit.config import FAST_SETTINGS, NETWORK_SETTINGS, TrackerConfig
+
+    defaults = TrackerConfig()
+    assert all(getattr(defaults, k) == v for k, v in NETWORK_SETTINGS["heavy"].items())  # heavy: the default
+    assert set(NETWORK_SETTINGS["full"]) == set(NETWORK_SETTINGS["heavy"])
+    assert all(FAST_SETTINGS[k] == v for k, v in NETWORK_SETTINGS["full"].items())  # --fast runs full
+    kw = dict(init=seq_dir.parent / "init.json", frames="0:3", progress=False, joints3d="off", log=None)
+    full = flowmocap.track(seq_dir, tmp_path / "full", config=QUICK, detector="full", **kw).run["config"]
+    assert full["detector_model"] == "full" and all(full[k] == v for k, v in NETWORK_SETTINGS["full"].items())
+    heavy_fast = flowmocap.track(seq_dir, tmp_path / "hf", config=QUICK, detector="heavy", fast=True, **kw).run["config"]
+    assert heavy_fast["detector_model"] == "heavy" and heavy_fast["rel_tolerance"] == FAST_SETTINGS["rel_tolerance"]
+    assert all(heavy_fast[k] == v for k, v in NETWORK_SETTINGS["heavy"].items())
+    mine = flowmocap.track(seq_dir, tmp_path / "mine", config={**QUICK, "keypoint_confidence_floor": 0.3},
+                           detector="full", **kw).run["config"]
+    assert mine["keypoint_confidence_floor"] == 0.3  # the config file still decides
+
+
 def test_fast_layers_its_settings_under_the_config_and_is_part_of_the_fingerprint(seq_dir, tmp_path, capsys):
     from flowmocap.fit.config import FAST_SETTINGS, TrackerConfig
 

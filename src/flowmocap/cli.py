@@ -239,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "about 2.5 MB a frame at 640x480)")
     t.add_argument("--detector", default=None, choices=["full", "heavy"],
                    help="MediaPipe's landmark model for the 2D and 3D joints: 'heavy' (the default: nearer the "
-                        "truth, about 0.03 s more a frame) or 'full' (MediaPipe's own wheel's; --fast's)")
+                        "truth, about 0.03 s more a frame) or 'full' (MediaPipe's own wheel's; --fast's), each with the "
+                        "confidence thresholds set for it (NETWORK_SETTINGS, docs/settings.md)")
     t.add_argument("--fast", action="store_true", help="faster, at some cost in the 2D fit: every optimisation "
                    "stops at a coarser stall, refits take fewer iterations, a refit turned down waits longer "
                    "before the next and the detector runs without its mask augmentation (docs/settings.md has the "

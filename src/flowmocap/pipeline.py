@@ -30,7 +30,7 @@ import torch
 from flowmocap.body import BodyModel, load_body_model
 from flowmocap.body.stature import check_height, stature
 from flowmocap.errors import DataError, InputError, ModelFileError, NoPersonError, OutputError
-from flowmocap.fit.config import FAST_SETTINGS, PROFILES, TrackerConfig
+from flowmocap.fit.config import FAST_SETTINGS, NETWORK_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
 from flowmocap.fit.objective import (
     ENERGY_NAMES,
@@ -272,8 +272,10 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             metres are the person's. None: the size the fit gives the body (one camera leaves
             it open). The result's ``run.json`` records the body's stature either way (``body``).
         detector: MediaPipe's landmark model for the detections, "full" or "heavy"
-            (``TrackerConfig.detector_model``; :data:`flowmocap.vision.detect.MODELS`); None:
-            the profile's and ``config``'s.
+            (``TrackerConfig.detector_model``; :data:`flowmocap.vision.detect.MODELS`), with the
+            settings tied to it (:data:`~flowmocap.fit.config.NETWORK_SETTINGS`, under ``config``);
+            None: the profile's and ``config``'s (a config naming ``detector_model`` names
+            those settings itself).
 
     Returns:
         the :class:`Result`.
@@ -358,7 +360,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         why = "chosen"
     if profile not in PROFILES:
         raise InputError(f"unknown profile {profile!r}; use one of {sorted(PROFILES)}.")
-    cfg = TrackerConfig.load(config, profile=profile, base=FAST_SETTINGS if fast else None, flow_method=flow,
+    base = {**(FAST_SETTINGS if fast else {}), **NETWORK_SETTINGS.get(detector, {})}  # under the config
+    cfg = TrackerConfig.load(config, profile=profile, base=base or None, flow_method=flow,
                              body_height_m=None if height is None else float(height), detector_model=detector)
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
     if choice[0] != "largest" and not (auto_masks or auto_init):

@@ -57,9 +57,19 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: ``track(fast=True)`` also runs the detector without its mask augmentation
 #: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
 #: heavy model became the default (docs/settings.md).
+#: Settings tied to the landmark network that gives the detections (each network's confidence
+#: means something else): ``track(detector=...)`` / ``--detector`` lays the named network's
+#: under the config file, and ``--fast`` carries full's. Heavy's are the defaults: it places the
+#: joints it calls hidden within 6-9 px, so ``E_j`` and the lifter use every joint it gives;
+#: full's low-confidence joints are 11-13 px off, so they are left out below 0.5
+#: (docs/experiments.md, "Every keypoint the heavy network gives, weighed alike").
+NETWORK_SETTINGS: dict[str, dict[str, Any]] = {
+    "heavy": {"keypoint_min_confidence": 0.0, "keypoint_confidence_floor": 1.0, "lifter_refit_min_confidence": 0.0},
+    "full": {"keypoint_min_confidence": 0.5, "keypoint_confidence_floor": 0.0, "lifter_refit_min_confidence": 0.5},
+}
+
 FAST_SETTINGS: dict[str, Any] = {"rel_tolerance": 1e-3, "reinit_iterations": 20, "reinit_max_wait": 8,
-                                 "detector_model": "full", "keypoint_min_confidence": 0.5,
-                                 "keypoint_confidence_floor": 0.0, "lifter_refit_min_confidence": 0.5}
+                                 "detector_model": "full", **NETWORK_SETTINGS["full"]}
 
 #: Settings that no longer exist, with what happens now; a config naming one is refused.
 REMOVED_SETTINGS: dict[str, str] = {
