@@ -50,10 +50,8 @@ PROFILES: dict[str, dict[str, Any]] = {
 #: measurements): every L-BFGS run stops at a stall ten times larger than the default's, a
 #: refit's steps get two thirds of the default's iterations, and a refit that is turned
 #: down doubles the wait before the next attempt, up to 8 frames, and the detector runs
-#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one),
-#: whose ``E_j`` and lifter refit keep the settings they were tuned with (joints below
-#: confidence 0.5 left out, ``E_j`` weighing the others by their confidence: that network's
-#: low-confidence joints are 11-13 px off).
+#: MediaPipe's "full" landmark model (the wheel's own, faster than the default heavy one)
+#: with its :data:`NETWORK_SETTINGS`.
 #: ``track(fast=True)`` also runs the detector without its mask augmentation
 #: (flowmocap.pipeline); together, on the real clips, 0.74x the defaults' time before the
 #: heavy model became the default (docs/settings.md).
@@ -188,7 +186,7 @@ class TrackerConfig:
     #                                       joint detected), weighed by its confidence raised to at least ...
     keypoint_confidence_floor: float = 1.0  # ... this (1: all alike); the lost-joint hold and the swap check
     #                                       read the same weights. The heavy network places the joints it
-    #                                       calls hidden within 6-9 px (docs/settings.md); --fast's full: 0.5, 0
+    #                                       calls hidden within 6-9 px; the full network's: NETWORK_SETTINGS
     keypoint_hold_frames: int = 5      # a joint whose confident detection the fit has been far from (and
     #                                    not swapped) for this many frames in a row gets ...; 0: off
     keypoint_hold_sigma: float = 80.0  # ... this E_j scale, px, and ...
@@ -257,7 +255,7 @@ class TrackerConfig:
     #                                    (fit.lift_refit.body_girth) held at this scale while its proportions move; 0: not held
     #                                    (the video profile: 0.005)
     lifter_refit_min_confidence: float = 0.0  # the lifter reads a detected point at this confidence or more
-    #                                          as given (> 0), the others as missing; --fast's full network: 0.5
+    #                                          as given (> 0), the others as missing (full's: NETWORK_SETTINGS)
     lifter_refit_bridge_s: float = 0.0  # s: a detected point missing for at most this long between two frames that
     #                                    have it is filled by a straight line before the refit's lifter reads the
     #                                    2D (vision.lifter.bridge_gaps); 0: the lifter guesses it
