@@ -123,3 +123,18 @@ def test_real3d_mean_and_table_carry_the_intervals():
     assert got["flowmocap_kp"] is None
     assert "no person-view's interval reaches above 1" in "\n".join(_interval_lines(got))
     assert _interval_lines({"flowmocap": None, "flowmocap_kp": None}) == []
+
+
+def test_real3d_mean_and_table_carry_the_joints():
+    from flowmocap.eval.real3d import EVAL_NAMES, _joint_lines, _mean_rows
+
+    rows = [_row("person1", "cam01", np.full(10, 50.0), np.full(10, 60.0)),
+            _row("person2", "cam04", np.full(10, 70.0), np.full(10, 80.0))]
+    rows[0]["flowmocap"]["per_joint_mm"] = [40.0] * 12 + [None]  # the right ankle never scored here
+    rows[1]["flowmocap"]["per_joint_mm"] = [60.0] * 12 + [90.0]
+    m = _mean_rows(rows)
+    assert m["flowmocap"]["per_joint_mm"] == [50.0] * 12 + [90.0]  # each joint over the views that score it
+    assert "per_joint_mm" not in m["detector3d"]  # rows without them: none in the mean
+    text = "\n".join(_joint_lines(m))
+    assert "| flowmocap | 50.0 |" in text and "right ankle" in text and "detector3d" not in text
+    assert len(EVAL_NAMES) == 13 and _joint_lines({"flowmocap": {"per_frame_mm": 1.0}}) == []

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from flowmocap.body.skeleton import EVAL_JOINTS
 from flowmocap.errors import DataError, InputError
 from flowmocap.eval.real3d import (DATA, EVAL_NAMES, VIEWS, associate_people, bone_lengths, consistent_joints,
-                                   eval_points, pa_mpjpe, person_pixel, run_real3d, score_run, scored_frames,
+                                   eval_points, joint_errors, pa_mpjpe, person_pixel, run_real3d, score_run, scored_frames,
                                    scored_runs, triangulate_person)
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
@@ -66,6 +66,29 @@ def test_pa_mpjpe_per_frame_and_per_sequence():
     valid[0, EVAL_NAMES.index("left_hip")] = False
     with pytest.raises(InputError, match="hips"):
         pa_mpjpe(bad, ref, valid)
+
+
+def test_joint_errors_say_where_the_per_frame_error_comes_from():
+    ref = eval_points(keypoints3d(20, seed=3))
+    R = Rotation.from_euler("z", np.linspace(0, 60, 20)[:, None], degrees=True).as_matrix()
+    moved = 0.9 * np.einsum("tij,tkj->tki", R, ref) + np.array([0.5, -1.0, 2.0])
+    np.testing.assert_allclose(joint_errors(moved, ref), 0.0, atol=1e-6)  # a similarity per frame: none
+    # every joint scored in every frame: the joints' mean is pa_mpjpe's per-frame error
+    bad = moved.copy()
+    bad[:, EVAL_NAMES.index("left_wrist")] += [0.12, 0.0, 0.05]
+    per_joint = joint_errors(bad, ref)
+    assert per_joint.shape == (13,)
+    assert per_joint.mean() == pytest.approx(pa_mpjpe(bad, ref)[0], rel=1e-9)
+    assert int(np.argmax(per_joint)) == EVAL_NAMES.index("left_wrist")  # the joint that is off leads
+    # a joint scored in some frames: its mean over those; one never scored: NaN
+    valid = np.ones((20, 13), bool)
+    valid[:, EVAL_NAMES.index("right_ankle")] = False
+    valid[::2, EVAL_NAMES.index("left_wrist")] = False
+    got = joint_errors(bad, ref, valid)
+    assert np.isnan(got[EVAL_NAMES.index("right_ankle")]) and np.isfinite(np.delete(got, EVAL_NAMES.index("right_ankle"))).all()
+    assert got[EVAL_NAMES.index("left_wrist")] > 50
+    with pytest.raises(InputError, match="13, 3"):
+        joint_errors(bad[:, :12], ref[:, :12])
 
 
 def skeleton13(T=10):

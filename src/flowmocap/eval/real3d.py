@@ -69,7 +69,7 @@ from flowmocap.pipeline import load_result, track
 from flowmocap.vision.detect import KEYPOINT_NAMES
 
 __all__ = ["run_real3d", "build_reference", "detect_view_people", "associate_people", "triangulate_person",
-           "score_run", "format_real3d_table", "eval_points", "pa_mpjpe", "person_pixel", "bone_lengths",
+           "score_run", "format_real3d_table", "eval_points", "pa_mpjpe", "joint_errors", "person_pixel", "bone_lengths",
            "consistent_joints", "scored_frames", "scored_runs", "BONES", "DATA", "VIEWS", "EVAL_NAMES"]
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -616,8 +616,7 @@ def pa_mpjpe(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = None)
     r = np.where(valid[..., None], ref, 0.0)
     pred = np.where(valid[..., None], pred, 0.0)  # left-out joints: weight 0 (and no NaN in the SVD)
     n = valid.sum(1)
-    aligned = similarity_procrustes(pred, r, weights=w)[0]
-    per_frame = (np.linalg.norm(aligned - r, axis=-1) * w).sum(1) / n * 1000.0
+    per_frame = np.nanmean(_aligned_errors(pred, r, valid), axis=1)
     rel_p, rel_r = pred - _hips(pred)[:, None], r - _hips(r)[:, None]
     aligned = similarity_procrustes(rel_p.reshape(-1, 3), rel_r.reshape(-1, 3), weights=w.reshape(-1))[0]
     per_seq = (np.linalg.norm(aligned.reshape(pred.shape) - rel_r, axis=-1) * w).sum(1) / n * 1000.0
@@ -647,6 +646,37 @@ def keypoint_joints(res) -> np.ndarray:
     pts = kmap.apply(joints, transforms)[:, list(EVAL_JOINTS)]
     pts[:, 0] = kmap.ears_middle(joints, transforms)
     return pts
+
+
+def _aligned_errors(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(T, 13)`` mm: each joint's distance after a similarity per frame fitted on the
+    valid joints (``pred``, ``ref`` finite everywhere), NaN where not valid."""
+    aligned = similarity_procrustes(pred, ref, weights=valid.astype(np.float64))[0]
+    return np.where(valid, np.linalg.norm(aligned - ref, axis=-1) * 1000.0, np.nan)
+
+
+def joint_errors(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Each joint's mean error after :func:`pa_mpjpe`'s per-frame alignment: where the
+    per-frame PA-MPJPE comes from.
+
+    Args:
+        pred, ref, valid: as :func:`pa_mpjpe` (``(T, 13, 3)`` metres, ``(T, 13)`` bool).
+
+    Returns:
+        ``(13,)`` mm in the order of :data:`EVAL_NAMES`, the mean over the frames where the
+        joint is scored (NaN for a joint never scored). When every joint is scored in
+        every frame their mean is :func:`pa_mpjpe`'s per-frame error.
+    """
+    pred, ref = np.asarray(pred, np.float64), np.asarray(ref, np.float64)
+    if pred.shape != ref.shape or pred.ndim != 3 or pred.shape[1:] != (len(EVAL_NAMES), 3):
+        raise InputError(f"pred and ref must be (T, 13, 3) of equal shape; got {pred.shape} and {ref.shape}.")
+    valid = np.isfinite(ref).all(-1) if valid is None else np.asarray(valid, bool) & np.isfinite(ref).all(-1)
+    if not np.isfinite(pred[valid]).all():
+        raise InputError("pred has non-finite joints where the reference is valid.")
+    e = _aligned_errors(np.where(valid[..., None], pred, 0.0), np.where(valid[..., None], ref, 0.0), valid)
+    with np.errstate(invalid="ignore"):
+        n = valid.sum(0)
+        return np.where(n > 0, np.nansum(e, axis=0) / np.maximum(n, 1), np.nan)
 
 
 def scored_frames(res_dir: str | Path, reference: dict, person: str, view: str, frames: int | None = None) -> dict:
@@ -765,7 +795,9 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         ``frames_scored``, ``joints_scored`` (mean per frame), ``skipped`` (counts:
         ``no_reference``, ``no_detection``, ``no_fit``), ``flowmocap`` and
         ``detector3d``: ``{"per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm",
-        "per_sequence_all_views_mm", "per_frame_curve_mm"}``, and ``flowmocap_kp`` the
+        "per_sequence_all_views_mm", "per_frame_curve_mm", "per_joint_mm"}`` (the last
+        :func:`joint_errors`, 13 values in the order of :data:`EVAL_NAMES`, None for a joint
+        never scored), and ``flowmocap_kp`` the
         same for the fit at the detector's keypoints (:func:`keypoint_joints`; None for a
         result without the body's parameters) (the ``all_views`` ones
         against the reference from every view, the run's own included, on the same
@@ -793,7 +825,9 @@ def score_run(res_dir: str | Path, reference: dict, person: str, view: str, fram
         pf, ps, curve = pa_mpjpe(pred, ref, ok_wo)
         pfa, psa, _ = pa_mpjpe(pred, ref_all, ok_all)
         out[name] = {"per_frame_mm": pf, "per_sequence_mm": ps, "per_frame_all_views_mm": pfa,
-                     "per_sequence_all_views_mm": psa, "per_frame_curve_mm": np.round(curve, 1).tolist()}
+                     "per_sequence_all_views_mm": psa, "per_frame_curve_mm": np.round(curve, 1).tolist(),
+                     "per_joint_mm": [None if not np.isfinite(v) else round(float(v), 1)
+                                      for v in joint_errors(pred, ref, ok_wo)]}
     # how much the reference itself moves when the view is left out (its noise floor here)
     both = ok_wo & ok_all
     keep = (both.sum(1) >= MIN_JOINTS) & both[:, hips].all(1)
@@ -820,6 +854,13 @@ def _mean_rows(rows: list[dict]) -> dict:
         vals = [r[m] for r in rows if r.get(m)]
         out[m] = {k: (float(np.mean([v[k] for v in vals])) if vals else None)
                   for k in ("per_frame_mm", "per_sequence_mm", "per_frame_all_views_mm", "per_sequence_all_views_mm")}
+        joints = [v["per_joint_mm"] for v in vals if v.get("per_joint_mm")]
+        if joints:  # each joint's mean over the person-views that score it
+            a = np.array([[np.nan if x is None else x for x in j] for j in joints], np.float64)
+            with np.errstate(invalid="ignore"):
+                mean = np.nansum(a, 0) / np.maximum(np.isfinite(a).sum(0), 1)
+            out[m]["per_joint_mm"] = [None if not np.isfinite(a[:, j]).any() else round(float(mean[j]), 1)
+                                      for j in range(a.shape[1])]
     out["person_views"] = sum(1 for r in rows if r.get("flowmocap"))
     out["frames_scored"] = int(sum(r.get("frames_scored", 0) for r in rows))
     out["intervals"] = ratio_intervals(rows)
@@ -920,6 +961,7 @@ def format_real3d_table(result: dict) -> str:
         if r.get("failed"):
             lines.append(f"\n{r['person']}@{r['view']}: the run failed: {r['failed']}")
     lines += _interval_lines(m.get("intervals") or {})
+    lines += _joint_lines(m)
     lines += ["", "PA-MPJPE on the 13 joints (head = midpoint of the ears for the reference and the detector, SMPL's "
               "head for flowmocap; 'ours at keypoints': the fitted body's points where the detector puts its "
               "keypoints, by the learned offsets of flowmocap.vision.keypoint_map, head = middle of the ears) against the reference triangulated WITHOUT the run's view; per-frame: a similarity "
@@ -932,6 +974,21 @@ def format_real3d_table(result: dict) -> str:
               f"included): flowmocap {fmt(a['per_frame_all_views_mm'])} / detector3d "
               f"{fmt(b['per_frame_all_views_mm'])} mm per-frame."]
     return "\n".join(lines)
+
+
+def _joint_lines(mean: dict) -> list[str]:
+    """The per-joint errors of :func:`_mean_rows` as a table (no lines when the rows have none)."""
+    rows = [(label, (mean.get(m) or {}).get("per_joint_mm"))
+            for m, label in (("flowmocap", "flowmocap"), ("flowmocap_kp", "ours at keypoints"), ("detector3d", "detector3d"))]
+    rows = [(label, j) for label, j in rows if j]
+    if not rows:
+        return []
+    lines = ["", "Per joint, mm (after the per-frame alignment; each joint's mean over its scored frames, then over "
+             "the person-views):", "", "| | " + " | ".join(n.replace("_", " ") for n in EVAL_NAMES) + " |",
+             "|---|" + "---:|" * len(EVAL_NAMES)]
+    for label, j in rows:
+        lines.append(f"| {label} | " + " | ".join("--" if v is None else f"{v:.1f}" for v in j) + " |")
+    return lines
 
 
 def _interval_lines(intervals: dict) -> list[str]:
