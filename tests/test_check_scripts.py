@@ -323,3 +323,40 @@ def test_mediapipe_image_depth_crop_and_points():
     lm = np.array([[0.5, 0.25, -0.1], [0.0, 1.0, 0.2]])
     assert mod.image_landmarks_3d(lm, 200, 400) == pytest.approx(np.array([[100.0, 100.0, -20.0], [0.0, 400.0, 40.0]]))
     assert mod.image_landmarks_3d(lm, 200, 400, z_scale=0.5)[:, 2] == pytest.approx([-10.0, 20.0])
+
+
+def _real3d_result(ours, det):
+    """A real3d.json with one row per person-view: ``ours``, ``det`` per-frame mm lists."""
+    names = [("person1", "cam01"), ("person1", "cam02"), ("person2", "cam01")][:len(ours)]
+    return {"rows": [{"person": p, "view": v, "flowmocap": {"per_frame_mm": o}, "flowmocap_kp": {"per_frame_mm": o - 3},
+                      "detector3d": {"per_frame_mm": d}} for (p, v), o, d in zip(names, ours, det)]
+            + [{"person": "person2", "view": "cam04", "skipped_run": "not detected"}]}
+
+
+def test_real3d_draws_config_and_summary(tmp_path):
+    dr = _load("real3d_draws")
+    assert dr.draw_config(None, 0) == {} and dr.draw_config({"keypoint_weight": 0.1}, 0) == {"keypoint_weight": 0.1}
+    assert dr.draw_config(None, 1)["flow_weight"] == pytest.approx(1.000001, abs=1e-12)
+    assert dr.draw_config({"flow_weight": 2.0}, 2)["flow_weight"] == pytest.approx(2.0 * 0.999998, abs=1e-12)
+    s = dr.summarise([_real3d_result([60.0, 80.0], [80.0, 80.0]), _real3d_result([70.0, 70.0], [80.0, 80.0])])
+    assert [d["flowmocap"] for d in s["draws"]] == [70.0, 70.0]
+    assert s["draws"][0]["at_or_above"] == ["person1@cam02"] and s["draws"][1]["at_or_above"] == []
+    assert s["mean"]["flowmocap"] == 70.0 and s["mean"]["ratio"] == pytest.approx(70.0 / 80.0)
+    assert s["mean"]["flowmocap_kp"] == 67.0
+    v = s["views"]["person1@cam01"]
+    assert (v["mean"], v["low"], v["high"], v["draws_at_or_above"]) == (65.0, 60.0, 70.0, 0)
+    assert s["views"]["person1@cam02"]["draws_at_or_above"] == 1 and "person2@cam04" not in s["views"]
+    text = dr.format_summary(s)
+    assert "| **mean** | 70.00 | 67.00 | 80.00 | 0.88 |" in text and "person1@cam02" in text
+    # a later draw reuses draw 0's reference and detections, and keeps what it has
+    src, dst = tmp_path / "draw0", tmp_path / "draw1"
+    (src / "reference").mkdir(parents=True)
+    (src / "reference" / "ref.json").write_text("{}")
+    (src / "runs" / "person1-cam01" / "detections").mkdir(parents=True)
+    (src / "runs" / "person1-cam01" / "detections" / "keypoints.npz").write_bytes(b"x")
+    (src / "runs" / "person1-cam01" / "motion.npz").write_bytes(b"m")
+    dr._reuse(src, dst)
+    assert (dst / "reference" / "ref.json").exists()
+    assert (dst / "runs" / "person1-cam01" / "detections" / "keypoints.npz").exists()
+    assert not (dst / "runs" / "person1-cam01" / "motion.npz").exists()  # the tracking is the draw's own
+    dr._reuse(src, dst)  # again: nothing to do, no error
