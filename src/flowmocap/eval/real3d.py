@@ -603,18 +603,8 @@ def pa_mpjpe(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = None)
         after making both hips-relative (minus the middle of the hips) and one similarity
         over all valid joints of the sequence; the per-frame errors. Millimetres.
     """
-    pred, ref = np.asarray(pred, np.float64), np.asarray(ref, np.float64)
-    if pred.shape != ref.shape or pred.ndim != 3 or pred.shape[-1] != 3:
-        raise InputError(f"pred and ref must be (T, 13, 3) of equal shape; got {pred.shape} and {ref.shape}.")
-    valid = np.isfinite(ref).all(-1) if valid is None else np.asarray(valid, bool) & np.isfinite(ref).all(-1)
-    hips = [EVAL_NAMES.index("left_hip"), EVAL_NAMES.index("right_hip")]
-    if not valid[:, hips].all():
-        raise InputError("both hips must be valid in every scored frame.")
-    if not np.isfinite(pred[valid]).all():
-        raise InputError("pred has non-finite joints where the reference is valid.")
+    pred, r, valid = _scoring_inputs(pred, ref, valid, hips_needed=True)
     w = valid.astype(np.float64)
-    r = np.where(valid[..., None], ref, 0.0)
-    pred = np.where(valid[..., None], pred, 0.0)  # left-out joints: weight 0 (and no NaN in the SVD)
     n = valid.sum(1)
     per_frame = np.nanmean(_aligned_errors(pred, r, valid), axis=1)
     rel_p, rel_r = pred - _hips(pred)[:, None], r - _hips(r)[:, None]
@@ -648,6 +638,23 @@ def keypoint_joints(res) -> np.ndarray:
     return pts
 
 
+def _scoring_inputs(pred, ref, valid, hips_needed: bool = False, joints: int | None = None):
+    """``(pred, ref, valid)`` checked for :func:`pa_mpjpe` and :func:`joint_errors`: float64,
+    the valid joints those of ``valid`` (default all) where ``ref`` is finite, the others set
+    to 0 in both (weight 0, and no NaN in the SVD). ``hips_needed``: both hips must be valid
+    in every frame; ``joints``: the number of joints asked for (None: any)."""
+    pred, ref = np.asarray(pred, np.float64), np.asarray(ref, np.float64)
+    if pred.shape != ref.shape or pred.ndim != 3 or pred.shape[-1] != 3 or (joints and pred.shape[1] != joints):
+        raise InputError(f"pred and ref must be (T, 13, 3) of equal shape; got {pred.shape} and {ref.shape}.")
+    valid = np.isfinite(ref).all(-1) if valid is None else np.asarray(valid, bool) & np.isfinite(ref).all(-1)
+    hips = [EVAL_NAMES.index("left_hip"), EVAL_NAMES.index("right_hip")]
+    if hips_needed and not valid[:, hips].all():
+        raise InputError("both hips must be valid in every scored frame.")
+    if not np.isfinite(pred[valid]).all():
+        raise InputError("pred has non-finite joints where the reference is valid.")
+    return np.where(valid[..., None], pred, 0.0), np.where(valid[..., None], ref, 0.0), valid
+
+
 def _aligned_errors(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``(T, 13)`` mm: each joint's distance after a similarity per frame fitted on the
     valid joints (``pred``, ``ref`` finite everywhere), NaN where not valid."""
@@ -667,13 +674,8 @@ def joint_errors(pred: np.ndarray, ref: np.ndarray, valid: np.ndarray | None = N
         joint is scored (NaN for a joint never scored). When every joint is scored in
         every frame their mean is :func:`pa_mpjpe`'s per-frame error.
     """
-    pred, ref = np.asarray(pred, np.float64), np.asarray(ref, np.float64)
-    if pred.shape != ref.shape or pred.ndim != 3 or pred.shape[1:] != (len(EVAL_NAMES), 3):
-        raise InputError(f"pred and ref must be (T, 13, 3) of equal shape; got {pred.shape} and {ref.shape}.")
-    valid = np.isfinite(ref).all(-1) if valid is None else np.asarray(valid, bool) & np.isfinite(ref).all(-1)
-    if not np.isfinite(pred[valid]).all():
-        raise InputError("pred has non-finite joints where the reference is valid.")
-    e = _aligned_errors(np.where(valid[..., None], pred, 0.0), np.where(valid[..., None], ref, 0.0), valid)
+    pred, ref, valid = _scoring_inputs(pred, ref, valid, joints=len(EVAL_NAMES))
+    e = _aligned_errors(pred, ref, valid)
     with np.errstate(invalid="ignore"):
         n = valid.sum(0)
         return np.where(n > 0, np.nansum(e, axis=0) / np.maximum(n, 1), np.nan)
