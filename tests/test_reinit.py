@@ -437,3 +437,47 @@ def test_pixels_where_someone_else_is_seen_are_left_out_of_the_iou(setup):
     aware = ReinitMonitor(track, TrackerConfig(), others=lambda j: front & ~cut).judge(i, scene, st.pose, st.trans,
                                                                                         cut)["iou"]
     assert plain < 0.7 < 0.9 < aware
+
+
+def test_a_lasting_3d_disagreement_is_refitted_after_n_refusals(setup, monkeypatch):
+    """``reinit_3d_insist`` N: after N 3D refits in a row turned down for the silhouette
+    alone, the next is kept at an IoU of at least ``reinit_min_iou``; the count starts
+    again when the 3D agrees, and off (0) every such refit is turned down."""
+    import torch
+
+    from flowmocap.fit import reinit
+
+    seq, track, scene = setup
+    refit = torch.full((72,), 0.01)
+    monkeypatch.setattr(reinit, "fit_to_detection", lambda scene_, cfg, j2d, conf, mask, pose0, trans0, **kw:
+                        (refit, trans0, 1.0))
+    monkeypatch.setattr(reinit, "collapsed_detection", lambda *a, **k: False)
+    tracked = {"iou": 0.88, "joint_error": 0.05, "joint3d_error": 0.09, "bad": False, "bad3d": True}
+    refitted = {"iou": 0.83, "joint_error": 0.04, "joint3d_error": 0.04, "bad": False, "bad3d": False}
+    agreeing = {**tracked, "joint3d_error": 0.03, "bad3d": False}
+
+    def run(insist, frames):
+        """Frames ``(i, agrees)``; returns the frames whose refit was kept."""
+        cfg = TrackerConfig(reinit_max_joint3d_error=0.07, reinit_3d_patience=1, reinit_patience=10,
+                            reinit_min_iou=0.8, reinit_3d_insist=insist)
+        mon = ReinitMonitor(track, cfg)
+        monkeypatch.setattr(mon, "_confident", lambda i: True)
+        kept = []
+        for i, agrees in frames:
+            def judge(i_, scene_, pose, trans, mask, agrees=agrees):
+                return dict(refitted if torch.equal(pose, refit) else (agreeing if agrees else tracked))
+            monkeypatch.setattr(mon, "judge", judge)
+            if mon(i, _state(seq, i % len(seq)), scene, None) is not None:
+                kept.append(i)
+        return kept, mon
+
+    assert run(0, [(i, False) for i in range(6)])[0] == []
+    kept, mon = run(2, [(i, False) for i in range(6)])
+    assert kept == [2, 5]  # two turned down (0, 1), the third kept; the count starts again after it
+    assert mon.state_dict()["refused3d"] == 0  # reset by the refit kept at frame 5
+    assert run(2, [(i, False) for i in range(5)])[1].state_dict()["refused3d"] == 2  # resumes insisting
+    # a frame whose 3D agrees ends the run: the count starts again
+    assert run(2, [(0, False), (1, True), (2, False), (3, False), (4, False)])[0] == [4]
+    # below reinit_min_iou it is turned down all the same
+    refitted["iou"] = 0.79
+    assert run(2, [(i, False) for i in range(5)])[0] == []

@@ -108,6 +108,7 @@ _RANGES: dict[str, str] = {
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "flip_vote_frames": _AT_LEAST_0, "flip_vote_reach": _AT_LEAST_0,
     "reinit_max_joint3d_error": _AT_LEAST_0, "reinit_3d_patience": _AT_LEAST_1, "reinit_3d_keep_iou": _UNIT,
+    "reinit_3d_insist": _AT_LEAST_0,
     "reinit_max_wait": _AT_LEAST_1, "reinit_iou_per_joint_error": _AT_LEAST_0,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
     "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
@@ -289,6 +290,9 @@ class TrackerConfig:
     reinit_3d_keep_iou: float = 0.0    # a refit on 3D disagreement whose silhouette IoU drops by more than
     #                                    reinit.IOU_TOLERANCE is kept all the same at an IoU of at least this;
     #                                    0: off (0.8 tried: docs/settings.md)
+    reinit_3d_insist: int = 0          # after this many 3D refits in a row turned down for the silhouette (the
+    #                                    disagreement lasting), the next are kept at an IoU of at least
+    #                                    reinit_min_iou, until one is kept or the frames agree again; 0: off
     reinit_iou_per_joint_error: float = 0.0  # a refit on the image criterion may cost this much more silhouette
     #                                    IoU per unit (of the person's height) its median 2D joint error comes
     #                                    closer, on top of reinit.IOU_TOLERANCE; 0: off

@@ -25,7 +25,11 @@ same way, always also from the upright body (the tracked pose is the one in doub
 with ``E_d`` and ``E_3d`` (when their weights are on) pulling towards the detector's 3D;
 the refit is kept when its 3D joints are closer to the detector's, at a silhouette IoU
 no more than 0.02 lower and 2D joints no worse than before or within
-``reinit_max_joint_error`` (:func:`_better_3d`).
+``reinit_max_joint_error`` (:func:`_better_3d`). With ``reinit_3d_insist`` N > 0, once N
+such refits in a row were turned down for the silhouette alone (a refit is a short fit and
+covers the mask less than a polished tracked frame, so a disagreement that lasts would
+never be refitted), the next ones are kept at a silhouette IoU of at least ``reinit_min_iou``
+(a refit that is not itself a bad frame), until one is kept or the 3D agrees again.
 
 Back-off: a refit that is turned down doubles the wait before the next attempt, from
 the patience up to ``reinit_max_wait`` frames; a refit that is kept, or a frame that is
@@ -190,6 +194,9 @@ class ReinitMonitor:
         self._last_attempt = -(10 ** 9)
         self._wait = 0  # frames the next attempt waits after the last one (grows while refits are turned down)
         self.max_wait = max(int(cfg.reinit_max_wait), 1)
+        #: 3D refits turned down for the silhouette in a row, within one run of 3D-bad frames
+        #: (``cfg.reinit_3d_insist``)
+        self._refused3d = 0
         #: frames whose detection the tracker exchanged left for right (``detector_swap_check``):
         #: judged and refitted against the exchanged detection
         self.exchanged: set[int] = set()
@@ -236,7 +243,7 @@ class ReinitMonitor:
         attempt (:meth:`load_state_dict` continues from it)."""
         keep = sorted(self.verdicts)[-max(self.patience, self.patience3d):]
         return {"verdicts": [[j, self.verdicts[j], self.verdicts3d.get(j)] for j in keep],
-                "last_attempt": self._last_attempt, "wait": self._wait}
+                "last_attempt": self._last_attempt, "wait": self._wait, "refused3d": self._refused3d}
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
@@ -245,6 +252,7 @@ class ReinitMonitor:
             self.verdicts3d[int(j)] = bad3d
         self._last_attempt = int(state["last_attempt"])
         self._wait = int(state.get("wait", 0))  # a state stored before the back-off existed: none
+        self._refused3d = int(state.get("refused3d", 0))
 
     def judge(self, i: int, scene, pose: torch.Tensor, trans: torch.Tensor, mask: np.ndarray | None) -> dict:
         """``{"iou", "joint_error", "bad"}`` of a frame's body against its detections, plus
@@ -314,6 +322,8 @@ class ReinitMonitor:
         self.scores[i] = s
         if s["bad"] is False and not s.get("bad3d"):
             self._wait = 0  # tracking is fine again: the next failure is refitted without delay
+        if not s.get("bad3d"):
+            self._refused3d = 0  # the 3D agrees again: a new disagreement starts without insisting
         if s["bad"] and self._due(i, self.patience):
             return self._attempt(i, state, scene, mask, s, self.patience, in3d=False)
         if s.get("bad3d") and self._due(i, self.patience3d, in3d=True):
@@ -378,12 +388,19 @@ class ReinitMonitor:
             return None
         after = self.judge(i, scene, best[0], best[1], mask)
         keep_iou = float(self.cfg.reinit_3d_keep_iou)
+        insist = int(self.cfg.reinit_3d_insist)
+        if in3d and insist > 0 and self._refused3d >= insist:
+            keep_iou = max(keep_iou, float(self.min_iou))
         per_joint = float(self.cfg.reinit_iou_per_joint_error)
         if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d
                 else _better(before, after, per_joint)):
-            self._turn_down(i, in3d, before, after, _refused_3d(before, after, self.max_joint_error, keep_iou)
-                            if in3d else _refused(before, after, per_joint))
+            why = _refused_3d(before, after, self.max_joint_error, keep_iou) if in3d else _refused(before, after, per_joint)
+            if in3d and why.startswith(_IOU_REFUSAL):
+                self._refused3d += 1
+            self._turn_down(i, in3d, before, after, why)
             return None
+        if in3d:
+            self._refused3d = 0
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
         self.scores[i] = after
@@ -468,6 +485,11 @@ def _better_3d(before: dict, after: dict, max_joint_error: float, keep_iou: floa
     return _refused_3d(before, after, max_joint_error, keep_iou) is None
 
 
+#: how :func:`_refused_3d`'s reason for a drop in silhouette IoU begins (counted for
+#: ``TrackerConfig.reinit_3d_insist``)
+_IOU_REFUSAL = "its silhouette IoU drops by more than"
+
+
 def _refused_3d(before: dict, after: dict, max_joint_error: float, keep_iou: float = 0.0) -> str | None:
     """Why :func:`_better_3d` turns a refit down, in words; None when it keeps it."""
     b3, a3 = before.get("joint3d_error"), after.get("joint3d_error")
@@ -478,7 +500,7 @@ def _refused_3d(before: dict, after: dict, max_joint_error: float, keep_iou: flo
     if (after["iou"] is not None and before["iou"] is not None and after["iou"] < before["iou"] - IOU_TOLERANCE
             and not (keep_iou > 0 and after["iou"] >= keep_iou)):
         floor = f" and below {keep_iou}" if keep_iou > 0 else ""
-        return (f"its silhouette IoU drops by more than {IOU_TOLERANCE}{floor} ({before['iou']:.3f} -> "
+        return (f"{_IOU_REFUSAL} {IOU_TOLERANCE}{floor} ({before['iou']:.3f} -> "
                 f"{after['iou']:.3f}) although its 3D joints come closer ({b3:.3f} -> {a3:.3f} m)")
     if (after["joint_error"] is not None and before["joint_error"] is not None
             and after["joint_error"] > max(before["joint_error"], max_joint_error)):
