@@ -17,7 +17,12 @@ triangulated without the view and projected into it (pixels of the 640-high fram
 each run alone, the mean and the coordinate-wise median of the runs, the mean of the
 image and mirror runs, and the mean of the runs that agree with the median.
 
+``--max-side N`` runs the detector on the frames scaled to a long side of N pixels instead
+of 640 (the tracker's size; 1920 is the recording's own) and still reports pixels of the
+640-high frames: does the detector place the keypoints better on sharper frames?
+
 Usage: python benchmarks/detector_runs_2d.py REAL3D_DIR [--views cam01,cam02] [--out PREFIX] [--model heavy]
+       [--max-side 640]
        (REAL3D_DIR: a ``flowmocap bench --suite real3d`` folder, for its reference; about
        3 minutes a view on one core)
 """
@@ -107,14 +112,16 @@ def hypotheses(main: np.ndarray, others: dict) -> dict:
     return h
 
 
-def score_view(view: str, reference: dict, min_frames: int = 10, model: str = "full") -> dict:
-    """``{person: {hypothesis: per-keypoint errors (N, K) px}}`` of one view."""
+def score_view(view: str, reference: dict, min_frames: int = 10, model: str = "full", max_side: int = 640) -> dict:
+    """``{person: {hypothesis: per-keypoint errors (N, K) px}}`` of one view, in pixels of the
+    frames scaled to a long side of 640, the detector run on frames of ``max_side``."""
     from flowmocap.eval import real3d as R
     from flowmocap.io.video import load_video
     from flowmocap.vision import auto
 
-    seq = load_video(Path(R.DATA) / "videos" / f"{view}.mp4", max_side=640)
+    seq = load_video(Path(R.DATA) / "videos" / f"{view}.mp4", max_side=max_side)
     W = seq.size[0]
+    to640 = 640.0 / max(seq.size)
     cands = auto.find_people(seq, MediaPipePoseDetector(augment=True, model=model),
                              MediaPipePoseDetector(augment=False, model=model), progress=False)
     tracks = auto.split_tracks(cands)
@@ -140,7 +147,7 @@ def score_view(view: str, reference: dict, min_frames: int = 10, model: str = "f
                     continue
                 uv = np.asarray(cam.project(np.asarray(wo["points"][times.index(f + offset)])), np.float64)[:K] * scale
                 for h, p in hypotheses(np.asarray(c.keypoints), rec[-1]).items():
-                    errs[h].append(np.full(K, np.nan) if p is None else np.linalg.norm(p - uv, axis=1))
+                    errs[h].append(np.full(K, np.nan) if p is None else np.linalg.norm(p - uv, axis=1) * to640)
             if not errs["main"]:
                 continue
             e = {h: np.asarray(v) for h, v in errs.items()}
@@ -166,18 +173,21 @@ def main() -> int:
     ap.add_argument("--out")
     ap.add_argument("--model", default="full", choices=["full", "heavy"],
                     help="the landmark model of the main run (and the search's); the other three runs stay full")
+    ap.add_argument("--max-side", type=int, default=640,
+                    help="the long side (pixels) of the frames the detector sees; errors stay in 640-frame pixels")
     a = ap.parse_args()
     reference = R.build_reference(a.bench, progress=False, log=None)
     rows, pooled = {}, {h: [] for h in RUNS + COMBINED}
     for view in a.views.split(","):
-        for person, e in score_view(view, reference, model=a.model).items():
+        for person, e in score_view(view, reference, model=a.model, max_side=a.max_side).items():
             rows[f"{person}-{view}"] = {"frames": int(len(e["main"])), **{h: summary(v) for h, v in e.items()}}
             for h, v in e.items():
                 pooled[h].append(v)
     allrow = {h: summary(np.concatenate(v)) for h, v in pooled.items() if v}
     cols = RUNS + COMBINED
     lines = ["# The augmented detector's four runs as 2D hypotheses (real3d)", "",
-             f"`python benchmarks/detector_runs_2d.py {a.bench} --model {a.model}`: per body keypoint, pixels of the 640-high frames "
+             f"`python benchmarks/detector_runs_2d.py {a.bench} --model {a.model} --max-side {a.max_side}`: per body keypoint, "
+             "pixels of the frames scaled to a long side of 640 "
              "against the reference triangulated without the view; median / 90th percentile / mean.", "",
              "| person-view | frames | " + " | ".join(cols) + " |", "|---|---:|" + "---|" * len(cols)]
     fmt = lambda s: f"{s['p50']:.1f} / {s['p90']:.1f} / {s['mean']:.1f}" if s else "--"  # noqa: E731
@@ -189,7 +199,8 @@ def main() -> int:
     print(md)
     if a.out:
         Path(a.out + ".md").write_text(md)
-        Path(a.out + ".json").write_text(json.dumps({"bench": str(a.bench), "model": a.model, "rows": rows,
+        Path(a.out + ".json").write_text(json.dumps({"bench": str(a.bench), "model": a.model, "max_side": a.max_side,
+                                                     "rows": rows,
                                                      "all": allrow}, indent=1))
     return 0
 
