@@ -29,7 +29,7 @@ def test_profiles():
     assert set(PROFILES["video"]) == {"silhouette_model", "silhouette_weight", "silhouette_a", "reinit_min_iou",
                                       "reinit_patience", "init_keypoint_weight", "reinit_max_joint3d_error",
                                       "lifter_refit_shape_share", "lifter_refit_shape_girth",
-                                      "lifter_refit_hidden_share"}
+                                      "lifter_refit_hidden_share", "reinit_3d_insist"}
     with pytest.raises(InputError, match=r"unknown settings profile 'real'.*synthetic, video"):
         TrackerConfig.load(profile="real")
 

@@ -36,13 +36,14 @@ PROFILES: dict[str, dict[str, Any]] = {
     "synthetic": {},
     # a segmenter's mask of a dressed person and 2D joints on every frame: E_c from the mesh,
     # stronger, and a refit from the detections wherever the silhouette IoU drops or the 3D
-    # joints stay 7 cm from the detector's; after tracking, the body's proportions half-way
+    # joints stay 7 cm from the detector's (kept after three refits in a row turned down for the
+    # silhouette alone, at an IoU of at least 0.8); after tracking, the body's proportions half-way
     # towards the lifter's, its girth held (the shape was fitted on one frame's automatic mask),
     # and the limbs the detector cannot see half-way towards its own 3D in the refit
     "video": {"silhouette_model": "mesh", "silhouette_weight": 20.0, "silhouette_a": 0.4,
               "reinit_min_iou": 0.8, "reinit_patience": 1, "init_keypoint_weight": 0.3,
               "reinit_max_joint3d_error": 0.07, "lifter_refit_shape_share": 0.5, "lifter_refit_shape_girth": 0.005,
-              "lifter_refit_hidden_share": 0.5},
+              "lifter_refit_hidden_share": 0.5, "reinit_3d_insist": 3},
 }
 
 #: ``track(fast=True)`` / ``flowmocap track --fast``: settings over the profile's, faster
@@ -293,6 +294,7 @@ class TrackerConfig:
     reinit_3d_insist: int = 0          # after this many 3D refits in a row turned down for the silhouette (the
     #                                    disagreement lasting), the next are kept at an IoU of at least
     #                                    reinit_min_iou, until one is kept or the frames agree again; 0: off
+    #                                    (the video profile's 3: docs/settings.md)
     reinit_iou_per_joint_error: float = 0.0  # a refit on the image criterion may cost this much more silhouette
     #                                    IoU per unit (of the person's height) its median 2D joint error comes
     #                                    closer, on top of reinit.IOU_TOLERANCE; 0: off
