@@ -467,8 +467,10 @@ def test_a_lasting_3d_disagreement_is_refitted_after_n_refusals(setup, monkeypat
             def judge(i_, scene_, pose, trans, mask, agrees=agrees):
                 return dict(refitted if torch.equal(pose, refit) else (agreeing if agrees else tracked))
             monkeypatch.setattr(mon, "judge", judge)
-            if mon(i, _state(seq, i % len(seq)), scene, None) is not None:
+            out = mon(i, _state(seq, i % len(seq)), scene, None)
+            if out is not None:
                 kept.append(i)
+                assert "after 2 such refits in a row were turned down" in out[1]["why"]
         return kept, mon
 
     assert run(0, [(i, False) for i in range(6)])[0] == []

@@ -389,7 +389,8 @@ class ReinitMonitor:
         after = self.judge(i, scene, best[0], best[1], mask)
         keep_iou = float(self.cfg.reinit_3d_keep_iou)
         insist = int(self.cfg.reinit_3d_insist)
-        if in3d and insist > 0 and self._refused3d >= insist:
+        insisting = in3d and insist > 0 and self._refused3d >= insist
+        if insisting:
             keep_iou = max(keep_iou, float(self.min_iou))
         per_joint = float(self.cfg.reinit_iou_per_joint_error)
         if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d
@@ -399,14 +400,16 @@ class ReinitMonitor:
                 self._refused3d += 1
             self._turn_down(i, in3d, before, after, why)
             return None
-        if in3d:
-            self._refused3d = 0
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
         self.scores[i] = after
         if in3d:
             why = (f"{self.patience3d} frames in a row with the 3D joints more than {self.max_joint3d_error} m from "
                    f"the detector's (mean, after a similarity alignment)")
+            if insisting and not _better_3d(before, after, self.max_joint_error, float(self.cfg.reinit_3d_keep_iou)):
+                why += (f"; kept at a silhouette IoU of at least {self.min_iou} after {self._refused3d} such refits "
+                        f"in a row were turned down for the silhouette (reinit_3d_insist)")
+            self._refused3d = 0
         else:
             why = (f"{self.patience} bad frames in a row (silhouette IoU < {self.min_iou} or joint error > "
                    f"{self.max_joint_error} of the person's height)")
