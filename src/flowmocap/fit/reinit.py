@@ -393,12 +393,14 @@ class ReinitMonitor:
         if insisting:
             keep_iou = max(keep_iou, float(self.min_iou))
         per_joint = float(self.cfg.reinit_iou_per_joint_error)
-        if not (_better_3d(before, after, self.max_joint_error, keep_iou) if in3d
-                else _better(before, after, per_joint)):
-            why = _refused_3d(before, after, self.max_joint_error, keep_iou) if in3d else _refused(before, after, per_joint)
-            if in3d and why.startswith(_IOU_REFUSAL):
+        if in3d:  # why it is turned down, None when kept (one evaluation of the verdict)
+            refusal = _refused_3d(before, after, self.max_joint_error, keep_iou)
+        else:
+            refusal = None if _better(before, after, per_joint) else _refused(before, after, per_joint)
+        if refusal is not None:
+            if in3d and refusal.startswith(_IOU_REFUSAL):
                 self._refused3d += 1
-            self._turn_down(i, in3d, before, after, why)
+            self._turn_down(i, in3d, before, after, refusal)
             return None
         self.verdicts[i] = after["bad"]
         self.verdicts3d[i] = after.get("bad3d")
