@@ -17,6 +17,14 @@ Run again, the same command skips every finished result (whatever settings made 
 ``force`` tracks them anew), resumes every interrupted one (with the same settings; other
 settings make that input fail with a message) and tracks the rest. One input's failure does
 not stop the others; it is reported in the summary.
+
+Every person in one input (:func:`track_people`, ``flowmocap track VIDEO --person all``)::
+
+    out_root/people.json     the people the detector found, which were tracked, each one's status
+    out_root/person0/        the largest person's result folder (``--person largest``)
+    out_root/person1/ ...    the next by the same rank (``--person 1``), ...
+
+The same skipping, resuming, failure handling and parallel runs as for many inputs.
 """
 
 from __future__ import annotations
@@ -46,14 +54,25 @@ from flowmocap.io.video import VIDEO_SUFFIXES
 from flowmocap.pipeline import load_result, track
 from flowmocap.version import __version__
 
-__all__ = ["BATCH_FAILED", "MANIFEST", "BatchItem", "expand_inputs", "is_batch", "plan", "summary_table",
-           "track_many"]
+__all__ = ["BATCH_FAILED", "MANIFEST", "PEOPLE_MANIFEST", "PEOPLE_MIN_SHARE", "BatchItem", "expand_inputs",
+           "is_batch", "people_to_track", "plan", "summary_table", "track_many", "track_people"]
 
 #: The file under ``out_root`` that maps result folder names to inputs.
 MANIFEST = "batch.json"
 
 #: The command line's exit status when some inputs of a batch failed and the others finished.
 BATCH_FAILED = 6
+
+#: The file under a :func:`track_people` output folder that lists the people found and each
+#: one's result.
+PEOPLE_MANIFEST = "people.json"
+
+#: :func:`track_people` tracks, besides the largest person, every person the detector follows
+#: in at least this share of as many frames as the largest one: someone really there, not a
+#: stray detection (on DAVIS dance-twirl the audience gives tracks of 3-15 frames against the
+#: dancer's 90; the same share decides when the largest person is re-detected with the others
+#: blanked, :data:`flowmocap.vision.auto.LARGEST_FOLLOW_SHARE`).
+PEOPLE_MIN_SHARE = 0.25
 
 #: Arguments of :func:`flowmocap.track` that may name a file or folder: made absolute before
 #: they go to another process (a Ray worker need not share this process's working folder).
@@ -85,6 +104,8 @@ class BatchItem:
         error: why it failed (``""`` unless ``status == "failed"``).
         details: a traceback where the failure was not one of flowmocap's own errors (a bug
             worth reporting), else ``""``.
+        person: the person to track in the input, as :func:`flowmocap.track`'s ``person``
+            (a rank; :func:`track_people` sets it); None: the batch's own setting.
     """
 
     input: str
@@ -97,6 +118,7 @@ class BatchItem:
     reinits: int = 0
     error: str = ""
     details: str = ""
+    person: int | None = None
 
     @property
     def s_per_frame(self) -> float:
@@ -243,19 +265,7 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
             sets itself, or an ``out_root`` that is a single result folder.
     """
     say = log if log is not None else (lambda _msg: None)
-    clash = sorted(set(track_kwargs) & set(_OWN_ARGS))
-    if clash:
-        raise InputError(f"track_many sets {', '.join(clash)} for each input itself; leave them out.")
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
-        raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
-    if ray is not False and ray is not None and workers != 1:
-        raise InputError("choose either Ray (--ray) or local worker processes (--workers), not both.")
-    if ray not in (False, None):  # before anything is written: say at once when Ray is missing or unreachable
-        _import_ray()
-        if isinstance(ray, str):
-            _check_reachable(ray)
-    kwargs = {k: _absolute_arg(v) if k in _PATH_ARGS else v for k, v in track_kwargs.items()}
-    kwargs["force"] = bool(force)
+    kwargs = _checked_kwargs("track_many", _OWN_ARGS, track_kwargs, workers, ray, force)
     items = plan(inputs, out_root)
     root = Path(out_root)
     if force:  # every input starts over
@@ -283,21 +293,211 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
             say(f"[{done}/{len(todo)}] {res.name}: {res.status}, {res.frames} frames "
                 f"({res.new_frames} new, {res.s_per_frame:.2f} s per frame, {res.seconds:.1f} s)")
 
-    if todo:
-        if ray not in (False, None):
-            _run_ray(todo, kwargs, ray, report)
-        elif workers > 1:
-            _run_processes(todo, kwargs, workers, report, say)
-        else:
-            for it in todo:
-                report(_track_one(it, kwargs, progress=progress, log=log))
+    _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
     return [results[it.name] for it in items]
 
 
-def summary_table(items: Iterable[BatchItem], root: str | Path | None = None) -> str:
+def _checked_kwargs(who: str, own: Sequence[str], track_kwargs: dict, workers, ray, force: bool) -> dict:
+    """``track_kwargs`` checked (none of ``own``; ``workers`` and ``ray`` valid, Ray
+    importable and reachable), with paths made absolute and ``force`` added."""
+    clash = sorted(set(track_kwargs) & set(own))
+    if clash:
+        raise InputError(f"{who} sets {', '.join(clash)} for each result itself; leave them out.")
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
+    if ray is not False and ray is not None and workers != 1:
+        raise InputError("choose either Ray (--ray) or local worker processes (--workers), not both.")
+    if ray not in (False, None):  # before anything is written: say at once when Ray is missing or unreachable
+        _import_ray()
+        if isinstance(ray, str):
+            _check_reachable(ray)
+    kwargs = {k: _absolute_arg(v) if k in _PATH_ARGS else v for k, v in track_kwargs.items()}
+    kwargs["force"] = bool(force)
+    return kwargs
+
+
+def _dispatch(todo: list[BatchItem], kwargs: dict, workers: int, ray, report: Callable[[BatchItem], None],
+              say: Callable[[str], None], progress: bool, log: Callable[[str], None] | None) -> None:
+    """Track ``todo`` one after the other in this process, in worker processes or as Ray
+    tasks, and ``report`` each as it ends."""
+    if not todo:
+        return
+    if ray not in (False, None):
+        _run_ray(todo, kwargs, ray, report)
+    elif workers > 1:
+        _run_processes(todo, kwargs, workers, report, say)
+    else:
+        for it in todo:
+            report(_track_one(it, kwargs, progress=progress, log=log))
+
+
+# --- every person in one input ------------------------------------------------------------------------------------
+
+def people_to_track(info: dict, min_share: float = PEOPLE_MIN_SHARE) -> list[dict]:
+    """The people of a detection pass that :func:`track_people` tracks.
+
+    Args:
+        info: a result folder's ``detections/detections.json`` (its ``person.people``: per
+            person ``rank`` (0 = the largest), ``frames`` [first, last], ``detections`` (frames
+            the detector followed them in), ``score``, ``first_box`` px).
+        min_share: a person is tracked when followed in at least this share of as many frames
+            as the largest person (0..1; 0 tracks everyone the detector found).
+
+    Returns:
+        their entries, by rank; the largest person always.
+
+    Raises:
+        DataError: ``info`` lists no people (detections of an older flowmocap, or of a run
+            with its own masks and init, which chooses nobody).
+    """
+    if not 0.0 <= float(min_share) <= 1.0:
+        raise InputError(f"min_share must lie in 0..1; got {min_share!r}.")
+    people = sorted((info.get("person") or {}).get("people") or [], key=lambda p: p["rank"])
+    if not people:
+        raise DataError("the detections list no people to choose from (made by an older flowmocap, or with your own "
+                        "masks and init); track anew with automatic masks (--force).")
+    least = float(min_share) * people[0]["detections"]
+    return [people[0]] + [p for p in people[1:] if p["detections"] >= least]
+
+
+def track_people(source: str | Path, out_root: str | Path, min_share: float = PEOPLE_MIN_SHARE, workers: int = 1,
+                 ray: bool | str = False, force: bool = False, progress: bool = True,
+                 log: Callable[[str], None] | None = print, **track_kwargs) -> list[BatchItem]:
+    """Track every person in view of one input, each into its own result folder.
+
+    The largest person (:func:`flowmocap.track`'s ``person="largest"``) is tracked first,
+    into ``out_root/person0``; its detection pass ranks everyone the detector follows
+    (``detections/detections.json``). Then each person followed in at least ``min_share``
+    of as many frames (:func:`people_to_track`) is tracked by their rank N into
+    ``out_root/personN``, with the others blanked for the detector. ``out_root/people.json``
+    lists the people found, which were tracked and how each run ended. Run again, finished
+    people are skipped and interrupted ones resumed, as in :func:`track_many`.
+
+    Args:
+        source: one video, frames folder or sequence folder (its masks are not used: the
+            detector finds the people).
+        out_root: the output folder (created); not a single result folder.
+        min_share: see :func:`people_to_track` (default :data:`PEOPLE_MIN_SHARE`).
+        workers, ray, force, progress, log: as :func:`track_many`; the people after the
+            largest are tracked in parallel with ``workers`` > 1 or ``ray``.
+        **track_kwargs: settings for every person, as :func:`flowmocap.track` takes them,
+            except ``source``, ``out``, ``resume``, ``force``, ``log``, ``person``, and
+            ``masks`` or ``init`` other than ``"auto"`` (they would say who is tracked).
+
+    Returns:
+        one :class:`BatchItem` per person tracked, by rank (``person`` holds the rank). A
+        person counted once may be two people to the eye: someone who leaves the view and
+        comes back is followed as two.
+
+    Raises:
+        InputError: bad arguments (as :func:`track_many`), own masks or init, or an
+            ``out_root`` that is a single result folder or a batch's folder.
+    """
+    say = log if log is not None else (lambda _msg: None)
+    for key in ("masks", "init"):
+        if track_kwargs.get(key) not in (None, "auto"):
+            raise InputError(f"every person is tracked with automatic {key}: your own {key} ({track_kwargs[key]}) "
+                             "would say who is tracked; leave it out, or track that person alone.")
+    if not 0.0 <= float(min_share) <= 1.0:
+        raise InputError(f"min_share must lie in 0..1; got {min_share!r}.")
+    kwargs = _checked_kwargs("track_people", (*_OWN_ARGS, "person"), track_kwargs, workers, ray, force)
+    root = Path(out_root)
+    if _holds_result(root):
+        raise InputError(f"{root} is the result folder of a single run; give another --out folder for every person "
+                         "(each gets its own result folder inside it).")
+    if (root / MANIFEST).exists():
+        raise InputError(f"{root} holds a batch of inputs ({MANIFEST}); give another --out folder for the people "
+                         "of one input.")
+    src = str(source)
+    try:
+        before = json.loads((root / PEOPLE_MANIFEST).read_text()).get("input")
+    except (OSError, ValueError, AttributeError):
+        before = None
+    if before is not None and before != _absolute(Path(src)):
+        raise InputError(f"{root} holds the people of another input ({before}); give another --out folder, or the "
+                         "same input to go on with it.")
+    root.mkdir(parents=True, exist_ok=True)
+    _update_people(root, src, min_share, {})
+    first = _person_item(root, src, 0, force)
+    results: dict[int, BatchItem] = {}
+
+    def report(res: BatchItem) -> None:
+        results[res.person] = res
+        entry = _manifest_entry(res)
+        del entry["input"]  # people.json names it once
+        _update_people(root, src, min_share, {res.name: entry})
+        if res.status == "failed":
+            say(f"{res.name}: FAILED after {res.seconds:.1f} s: {res.error}")
+            if res.details:
+                print(res.details, file=sys.stderr, end="" if res.details.endswith("\n") else "\n")
+        else:
+            say(f"{res.name}: {res.status}, {res.frames} frames ({res.new_frames} new, {res.s_per_frame:.2f} s per "
+                f"frame, {res.seconds:.1f} s)")
+
+    if first.status == "finished":
+        say(f"{first.name} (the largest person) finished before: skipped")
+        results[0] = replace(first, status="skipped")
+    else:
+        say(f"tracking the largest person into {first.out}; then everyone else the detector follows in at least "
+            f"{min_share:g} of as many frames")
+        report(_track_one(first, kwargs, progress=progress, log=log))
+    found = root / first.name / "detections" / "detections.json"
+    try:
+        info = json.loads(found.read_text())
+    except (OSError, ValueError):  # the first run failed before its detection pass ended: nobody else is known
+        return [results[0]]
+    if not (info.get("person") or {}).get("people"):  # nobody found (the first run failed for it)
+        return [results[0]]
+    chosen = people_to_track(info, min_share)
+    listed = {f"person{p['rank']}": {"rank": p["rank"], "seen_frames": p["frames"], "detections": p["detections"],
+                                     "first_box": p["first_box"], "tracked": p in chosen}
+              for p in (info.get("person") or {}).get("people", [])}
+    _update_people(root, src, min_share, listed)
+    items = [_person_item(root, src, p["rank"], force) for p in chosen[1:]]
+    for it in items:
+        if it.status == "finished":
+            results[it.person] = replace(it, status="skipped")
+    todo = [it for it in items if it.status != "finished"]
+    skipped = len(items) - len(todo)
+    say(f"{len(info['person']['people'])} people found, {len(chosen)} followed long enough to track"
+        + (f"; {len(todo)} more to track" if todo else "") + (f", {skipped} finished before (skipped)" if skipped else ""))
+    _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
+    return [results[r] for r in sorted(results)]
+
+
+def _person_item(root: Path, source: str, rank: int, force: bool) -> BatchItem:
+    """The :class:`BatchItem` of the person of ``rank`` under ``root`` and what is there."""
+    name = f"person{rank}"
+    item = BatchItem(input=source, name=name, out=root / name, status="new", person=rank)
+    if force or not item.out.is_dir():
+        return item
+    try:
+        res = load_result(item.out)
+    except FlowMocapError:
+        return item
+    return replace(item, frames=len(res), reinits=_reinits(res),
+                   status="finished" if res.run.get("status") == "finished" else "resume")
+
+
+def _update_people(root: Path, source: str, min_share: float, entries: dict) -> None:
+    """Merge ``{name: entry}`` into ``root/people.json`` (atomically; keeps the others)."""
+    path = root / PEOPLE_MANIFEST
+    try:
+        old = json.loads(path.read_text()) if path.exists() else {}
+    except (OSError, ValueError):
+        old = {}
+    people = old.get("people") if isinstance(old.get("people"), dict) else {}
+    for name, entry in entries.items():
+        people[name] = {**people.get(name, {}), **entry}
+    data = {"flowmocap": __version__, "input": _absolute(Path(source)), "min_share": float(min_share),
+            "people": dict(sorted(people.items(), key=lambda kv: int(kv[0].removeprefix("person"))))}
+    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
+
+
+def summary_table(items: Iterable[BatchItem], root: str | Path | None = None, noun: str = "inputs") -> str:
     """A plain-text table of a batch's items (input, result folder, status, frames, new
-    frames, s per frame, seconds, re-initialisations), a count line and each failure's
-    reason."""
+    frames, s per frame, seconds, re-initialisations), a count line (of ``noun``: "inputs",
+    or "people" for :func:`track_people`) and each failure's reason."""
     items = list(items)
     rows = [("input", "result", "status", "frames", "new", "s/frame", "time s", "reinits")]
     for it in items:
@@ -310,7 +510,7 @@ def summary_table(items: Iterable[BatchItem], root: str | Path | None = None) ->
              for r in rows]
     lines.insert(1, "  ".join("-" * w for w in width))
     n = {s: sum(it.status == s for it in items) for s in ("tracked", "resumed", "skipped", "failed")}
-    lines.append(f"{len(items)} inputs: {n['tracked']} tracked, {n['resumed']} resumed, {n['skipped']} finished "
+    lines.append(f"{len(items)} {noun}: {n['tracked']} tracked, {n['resumed']} resumed, {n['skipped']} finished "
                  f"before (skipped), {n['failed']} failed" + (f"; results in {root}" if root is not None else ""))
     lines += [f"failed: {it.input}: {it.error}" for it in items if it.status == "failed"]
     return "\n".join(lines)
@@ -333,6 +533,8 @@ def _track_one(item: BatchItem, kwargs: dict, progress: bool = False,
         if not src.exists():
             raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
         # resume=True also starts afresh a folder without tracked frames (a run that stopped before its first one)
+        if item.person is not None:
+            kwargs = {**kwargs, "person": item.person}
         res = track(src, item.out, resume=not kwargs.get("force"), progress=progress, log=say, **kwargs)
         return replace(item, status="resumed" if item.status == "resume" else "tracked", frames=len(res),
                        new_frames=len(res) - before, seconds=time.perf_counter() - t0, reinits=_reinits(res))

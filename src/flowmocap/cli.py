@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from flowmocap.batch import BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many
+from flowmocap.batch import BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many, track_people
 from flowmocap.commands import register_all
 from flowmocap.errors import FlowMocapError, InputError, OutputError
 from flowmocap.export.marker_sets import MARKER_SETS
@@ -74,6 +74,16 @@ def cmd_track(args) -> int:
         raise InputError(f"--ray took {args.ray!r} for the Ray cluster's address; put --ray after the inputs, or "
                          "write --ray=ADDRESS.")
     formats = _export_formats(args.export, args.export_markers)
+    ray = False if args.ray is None else (args.ray or True)
+    if str(args.person).strip().lower() == "all":
+        if is_batch(args.input, lists):
+            raise InputError("--person all tracks every person of one input; give one video, frames folder or "
+                             "sequence folder (or run the command once per input).")
+        del settings["person"]
+        items = track_people(args.input[0], args.out, workers=args.workers, ray=ray, force=args.force,
+                             progress=not args.quiet, **settings)
+        print(summary_table(items, args.out, noun="people"))
+        return _export_items(items, formats, args)
     if not is_batch(args.input, lists):
         if args.workers > 1 or args.ray is not None:
             print("one input: tracking it in this process (--workers and --ray share out several inputs)")
@@ -87,10 +97,14 @@ def cmd_track(args) -> int:
         print(f"note: every input starts from the 2D joints of {args.init}")
     if "," in str(args.person):
         print(f"note: in every input, the person at pixel {args.person} is tracked")
-    ray = False if args.ray is None else (args.ray or True)
     items = track_many(expand_inputs(args.input, lists), args.out, workers=args.workers, ray=ray, force=args.force,
                        progress=not args.quiet, **settings)
     print(summary_table(items, args.out))
+    return _export_items(items, formats, args)
+
+
+def _export_items(items, formats: list[str], args) -> int:
+    """Export every finished result of a batch (or of ``--person all``); the exit status."""
     export_failed = False
     for it in items:
         if it.ok:
@@ -179,9 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "continues an interrupted run. Several inputs (or a folder of videos, or a list file) make a "
                        "batch: one result folder per input under --out, named after the input (--out/batch.json "
                        "says which is which); run again, it skips finished inputs (--force: tracks them anew) and "
-                       "resumes interrupted ones, and one input's failure does not stop the others.",
+                       "resumes interrupted ones, and one input's failure does not stop the others. --person all "
+                       "tracks every person in one input the same way, one result folder each.",
                        epilog=f"Exit status: 0 when every input has a finished result; {BATCH_FAILED} when some inputs "
-                       "of a batch failed (the others are done; the summary says why; run again to retry them); "
+                       "of a batch (or people of --person all) failed (the others are done; the summary says why; run again to retry them); "
                        "other non-zero values on an error that stopped the command.")
     t.add_argument("input", nargs="*", help="a video file, a sequence folder (frames/, masks/, camera.json) or a "
                    "folder of frames; for a batch: several of them, a folder of videos and sequence folders, or "
@@ -217,8 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "detector at all")
     t.add_argument("--person", default="largest", help="who to track when several people are in view: 'largest' "
                    "(default: the person seen biggest, nearest and longest), N (the N-th by that measure, 0 = the "
-                   "largest) or x,y (a pixel of the video's frames, before --max-size, on the person in the first "
-                   "frame they appear in); recorded in run.json")
+                   "largest), x,y (a pixel of the video's frames, before --max-size, on the person in the first "
+                   "frame they appear in), or all (every person the detector follows in at least a quarter as many "
+                   "frames as the largest, each into --out/personN by that rank, listed in --out/people.json; "
+                   "--workers and --ray share them out); recorded in run.json")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"],
                    help="which body of the model file (default neutral)")

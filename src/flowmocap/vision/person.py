@@ -159,6 +159,10 @@ def parse_person(person) -> tuple[str, object]:
         return "point", (x, y)
     if isinstance(person, str):
         text = person.strip()
+        if text.lower() == "all":
+            raise InputError("person='all' tracks every person, each into a result folder of their own: use "
+                             "flowmocap.batch.track_people (the command line's --person all); a single run takes "
+                             f"{forms}.")
         if "," in text:
             parts = text.split(",")
             try:

@@ -1,0 +1,200 @@
+"""Every person in one input (``flowmocap track VIDEO --person all``,
+:func:`flowmocap.batch.track_people`): who is tracked, one result folder per person,
+``people.json``, finished people skipped and a failed one retried on the next run, bad
+arguments refused; and on the real two-person recording, two different people."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flowmocap
+from flowmocap import batch
+from flowmocap.batch import PEOPLE_MANIFEST, people_to_track, track_people
+from flowmocap.cli import main
+from flowmocap.errors import DataError, InputError
+from flowmocap.eval.protocol import noisy_init
+from flowmocap.io.sequence import load_sequence
+from flowmocap.synth import synthesize
+from flowmocap.vision.person import parse_person
+
+from conftest import SHARED_DATA
+
+QUICK = {"iterations": 4, "init_iterations": 6, "init_flow_iterations": 4}
+
+
+def _info(*detections):
+    return {"person": {"people": [{"rank": r, "frames": [0, n - 1], "detections": n, "score": 100.0 - r,
+                                   "first_box": [10.0 * r, 0.0, 10.0 * r + 8, 30.0]}
+                                  for r, n in enumerate(detections)]}}
+
+
+def test_people_to_track_keeps_the_largest_and_everyone_followed_long_enough():
+    info = _info(40, 30, 10, 9, 3)
+    assert [p["rank"] for p in people_to_track(info)] == [0, 1, 2]  # 10 >= 0.25 * 40; 9 and 3 are not
+    assert [p["rank"] for p in people_to_track(info, min_share=0.0)] == [0, 1, 2, 3, 4]
+    assert [p["rank"] for p in people_to_track(info, min_share=1.0)] == [0]
+    # the largest by score may be followed in fewer frames than the next: the share is of its frames
+    assert [p["rank"] for p in people_to_track(_info(10, 40, 2))] == [0, 1]
+    with pytest.raises(DataError, match="no people"):
+        people_to_track({"person": {"people": []}})
+    with pytest.raises(DataError, match="no people"):
+        people_to_track({})
+    with pytest.raises(InputError, match="0..1"):
+        people_to_track(info, min_share=1.5)
+
+
+def test_a_single_run_asked_for_everyone_says_where_that_is():
+    with pytest.raises(InputError, match="track_people"):
+        parse_person("all")
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """A 4-frame 160x120 walk and an init.json for it."""
+    d = tmp_path_factory.mktemp("people")
+    synthesize("builtin:walk", d / "walk", fps=30, frames=4, size="160x120", seed=1, azimuth=60.0, flow=False)
+    (d / "init.json").write_text(json.dumps(noisy_init(load_sequence(d / "walk").gt, frame=0, seed=1)))
+    return d
+
+
+class FakeDetections:
+    """Stands in for flowmocap.track inside track_people: tracks the synthetic clip for real
+    (with its known init, masks and the quick settings) whatever person is asked, and writes
+    the detection pass's people list as the detector would, three people with 40, 20 and 5
+    frames; fails person ``fail`` once."""
+
+    def __init__(self, clip, fail=None):
+        self.clip, self.fail, self.asked = clip, fail, []
+
+    def __call__(self, src, out, person="largest", resume=False, progress=False, log=None, **kwargs):
+        self.asked.append(person)
+        assert kwargs.get("masks") in (None, "auto") and kwargs.get("init") in (None, "auto")
+        if person == self.fail:
+            self.fail = None
+            raise DataError(f"person {person} could not be tracked (a test's failure)")
+        res = flowmocap.track(self.clip / "walk", out, init=self.clip / "init.json", config=QUICK, joints3d="off",
+                              resume=resume, progress=False, log=None, force=kwargs.get("force", False))
+        Path(out, "detections").mkdir(parents=True, exist_ok=True)  # after: the run clears a foreign detections/
+        Path(out, "detections", "detections.json").write_text(json.dumps(_info(40, 20, 5)))
+        return res
+
+
+def test_every_person_gets_a_result_folder_and_a_failure_is_retried_on_the_next_run(clip, tmp_path, monkeypatch):
+    fake = FakeDetections(clip, fail=1)
+    monkeypatch.setattr(batch, "track", fake)
+    out = tmp_path / "people"
+    items = track_people(clip / "walk", out, log=None, progress=False)
+    assert fake.asked == [0, 1]  # the largest, then rank 1; rank 2 (5 of 40 frames) is left out
+    assert [(it.name, it.person, it.status) for it in items] == [("person0", 0, "tracked"), ("person1", 1, "failed")]
+    assert "a test's failure" in items[1].error
+    assert flowmocap.load_result(out / "person0").run["status"] == "finished"
+    manifest = json.loads((out / PEOPLE_MANIFEST).read_text())
+    assert manifest["input"] == str((clip / "walk").resolve()) and manifest["min_share"] == 0.25
+    people = manifest["people"]
+    assert list(people) == ["person0", "person1", "person2"]
+    assert [people[n]["tracked"] for n in people] == [True, True, False]
+    assert people["person0"]["status"] == "tracked" and people["person1"]["status"] == "failed"
+    assert people["person2"]["detections"] == 5 and "status" not in people["person2"]
+
+    # run again: the finished largest person is skipped, the failed one tracked
+    items = track_people(clip / "walk", out, log=None, progress=False)
+    assert fake.asked == [0, 1, 1]
+    assert [(it.name, it.status) for it in items] == [("person0", "skipped"), ("person1", "tracked")]
+    np.testing.assert_array_equal(flowmocap.load_result(out / "person0").poses,
+                                  flowmocap.load_result(out / "person1").poses)  # the fake tracks one clip
+    # and again: nothing to do
+    items = track_people(clip / "walk", out, log=None, progress=False)
+    assert fake.asked == [0, 1, 1] and [it.status for it in items] == ["skipped", "skipped"]
+    assert "2 people: 0 tracked" in batch.summary_table(items, out, noun="people")
+    # another input into the same folder is refused, the results kept
+    with pytest.raises(InputError, match="people of another input"):
+        track_people(clip / "init.json", out, log=None, progress=False)
+    assert flowmocap.load_result(out / "person1").run["status"] == "finished"
+
+
+def test_a_first_run_that_finds_nobody_ends_there(clip, tmp_path, monkeypatch):
+    def nobody(src, out, person="largest", **kwargs):
+        Path(out, "detections").mkdir(parents=True, exist_ok=True)
+        Path(out, "detections", "detections.json").write_text(json.dumps({"person": {"people": []}}))
+        raise flowmocap.NoPersonError("no person found in any of the 4 frames")
+
+    monkeypatch.setattr(batch, "track", nobody)
+    items = track_people(clip / "walk", tmp_path / "out", log=None, progress=False)
+    assert [(it.name, it.status) for it in items] == [("person0", "failed")]
+    assert "no person found" in items[0].error
+
+
+def test_bad_arguments_are_refused_before_anything_runs(clip, tmp_path, capsys):
+    with pytest.raises(InputError, match="automatic masks"):
+        track_people(clip / "walk", tmp_path / "a", masks=clip / "walk" / "masks", log=None)
+    with pytest.raises(InputError, match="automatic init"):
+        track_people(clip / "walk", tmp_path / "a", init=clip / "init.json", log=None)
+    with pytest.raises(InputError, match="person"):
+        track_people(clip / "walk", tmp_path / "a", person=1, log=None)
+    with pytest.raises(InputError, match="0..1"):
+        track_people(clip / "walk", tmp_path / "a", min_share=-0.1, log=None)
+    single = tmp_path / "single"
+    flowmocap.track(clip / "walk", single, init=clip / "init.json", config=QUICK, joints3d="off", log=None,
+                    progress=False)
+    with pytest.raises(InputError, match="result folder of a single run"):
+        track_people(clip / "walk", single, log=None)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / batch.MANIFEST).write_text("{}")
+    with pytest.raises(InputError, match="batch of inputs"):
+        track_people(clip / "walk", tmp_path / "b", log=None)
+    assert not (tmp_path / "a").exists()
+    # the command line: one input only
+    assert main(["track", str(clip / "walk"), str(clip / "walk"), "--out", str(tmp_path / "c"), "--person", "all",
+                 "--quiet"]) != 0
+    assert "--person all tracks every person of one input" in capsys.readouterr().err
+
+
+_CAM01 = SHARED_DATA / "video" / "pose2sim-multi" / "videos" / "cam01.mp4"
+
+
+@pytest.mark.skipif(not _CAM01.exists(), reason="the Pose2Sim recording (../shared/data/video/pose2sim-multi) is "
+                    "not here; it holds the two people this test tracks")
+def test_both_people_of_the_real_recording_are_tracked(tmp_path, capsys):
+    """cam01 of the two-person recording, its first 4 frames at a third of their size: two
+    result folders, on two different people (their fitted 2D joints lie apart by more than
+    a body's width), each where its own detections put it, the second the same as tracked
+    alone with ``--person 1``."""
+    import av
+    import cv2
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    with av.open(str(_CAM01)) as video:
+        for i, f in enumerate(video.decode(video=0)):
+            if i == 4:
+                break
+            img = f.to_ndarray(format="bgr24")
+            cv2.imwrite(str(frames / f"{i:06d}.png"),
+                        cv2.resize(img, (img.shape[1] // 3, img.shape[0] // 3), interpolation=cv2.INTER_AREA))
+    (tmp_path / "quick.json").write_text(json.dumps(QUICK))
+    out = tmp_path / "out"
+    assert main(["track", str(frames), "--out", str(out), "--person", "all", "--config", str(tmp_path / "quick.json"),
+                 "--quiet"]) == 0
+    assert "2 people: 2 tracked" in capsys.readouterr().out
+    people = json.loads((out / PEOPLE_MANIFEST).read_text())["people"]
+    assert [people[n]["tracked"] for n in ("person0", "person1")] == [True, True]
+    centres = []
+    for name in ("person0", "person1"):
+        res = flowmocap.load_result(out / name)
+        assert res.run["status"] == "finished" and len(res) == 4
+        centre = res.joints2d.mean(axis=(0, 1))
+        box = people[name]["first_box"]
+        assert box[0] <= centre[0] <= box[2] and box[1] <= centre[1] <= box[3], (name, centre, box)
+        centres.append(centre)
+    assert np.linalg.norm(centres[0] - centres[1]) > 80.0
+    # the second person's result is the one `--person 1` gives alone, to the last bit
+    alone = tmp_path / "alone"
+    assert main(["track", str(frames), "--out", str(alone), "--person", "1", "--config", str(tmp_path / "quick.json"),
+                 "--quiet"]) == 0
+    for k in ("poses", "trans", "betas", "joints3d", "joints2d"):
+        np.testing.assert_array_equal(getattr(flowmocap.load_result(alone), k),
+                                      getattr(flowmocap.load_result(out / "person1"), k), err_msg=k)
