@@ -198,3 +198,57 @@ def test_both_people_of_the_real_recording_are_tracked(tmp_path, capsys):
     for k in ("poses", "trans", "betas", "joints3d", "joints2d"):
         np.testing.assert_array_equal(getattr(flowmocap.load_result(alone), k),
                                       getattr(flowmocap.load_result(out / "person1"), k), err_msg=k)
+
+
+# ------------------------------------------------------------------ drawing several people
+
+
+def _square(z, x0, size=1.0):
+    """A square facing the camera at depth ``z`` metres, left edge at ``x0``: 4 vertices, 2 triangles."""
+    v = np.array([[x0, -size / 2, z], [x0 + size, -size / 2, z], [x0 + size, size / 2, z], [x0, size / 2, z]])
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_overlay_bodies_draws_the_nearer_body_where_two_overlap():
+    from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.viz.overlay import overlay_bodies, overlay_body
+
+    cam = PinholeCamera(fx=100.0, fy=100.0, cx=50.0, cy=40.0, width=100, height=80)
+    img = np.full((80, 100, 3), 40, np.uint8)
+    near, far = _square(2.0, -0.6), _square(4.0, -0.2, size=2.0)  # near: x -0.6..0.4 at 2 m; far: -0.2..1.8 at 4 m
+    red, green = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+    out = overlay_bodies(img, [far, near], cam, alpha=1.0, colours=[green, red])
+    # pixel columns: near spans x = 50 + 100 * (-0.6..0.4) / 2 = 20..70; far 50 + 100 * (-0.2..1.8) / 4 = 45..95
+    both, far_only, none = out[40, 60], out[40, 85], out[40, 5]
+    assert both[0] > 3 * both[1]  # the near (red) square hides the far one, drawn first
+    assert far_only[1] > 3 * far_only[0]
+    np.testing.assert_array_equal(none, img[40, 5])
+    # the order of the list does not matter, only depth
+    np.testing.assert_array_equal(out, overlay_bodies(img, [near, far], cam, alpha=1.0, colours=[red, green]))
+    # one body: exactly overlay_body's picture
+    np.testing.assert_array_equal(overlay_bodies(img, [near], cam, alpha=0.6, colours=[red]),
+                                  overlay_body(img, near[0], near[1], cam, alpha=0.6, colour=red))
+    # a body behind the camera is left out; none left: the image as it was
+    behind = _square(-2.0, 0.0)
+    np.testing.assert_array_equal(overlay_bodies(img, [behind], cam), img)
+    np.testing.assert_array_equal(overlay_bodies(img, [behind, near], cam, colours=[green, red]),
+                                  overlay_bodies(img, [near], cam, colours=[red]))
+    with pytest.raises(InputError, match="one colour per body"):
+        overlay_bodies(img, [near, far], cam, colours=[red])
+    with pytest.raises(InputError, match="RGB for this camera"):
+        overlay_bodies(img[:10], [near], cam)
+
+
+def test_render_draws_every_person_of_a_people_folder(clip, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(batch, "track", FakeDetections(clip))
+    out = tmp_path / "people"
+    track_people(clip / "walk", out, log=None, progress=False)
+    assert main(["render", str(out), "--quiet"]) == 0
+    assert "person0, person1; frames 0-3" in capsys.readouterr().out
+    import av
+
+    with av.open(str(out / "render" / "overlay.mp4")) as video:
+        frames = [f.to_ndarray(format="rgb24") for f in video.decode(video=0)]
+    assert len(frames) == 4 and frames[0].shape == (120, 160, 3)
+    assert main(["render", str(out), "--figure1", "--quiet"]) != 0
+    assert "render a person's folder" in capsys.readouterr().err

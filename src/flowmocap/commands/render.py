@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+#: The list of people a ``track --person all`` folder holds (:data:`flowmocap.batch.PEOPLE_MANIFEST`).
+PEOPLE_MANIFEST = "people.json"
+
 OUTPUTS = {
     "video": "overlay.mp4",
     "figure1": "figure1.png",
@@ -17,8 +20,9 @@ def register(subparsers) -> None:
         "render", help="draw a result: body-over-video MP4, flow figure, joint traces, energy plot",
         description="Render a result folder of `flowmocap track` (or demo's result/). Without any of "
         "--video/--figure1/--traces/--plot all four are written into RESULT/render/ (or --out). Each "
-        "option takes an optional output path.")
-    p.add_argument("result", help="result folder (motion.npz, run.json)")
+        "option takes an optional output path. Given the folder of `track --person all` (people.json), "
+        "it writes one overlay video with every tracked person's body in its own colour.")
+    p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder")
     p.add_argument("--out", help="folder for outputs given without a path (default RESULT/render)")
     p.add_argument("--video", nargs="?", const="", metavar="MP4",
                    help="the fitted body over the input video (H.264 MP4, the input's size and frame count)")
@@ -60,6 +64,8 @@ def run_render(args) -> int:
     if not 0.0 <= args.alpha <= 1.0:
         raise InputError(f"--alpha must be between 0 and 1, got {args.alpha}.")
     wanted = {k: getattr(args, k) for k in OUTPUTS}
+    if (Path(args.result) / PEOPLE_MANIFEST).exists():
+        return _render_people(args, wanted)
     if all(v is None for v in wanted.values()):
         wanted = {k: "" for k in OUTPUTS}
     out_dir = Path(args.out) if args.out else Path(args.result) / "render"
@@ -85,4 +91,44 @@ def run_render(args) -> int:
         written.append(f"{paths['video']} ({scene.num_frames} frames at {scene.motion.fps:g} fps)")
     for w in written:
         print(f"wrote {w}")
+    return 0
+
+
+def _render_people(args, wanted: dict) -> int:
+    """``flowmocap render DIR`` on a ``track --person all`` folder: the people's overlay video."""
+    import json
+
+    from flowmocap.errors import DataError, FlowMocapError, InputError
+    from flowmocap.viz.result_render import ResultScene, people_overlay_video
+
+    root = Path(args.result)
+    others = [f"--{k}" for k, v in wanted.items() if v is not None and k != "video"] + (["--side"] if args.side else [])
+    if others:
+        raise InputError(f"{root} holds several people's results ({PEOPLE_MANIFEST}); {', '.join(others)} draw one "
+                         f"result: render a person's folder ({root / 'person0'}, ...) for them.")
+    try:
+        people = json.loads((root / PEOPLE_MANIFEST).read_text())["people"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DataError(f"{root / PEOPLE_MANIFEST} is not a list of people written by `flowmocap track --person all`; "
+                        "track again into this folder to rewrite it.") from None
+    scenes, names = [], []
+    for name in sorted(people, key=lambda n: int(str(n).removeprefix("person") or 0)):
+        if not (root / name).is_dir():
+            continue
+        try:
+            scenes.append(ResultScene(root / name, input=args.input, model=args.model))
+        except FlowMocapError as e:  # a person not (yet) tracked: drawn without them
+            print(f"{name} left out: {e}")
+            continue
+        names.append(name)
+    if not scenes:
+        raise DataError(f"none of the people in {root} has a tracked result yet; run `flowmocap track INPUT --out "
+                        f"{root} --person all` first.")
+    path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
+        OUTPUTS["video"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    people_overlay_video(scenes, path, names=names, alpha=args.alpha, progress=not args.quiet)
+    first = min(int(sc.motion.frame_index.min()) for sc in scenes)
+    last = max(int(sc.motion.frame_index.max()) for sc in scenes)
+    print(f"wrote {path} ({', '.join(names)}; frames {first}-{last} at {scenes[0].motion.fps:g} fps)")
     return 0

@@ -7,10 +7,16 @@ import numpy as np
 from flowmocap.errors import InputError
 from flowmocap.geometry.camera import PinholeCamera, look_at
 
-__all__ = ["BODY_RGB", "overlay_body", "render_body_view", "side_camera", "camera_up"]
+__all__ = ["BODY_RGB", "PEOPLE_RGB", "overlay_body", "overlay_bodies", "render_body_view", "side_camera",
+           "camera_up"]
 
 #: Default body colour (RGB in [0, 1]): a light blue that stands out on most footage.
 BODY_RGB = (0.45, 0.70, 1.0)
+
+#: Body colours (RGB in [0, 1]) of several people drawn together, in their ranks' order
+#: (``--person all``: person0 keeps :data:`BODY_RGB`); the list repeats beyond its length.
+PEOPLE_RGB = (BODY_RGB, (1.0, 0.62, 0.25), (0.45, 0.88, 0.45), (0.95, 0.45, 0.80), (0.95, 0.90, 0.35),
+              (0.70, 0.55, 1.0))
 
 
 def _shade_over(vertices: np.ndarray, faces, camera: PinholeCamera, background: np.ndarray,
@@ -50,6 +56,59 @@ def overlay_body(image: np.ndarray, vertices: np.ndarray, faces, camera: Pinhole
         raise InputError(f"alpha must be in [0, 1], got {alpha}.")
     img = img.astype(np.uint8)
     shaded = _shade_over(vertices, faces, camera, img, colour, supersample)
+    out = alpha * shaded.astype(np.float32) + (1.0 - alpha) * img.astype(np.float32)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def overlay_bodies(image: np.ndarray, bodies, camera: PinholeCamera, alpha: float = 0.6, colours=None,
+                   supersample: int = 2) -> np.ndarray:
+    """Draw several shaded, semi-transparent bodies over an image in one pass, each in its
+    own colour; where they overlap, the surface nearer the camera is drawn.
+
+    Args:
+        image: ``(H, W, 3)`` uint8 RGB frame, the camera's size.
+        bodies: a list of ``(vertices, faces)``: ``(V_k, 3)`` world positions in metres and
+            ``(F_k, 3)`` triangle indices (plain arrays). A body with a vertex behind the
+            camera is left out.
+        camera: the camera that took ``image``.
+        alpha: opacity of the bodies in ``[0, 1]``.
+        colours: one RGB in ``[0, 1]`` per body (default :data:`PEOPLE_RGB` in turn).
+        supersample: anti-aliasing samples per pixel and axis.
+
+    Returns:
+        ``(H, W, 3)`` uint8 RGB; pixels off every body are ``image`` unchanged. One body
+        gives what :func:`overlay_body` gives.
+    """
+    from flowmocap.render import shade
+
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (camera.height, camera.width):
+        raise InputError(f"image must be ({camera.height}, {camera.width}, 3) RGB for this camera; "
+                         f"got {img.shape}.")
+    if not 0.0 <= alpha <= 1.0:
+        raise InputError(f"alpha must be in [0, 1], got {alpha}.")
+    if colours is None:
+        colours = [PEOPLE_RGB[k % len(PEOPLE_RGB)] for k in range(len(bodies))]
+    if len(colours) != len(bodies):
+        raise InputError(f"one colour per body: {len(bodies)} bodies, {len(colours)} colours.")
+    img = img.astype(np.uint8)
+    verts, faces, cols, offset = [], [], [], 0
+    for (v, f), c in zip(bodies, colours):
+        v = np.asarray(v, np.float64)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise InputError(f"each body's vertices must be (V, 3) metres; got {v.shape}.")
+        if not np.all(camera.to_camera(v)[:, 2] > 1e-3):
+            continue  # (part of) this body behind the camera: not drawn
+        verts.append(v)
+        faces.append(np.asarray(f, np.int64) + offset)
+        cols.append(np.tile(np.asarray(c, np.float32), (len(v), 1)))
+        offset += len(v)
+    if not verts:
+        return img.copy()
+    v = np.concatenate(verts)
+    v_cam = camera.to_camera(v)
+    shaded = shade(camera.project(v), v_cam[:, 2], np.concatenate(faces), v_cam, np.concatenate(cols),
+                   background=img, supersample=supersample)
     out = alpha * shaded.astype(np.float32) + (1.0 - alpha) * img.astype(np.float32)
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 

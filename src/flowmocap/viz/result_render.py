@@ -11,6 +11,8 @@ and body model; the functions below make the outputs:
 - :func:`joint_traces`: the paper's Fig. 3: the fitted pose with the history of the 13
   evaluated joints drawn in green (ground truth in orange when the input has it).
 - :func:`energy_figure`: per-frame energies and, with ground truth, the 3D joint error.
+- :func:`people_overlay_video`: several results of one input (``track --person all``),
+  every person's body in its own colour over the frames any of them was tracked in.
 """
 
 from __future__ import annotations
@@ -22,10 +24,11 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.viz.flow_colors import color_wheel_legend, flow_to_color
 from flowmocap.viz.flow_figure import caption_tile, crop_box
-from flowmocap.viz.overlay import overlay_body, render_body_view, side_camera
+from flowmocap.viz.overlay import PEOPLE_RGB, overlay_bodies, overlay_body, render_body_view, side_camera
 from flowmocap.viz.traces import GT_TRACE_RGB, TRACE_RGB, draw_traces, trace_box
 
-__all__ = ["ResultScene", "overlay_video", "figure1", "joint_traces", "energy_figure", "default_frames"]
+__all__ = ["ResultScene", "overlay_video", "people_overlay_video", "figure1", "joint_traces", "energy_figure",
+           "default_frames"]
 
 _INK = (30, 30, 30)
 
@@ -226,6 +229,77 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
                 img = _flag(img, f"review: 3D sources part {100 * review[0][k]:.0f} cm")
             if cam2 is not None:
                 img = np.concatenate([img, _label(render_body_view(v, scene.faces, cam2), "side view")], axis=1)
+            out.write(img)
+    return Path(path)
+
+
+def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: list[str] | None = None,
+                         alpha: float = 0.6, progress: bool = True) -> Path:
+    """Write one MP4 with every person's fitted body over the input, each in its own colour
+    (:data:`~flowmocap.viz.overlay.PEOPLE_RGB` in the scenes' order) and named in a key at
+    the top left. Where bodies overlap, the one nearer the camera is drawn; each body's depth
+    is its own fit's, which one camera leaves uncertain (a body's size and distance trade).
+
+    Args:
+        scenes: the results of one input (e.g. ``DIR/person0``, ``DIR/person1`` of ``track
+            --person all``), with the same camera intrinsics and frame size.
+        path: output ``.mp4``.
+        names: one label per scene (default ``person0``, ``person1``, ...).
+        alpha: body opacity in ``[0, 1]``.
+        progress: show a progress bar.
+
+    Returns:
+        The path written: one video frame per input frame from the first to the last that
+        any scene tracked (frames none tracked show the input alone), at the first scene's
+        frame rate.
+
+    Raises:
+        DataError: no scenes, or scenes of differently sized frames or cameras.
+    """
+    import cv2
+    from tqdm import tqdm
+
+    from flowmocap.viz.video import VideoWriter
+
+    if not scenes:
+        raise DataError("no results to draw.")
+    names = [f"person{k}" for k in range(len(scenes))] if names is None else list(names)
+    if len(names) != len(scenes):
+        raise InputError(f"one name per result: {len(scenes)} results, {len(names)} names.")
+    ref = scenes[0].camera
+    for sc, name in zip(scenes[1:], names[1:]):
+        c = sc.camera
+        if (c.width, c.height, c.fx, c.fy, c.cx, c.cy) != (ref.width, ref.height, ref.fx, ref.fy, ref.cx, ref.cy):
+            raise DataError(f"{name}'s camera ({c.width}x{c.height} px, focal {c.fx:g}) is not "
+                            f"{names[0]}'s ({ref.width}x{ref.height} px, focal {ref.fx:g}): draw results of one "
+                            "input tracked at one size.")
+    colours = [PEOPLE_RGB[k % len(PEOPLE_RGB)] for k in range(len(scenes))]
+    first = min(int(sc.motion.frame_index.min()) for sc in scenes)
+    last = max(int(sc.motion.frame_index.max()) for sc in scenes)
+    rows = [{int(i): k for k, i in enumerate(sc.motion.frame_index)} for sc in scenes]
+    R0, t0 = np.asarray(ref.R, np.float64), np.asarray(ref.t, np.float64)
+
+    def in_ref_world(sc: ResultScene, v: np.ndarray) -> np.ndarray:
+        """A body in ``sc``'s world frame, moved into the first scene's world frame (through
+        the camera, which all the scenes share)."""
+        return (sc.camera.to_camera(v) - t0) @ R0
+
+    with VideoWriter(path, scenes[0].motion.fps) as out:
+        for i in tqdm(range(first, last + 1), disable=not progress, unit="frame", desc="people overlay video"):
+            bodies, cols, present = [], [], []
+            for sc, row, col, name in zip(scenes, rows, colours, names):
+                if i in row:
+                    bodies.append((in_ref_world(sc, sc.vertices(row[i])), sc.motion.model.faces_np))
+                    cols.append(col)
+                    present.append(name)
+            img = overlay_bodies(scenes[0].seq.frame(i), bodies, ref, alpha=alpha, colours=cols)
+            scale = max(0.35, min(0.6, img.shape[0] / 800))
+            y = int(6 + 30 * scale)
+            for name, col in zip(names, colours):
+                ink = tuple(int(255 * c) for c in col) if name in present else (150, 150, 150)
+                cv2.putText(img, name, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
+                cv2.putText(img, name, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
+                y += int(28 * scale) + 4
             out.write(img)
     return Path(path)
 
