@@ -459,7 +459,8 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
             results[it.person] = replace(it, status="skipped")
     todo = [it for it in items if it.status != "finished"]
     skipped = len(items) - len(todo)
-    say(f"{len(info['person']['people'])} people found, {len(chosen)} followed long enough to track"
+    found_n = len(info["person"]["people"])
+    say(f"{found_n} {'person' if found_n == 1 else 'people'} found, {len(chosen)} followed long enough to track"
         + (f"; {len(todo)} more to track" if todo else "") + (f", {skipped} finished before (skipped)" if skipped else ""))
     _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
     return [results[r] for r in sorted(results)]

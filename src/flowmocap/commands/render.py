@@ -4,9 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: The list of people a ``track --person all`` folder holds (:data:`flowmocap.batch.PEOPLE_MANIFEST`).
-PEOPLE_MANIFEST = "people.json"
-
 OUTPUTS = {
     "video": "overlay.mp4",
     "figure1": "figure1.png",
@@ -63,6 +60,8 @@ def run_render(args) -> int:
 
     if not 0.0 <= args.alpha <= 1.0:
         raise InputError(f"--alpha must be between 0 and 1, got {args.alpha}.")
+    from flowmocap.batch import PEOPLE_MANIFEST
+
     wanted = {k: getattr(args, k) for k in OUTPUTS}
     if (Path(args.result) / PEOPLE_MANIFEST).exists():
         return _render_people(args, wanted)
@@ -98,6 +97,7 @@ def _render_people(args, wanted: dict) -> int:
     """``flowmocap render DIR`` on a ``track --person all`` folder: the people's overlay video."""
     import json
 
+    from flowmocap.batch import PEOPLE_MANIFEST
     from flowmocap.errors import DataError, FlowMocapError, InputError
     from flowmocap.viz.result_render import ResultScene, people_overlay_video
 

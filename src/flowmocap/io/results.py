@@ -318,7 +318,14 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
             with np.load(out_dir / "motion.npz", allow_pickle=False) as z:
                 motion = {k: z[k] for k in z.files}
     except FileNotFoundError as e:
-        raise DataError(f"{out_dir} is not a flowmocap result folder ({Path(e.filename).name} is missing).") from None
+        hint = ""
+        if (out_dir / "people.json").exists():  # flowmocap.batch.PEOPLE_MANIFEST (io sits above batch's layer)
+            hint = (f"; it holds the people of `track --person all`: give one of its person folders "
+                    f"({out_dir / 'person0'}, ...)")
+        elif (out_dir / "batch.json").exists():  # flowmocap.batch.MANIFEST
+            hint = "; it holds a batch of results: give one of its result folders"
+        raise DataError(f"{out_dir} is not a flowmocap result folder ({Path(e.filename).name} is missing){hint}."
+                        ) from None
     except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:  # a truncated or empty motion.npz: the last two
         raise DataError(f"{out_dir} holds an unreadable result ({type(e).__name__}: {e}); the result is damaged: "
                         "track the input again into this folder with --force (or into a new folder).") from None
