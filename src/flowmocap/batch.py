@@ -511,6 +511,8 @@ def summary_table(items: Iterable[BatchItem], root: str | Path | None = None, no
              for r in rows]
     lines.insert(1, "  ".join("-" * w for w in width))
     n = {s: sum(it.status == s for it in items) for s in ("tracked", "resumed", "skipped", "failed")}
+    if len(items) == 1:
+        noun = {"inputs": "input", "people": "person"}.get(noun, noun)
     lines.append(f"{len(items)} {noun}: {n['tracked']} tracked, {n['resumed']} resumed, {n['skipped']} finished "
                  f"before (skipped), {n['failed']} failed" + (f"; results in {root}" if root is not None else ""))
     lines += [f"failed: {it.input}: {it.error}" for it in items if it.status == "failed"]

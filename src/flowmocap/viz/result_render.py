@@ -237,7 +237,8 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
                          alpha: float = 0.6, progress: bool = True) -> Path:
     """Write one MP4 with every person's fitted body over the input, each in its own colour
     (:data:`~flowmocap.viz.overlay.PEOPLE_RGB` in the scenes' order) and named in a key at
-    the top left. Where bodies overlap, the one nearer the camera is drawn; each body's depth
+    the top left (grey where that person's result has no such frame; "not seen" where it was
+    tracked through the frame by flow alone, run.json's ``gaps``). Where bodies overlap, the one nearer the camera is drawn; each body's depth
     is its own fit's, which one camera leaves uncertain (a body's size and distance trade).
 
     Args:
@@ -277,6 +278,9 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     first = min(int(sc.motion.frame_index.min()) for sc in scenes)
     last = max(int(sc.motion.frame_index.max()) for sc in scenes)
     rows = [{int(i): k for k, i in enumerate(sc.motion.frame_index)} for sc in scenes]
+    # frames a person was tracked through without being seen (by flow alone): their name says so
+    unseen = [{i for g in sc.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
+              for sc in scenes]
     R0, t0 = np.asarray(ref.R, np.float64), np.asarray(ref.t, np.float64)
 
     def in_ref_world(sc: ResultScene, v: np.ndarray) -> np.ndarray:
@@ -295,10 +299,11 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
             img = overlay_bodies(scenes[0].seq.frame(i), bodies, ref, alpha=alpha, colours=cols)
             scale = max(0.35, min(0.6, img.shape[0] / 800))
             y = int(6 + 30 * scale)
-            for name, col in zip(names, colours):
+            for name, col, gaps in zip(names, colours, unseen):
                 ink = tuple(int(255 * c) for c in col) if name in present else (150, 150, 150)
-                cv2.putText(img, name, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
-                cv2.putText(img, name, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
+                text = name + (" (not seen: by flow alone)" if name in present and i in gaps else "")
+                cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
+                cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
                 y += int(28 * scale) + 4
             out.write(img)
     return Path(path)
