@@ -243,3 +243,109 @@ def test_page_says_which_frames_to_review(reviewed, tmp_path):
         assert 'data-ready="1"' in dom.stdout and "data-error" not in dom.stdout, (dom.stdout[-2000:], dom.stderr[-2000:])
         assert f'data-review="{flag}"' in dom.stdout
         assert "3D sources part" in dom.stdout and (("(review)" in dom.stdout) == (flag == "1"))
+
+
+# ------------------------------------------------------------------ several people (track --person all)
+
+
+@pytest.fixture(scope="module")
+def people(tmp_path_factory):
+    """A `track --person all` folder: person0 in a y-up world seen by a placed camera, person1
+    tracked by the same camera in its own camera frame (world = camera), two frames later."""
+    from flowmocap.io.results import read_result, write_motion
+
+    root = tmp_path_factory.mktemp("view_people") / "people"
+    R, t = look_at([2.2, 1.2, 2.2], [0.25, 0.5, 0.2])
+    placed = PinholeCamera.from_focal(320, 240, 330.0, R=R, t=t)
+    make_result(root / "person0", placed, seed=5)
+    # the same physical camera with the world at its centre: person1 stands 4 m in front of it
+    make_result(root / "person1", PinholeCamera.from_focal(320, 240, 330.0), seed=6, gender="male")
+    motion, _ = read_result(root / "person1")
+    write_motion(root / "person1", {**motion, "frame_index": motion["frame_index"] + 2})
+    (root / "people.json").write_text(json.dumps({"input": "missing", "people": {
+        "person0": {"rank": 0, "tracked": True}, "person1": {"rank": 1, "tracked": True},
+        "person2": {"rank": 2, "tracked": False}}}))
+    data = ViewerData(root)
+    server = make_server(data, port=0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield data, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_a_person_moved_into_anothers_frame_projects_onto_the_same_pixels(people):
+    from flowmocap.export import load_fitted_motion, motion_in_frame_of
+
+    data, _ = people
+    own = load_fitted_motion(data.result_dir / "person1", frame="world")
+    moved = motion_in_frame_of(own, data.motion)
+    assert moved.frame == "ground" and moved.camera is data.motion.camera
+    np.testing.assert_allclose(moved.camera.project(moved.joints()), own.camera.project(own.joints()), atol=1e-6)
+    # the body itself is only moved: its bones keep their lengths
+    a, b = own.joints(), moved.joints()
+    np.testing.assert_allclose(np.linalg.norm(a[:, 1:] - a[:, :1], axis=-1),
+                               np.linalg.norm(b[:, 1:] - b[:, :1], axis=-1), atol=1e-9)
+    other = load_fitted_motion(data.result_dir / "person0", frame="world")
+    other.camera = PinholeCamera.from_focal(160, 120, 165.0)
+    with pytest.raises(DataError, match="other cameras"):
+        motion_in_frame_of(own, other)
+
+
+def test_meta_of_a_people_folder_spans_every_tracked_frame(people):
+    data, url = people
+    meta = json.loads(_get(url + "/api/meta.json")[2])
+    T = data.people[0]["motion"].num_frames
+    assert meta["num_frames"] == T + 2 and meta["frame_index"] == list(range(3, 3 + T + 2))
+    assert [p["name"] for p in meta["people"]] == ["person0", "person1"]  # person2 has no result
+    rows0, rows1 = meta["people"][0]["rows"], meta["people"][1]["rows"]
+    assert rows0 == list(range(T)) + [-1, -1] and rows1 == [-1, -1] + list(range(T))
+    assert meta["feet"][-1] is None and meta["feet"][0] is not None and meta["people"][1]["path"][0] is None
+    assert meta["people"][1]["colour"] != meta["people"][0]["colour"]
+    assert _get(url + "/motion/1.glb")[0] == 200 and _get(url + "/motion/2.glb")[0] == 404
+    assert _get(url + f"/frame/{T + 1}.jpg")[0] == 200 and _get(url + f"/frame/{T + 2}.jpg")[0] == 404
+
+
+def test_page_draws_every_person_in_their_colour_where_the_camera_sees_them(people, tmp_path):
+    """At a frame both people were tracked in, the overlay's body pixels are the union of the
+    two silhouettes flowmocap's renderer gives from the first person's camera, each person in
+    their own colour; at the last frame, which only the second was tracked in, only the second
+    is drawn."""
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    import imageio.v3 as iio
+
+    from flowmocap.render import body_mask
+
+    data, url = people
+    k = 3  # input frame 6: person0's row 3, person1's row 1
+    page = url + f"/?frame={k}&scale=1"
+    dom = _chromium_run(page, "--dump-dom")
+    assert 'data-ready="1"' in dom.stdout and 'data-people="11"' in dom.stdout, (dom.stdout[-2000:], dom.stderr[-2000:])
+    assert "data-error" not in dom.stdout
+    left, top, width, height = json.loads(dom.stdout.split('data-overlay="')[1].split('"')[0])
+    shot = tmp_path / "shot.png"
+    _chromium_run(page, f"--screenshot={shot}")
+    img = iio.imread(shot)[..., :3].astype(np.int16)
+    shutil.copy(shot, Path(tempfile.gettempdir()) / "flowmocap_view_people.png")  # to look at when it fails
+    cam = data.motion.camera
+    masks = []
+    for p in data.people:
+        r = p["rows"][k]
+        v = p["motion"].body(r, r + 1)[0][0]
+        masks.append(body_mask(cam.project(v), cam.depth(v), p["motion"].model.faces_np, cam.height, cam.width))
+    assert all(m.mean() > 0.01 for m in masks)  # both in view, so the test can fail
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+    sx = np.clip((left + xs * width / cam.width).astype(int), 0, img.shape[1] - 1)
+    sy = np.clip((top + ys * height / cam.height).astype(int), 0, img.shape[0] - 1)
+    px = img[sy, sx]
+    seen = np.abs(px - 48).max(-1) > 30
+    union = masks[0] | masks[1]
+    iou = (seen & union).sum() / (seen | union).sum()
+    assert iou > 0.85, iou
+    only0, only1 = masks[0] & ~masks[1] & seen, masks[1] & ~masks[0] & seen
+    assert only0.sum() > 50 and only1.sum() > 50
+    # person0 light blue (more blue than red), person1 orange (more red than blue)
+    assert np.median(px[only0][:, 2] - px[only0][:, 0]) > 20
+    assert np.median(px[only1][:, 0] - px[only1][:, 2]) > 20
+    dom = _chromium_run(url + f"/?frame={len(data.frame_index) - 1}", "--dump-dom")
+    assert 'data-ready="1"' in dom.stdout and 'data-people="01"' in dom.stdout

@@ -8,8 +8,14 @@ camera in that frame, and the input's frames as JPEG. Routes:
 
 - ``/``: the page; ``/static/...``: the files of ``flowmocap/viewer/``;
 - ``/api/meta.json``: :meth:`ViewerData.meta`;
-- ``/motion.glb``: the skinned body; ``/frame/K.jpg``: the input frame of result row ``K``
-  (a grey frame when the input is not found).
+- ``/motion.glb``: the skinned body (the first person's); ``/motion/N.glb``: person N's (the
+  N-th of ``meta.people``); ``/frame/K.jpg``: the input frame of the page's frame ``K`` (a grey
+  frame when the input is not found).
+
+Given the folder of ``flowmocap track --person all`` (``people.json``), the page shows every
+tracked person, each in their own colour, in the first person's ground frame (moved there
+through the camera they share, :func:`flowmocap.export.motion.motion_in_frame_of`), over
+every input frame any of them was tracked in.
 
 Ctrl-C (SIGINT) or SIGTERM stops the server cleanly.
 """
@@ -58,6 +64,37 @@ def gl_camera(camera, near: float = 0.05, far: float = 200.0, corner_depth: floa
             "corners": [c.tolist() for c in corners]}
 
 
+def _people_folders(root: Path) -> list[tuple[str, Path]]:
+    """``[(name, folder)]`` of the tracked people of a ``track --person all`` folder, by rank
+    (those with a result); ``[]`` for any other folder.
+
+    Raises:
+        DataError: a people folder without any tracked result yet.
+    """
+    from flowmocap.batch import PEOPLE_MANIFEST
+    from flowmocap.errors import DataError, FlowMocapError
+    from flowmocap.io.results import read_result
+
+    if not (root / PEOPLE_MANIFEST).exists():
+        return []
+    try:
+        names = list(json.loads((root / PEOPLE_MANIFEST).read_text())["people"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DataError(f"{root / PEOPLE_MANIFEST} is not a list of people written by `flowmocap track --person all`; "
+                        "track again into this folder to rewrite it.") from None
+    found = []
+    for name in sorted(names, key=lambda n: int(str(n).removeprefix("person") or 0)):
+        try:
+            read_result(root / name)
+        except FlowMocapError:  # not (yet) tracked
+            continue
+        found.append((name, root / name))
+    if not found:
+        raise DataError(f"none of the people in {root} has a tracked result yet; run `flowmocap track INPUT --out "
+                        f"{root} --person all` first.")
+    return found
+
+
 class ViewerData:
     """What the page shows, built once: the motion in the ground frame, its glb, the frames.
 
@@ -73,15 +110,37 @@ class ViewerData:
     """
 
     def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False):
-        from flowmocap.export import load_fitted_motion, write_motion_glb
+        from flowmocap.export import load_fitted_motion, motion_in_frame_of, write_motion_glb
+        from flowmocap.viz.overlay import PEOPLE_RGB
 
         self.result_dir = Path(result_dir)
-        self.motion = load_fitted_motion(self.result_dir, frame="ground", model=model, smooth=smooth)
-        with tempfile.TemporaryDirectory() as tmp:
-            self.glb = write_motion_glb(Path(tmp) / "motion.glb", self.motion).read_bytes()
+        folders = _people_folders(self.result_dir)
+        first = folders[0][1] if folders else self.result_dir
+        #: the first person's motion (the only one's for a result folder), ground frame
+        self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)
+        motions = [self.motion] + [motion_in_frame_of(load_fitted_motion(d, frame="world", model=model, smooth=smooth),
+                                                      self.motion) for _, d in folders[1:]]
+        names = [n for n, _ in folders] or [self.result_dir.name]
+        #: the page's frames: the input frames any person was tracked in, ascending
+        self.frame_index = np.unique(np.concatenate([m.frame_index for m in motions])).astype(np.int64)
+        self.people = []
+        for k, (name, m) in enumerate(zip(names, motions)):
+            with tempfile.TemporaryDirectory() as tmp:
+                glb = write_motion_glb(Path(tmp) / "motion.glb", m).read_bytes()
+            where = {int(i): r for r, i in enumerate(m.frame_index)}
+            self.people.append({"name": name, "motion": m, "glb": glb,
+                                "rows": [where.get(int(i), -1) for i in self.frame_index],
+                                "colour": None if not folders else list(PEOPLE_RGB[k % len(PEOPLE_RGB)])})
+        self.glb = self.people[0]["glb"]
         self.seq = self._open_input(input)
         self._jpeg: dict[int, bytes] = {}
         self._lock = threading.Lock()
+
+    @property
+    def num_frames(self) -> int:
+        """The page's frame count (the result's rows; with several people, the input frames
+        any of them was tracked in)."""
+        return len(self.frame_index)
 
     def _open_input(self, given):
         from flowmocap.errors import DataError
@@ -92,7 +151,8 @@ class ViewerData:
         recorded = given or self.motion.run.get("input")
         if not recorded:
             return None
-        for p in (Path(recorded), self.result_dir.parent / str(recorded), self.result_dir.parent / Path(recorded).name):
+        home = self.result_dir.parent
+        for p in (Path(recorded), home / str(recorded), home / Path(recorded).name):
             if not p.exists():
                 continue
             try:
@@ -102,11 +162,11 @@ class ViewerData:
                 if given:  # the user's own --input: say why it cannot be shown rather than show grey frames
                     raise DataError(f"--input {given} cannot be read: {e}") from None
                 return None
-            if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.motion.frame_index.max()):
+            if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.frame_index.max()):
                 return seq
             if given:
                 raise DataError(f"{p} has {len(seq)} frames of {seq.size[0]}x{seq.size[1]} but the result is "
-                                f"{cam.width}x{cam.height} up to frame {int(self.motion.frame_index.max())}; "
+                                f"{cam.width}x{cam.height} up to frame {int(self.frame_index.max())}; "
                                 "pass the input that was tracked.")
             return None
         if given:
@@ -114,50 +174,66 @@ class ViewerData:
         return None
 
     def meta(self) -> dict:
-        """The page's data: ``name``, ``fps``, ``num_frames``, ``frame_index`` (T), ``width``,
-        ``height`` (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground
-        frame), ``camera`` (its ``to_dict``), ``centre`` (mean pelvis, metres), ``floor``
-        (how the floor was found), ``contacts`` (T x 2), ``feet`` (T x 2 x 3: the lowest
-        point of the left and right foot, metres), ``path`` (T x 3: the pelvis, metres),
+        """The page's data, per page frame (T of them, :attr:`num_frames`): ``name``, ``fps``,
+        ``num_frames``, ``frame_index`` (T: input frame numbers), ``width``, ``height``
+        (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground frame),
+        ``camera`` (its ``to_dict``), ``centre`` (mean pelvis of everyone, metres), ``floor``
+        (how the floor was found), ``people`` (per person: ``name``, ``glb`` (its URL),
+        ``colour`` (RGB 0..1, or None: the glb's own), ``rows`` (T: the person's result row
+        of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
+        where not tracked)); for the first person: ``contacts`` (T x 2), ``feet`` (T x 2 x 3:
+        the lowest point of the left and right foot, metres; None where not tracked), ``path``,
         ``smoothed``, ``has_input``, and from the result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
         per frame the mean over the scored joints, centimetres; None where there is none)
         and ``review`` (T, 0/1: :func:`~flowmocap.fit.disagreement.review_frames`, the tenth
-        of the frames where the sources part most)."""
+        of the frames where the sources part most; 0 where the first person is not tracked).
+        For one result the page frames are its rows."""
         from flowmocap.export.world import foot_vertex_sets
 
         m = self.motion
-        joints = m.joints()
         w = m.world
+        rows0 = self.people[0]["rows"]
         left, right = foot_vertex_sets(m.model.weights.cpu().numpy())
         feet = []
         for s in range(0, m.num_frames, 64):
             v = m.body(s, s + 64)[0]
             feet.append(np.stack([v[np.arange(len(v)), f[np.argmin(v[:, f, 1], axis=1)]]
                                   for f in (left, right)], 1))
+        feet = np.round(np.concatenate(feet), 4).tolist()
+        contacts = w.contacts.astype(int).tolist()
         floor = (f"{w.plane.method} ({w.plane.inliers} foot points)" if w.plane.method == "contacts"
                  else "fallback (lowest foot point)")
-        return {"name": self.result_dir.name, "fps": m.fps, "num_frames": m.num_frames,
-                "frame_index": [int(i) for i in m.frame_index], "width": m.camera.width, "height": m.camera.height,
+        people, pelvis = [], []
+        for k, p in enumerate(self.people):
+            root = p["motion"].joints()[:, 0]
+            pelvis.append(root)
+            path = np.round(root, 4).tolist()
+            people.append({"name": p["name"], "glb": "/motion.glb" if k == 0 else f"/motion/{k}.glb",
+                           "colour": p["colour"], "rows": p["rows"],
+                           "path": [None if r < 0 else path[r] for r in p["rows"]]})
+        return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
+                "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
-                "centre": joints[:, 0].mean(0).tolist(), "floor": floor,
-                "contacts": w.contacts.astype(int).tolist(), "feet": np.round(np.concatenate(feet), 4).tolist(),
-                "path": np.round(joints[:, 0], 4).tolist(), "smoothed": m.smoothed, "has_input": self.seq is not None,
-                **self._review()}
+                "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "people": people,
+                "contacts": [[0, 0] if r < 0 else contacts[r] for r in rows0],
+                "feet": [None if r < 0 else feet[r] for r in rows0], "path": people[0]["path"],
+                "smoothed": m.smoothed, "has_input": self.seq is not None, **self._review(rows0)}
 
-    def _review(self) -> dict:
-        """``disagreement_cm`` and ``review`` of :meth:`meta`."""
+    def _review(self, rows: list[int]) -> dict:
+        """``disagreement_cm`` and ``review`` of :meth:`meta` (the first person's, by page frame)."""
         from flowmocap.fit.disagreement import review_frames
 
         d = self.motion.disagreement
         if d is None or not np.isfinite(d).any():
             return {"disagreement_cm": None, "review": None}
         per_frame, flagged = review_frames(d)
-        return {"disagreement_cm": [None if not np.isfinite(v) else round(100 * float(v), 1) for v in per_frame],
-                "review": flagged.astype(int).tolist()}
+        return {"disagreement_cm": [None if r < 0 or not np.isfinite(per_frame[r]) else round(100 * float(per_frame[r]), 1)
+                                    for r in rows],
+                "review": [0 if r < 0 else int(flagged[r]) for r in rows]}
 
     def frame_jpeg(self, k: int) -> bytes:
-        """JPEG of result row ``k``'s input frame (grey without an input)."""
+        """JPEG of page frame ``k``'s input frame (grey without an input)."""
         from PIL import Image
 
         with self._lock:
@@ -167,7 +243,7 @@ class ViewerData:
         if self.seq is None:
             image = np.full((cam.height, cam.width, 3), 48, np.uint8)
         else:
-            image = np.asarray(self.seq.frame(int(self.motion.frame_index[k])))[..., :3]
+            image = np.asarray(self.seq.frame(int(self.frame_index[k])))[..., :3]
         buf = io.BytesIO()
         Image.fromarray(image).save(buf, "JPEG", quality=88)
         data = buf.getvalue()
@@ -207,9 +283,14 @@ class _Handler(BaseHTTPRequestHandler):
                 return self._send(json.dumps(self.data.meta()).encode(), "application/json")
             if path == "/motion.glb":
                 return self._send(self.data.glb, "model/gltf-binary")
+            if path.startswith("/motion/") and path.endswith(".glb"):
+                k = int(path[len("/motion/"):-len(".glb")])
+                if not 0 <= k < len(self.data.people):
+                    return self._send(b"no such person", "text/plain", 404)
+                return self._send(self.data.people[k]["glb"], "model/gltf-binary")
             if path.startswith("/frame/") and path.endswith(".jpg"):
                 k = int(path[len("/frame/"):-len(".jpg")])
-                if not 0 <= k < self.data.motion.num_frames:
+                if not 0 <= k < self.data.num_frames:
                     return self._send(b"no such frame", "text/plain", 404)
                 return self._send(self.data.frame_jpeg(k), "image/jpeg")
             if path.startswith("/static/"):
@@ -247,7 +328,8 @@ def register(subparsers) -> None:
         "frames with the fitted body over them and the body in 3D in the world frame (floor at 0, "
         "the camera in place): orbit with the mouse, play/pause, step, frame slider. Works offline "
         f"(three.js {THREE_VERSION} ships inside the package). Ctrl-C stops it.")
-    p.add_argument("result", help="result folder (motion.npz, run.json)")
+    p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder: every "
+                   "person in their own colour")
     p.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (default 8765; 0: any free port)")
     p.add_argument("--no-browser", action="store_true", help="only print the address, do not open a browser")
     p.add_argument("--input", help="the tracked video or sequence folder, if it moved since tracking")
@@ -272,7 +354,8 @@ def run_view(args) -> int:
     data = ViewerData(args.result, input=args.input, model=args.model, smooth=smooth_option(args.smooth, 2))
     server = make_server(data, args.port, quiet=not args.verbose)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
-    print(f"flowmocap view: {url}  ({data.motion.num_frames} frames; Ctrl-C to stop)", flush=True)
+    who = f"; {', '.join(p['name'] for p in data.people)}" if len(data.people) > 1 else ""
+    print(f"flowmocap view: {url}  ({data.num_frames} frames{who}; Ctrl-C to stop)", flush=True)
     if data.seq is None:
         print("the tracked input was not found: frames are grey (pass --input VIDEO_OR_FOLDER)", flush=True)
     if not args.no_browser:

@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from flowmocap.errors import InputError
-from flowmocap.export.motion import FRAMES, FittedMotion, load_fitted_motion, rotate_motion, up_rotation
+from flowmocap.export.motion import (FRAMES, FittedMotion, load_fitted_motion, motion_in_frame_of, rotate_motion,
+                                     up_rotation)
 
 __all__ = ["FORMATS", "export_result", "write_motion_glb", "default_output", "write_json", "FittedMotion", "load_fitted_motion",
-           "rotate_motion", "up_rotation", "FRAMES"]
+           "motion_in_frame_of", "rotate_motion", "up_rotation", "FRAMES"]
 
 #: format name -> default output name inside the result folder.
 FORMATS: dict[str, str] = {

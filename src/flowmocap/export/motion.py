@@ -19,7 +19,7 @@ projects the exported body onto the input pixels exactly as the fit did.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,7 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
-__all__ = ["FittedMotion", "load_fitted_motion", "up_rotation", "rotate_motion", "FRAMES"]
+__all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).
@@ -293,3 +293,35 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     if smoothed is not None:
         fm.joints2d = fm.camera.project(fm.joints()).astype(np.float64)
     return fm
+
+
+def motion_in_frame_of(motion: FittedMotion, other: FittedMotion) -> FittedMotion:
+    """``motion`` moved rigidly into ``other``'s export frame, through the camera both were
+    tracked with: the people of one video (``track --person all``) share its camera, so one
+    person's ground frame can hold them all.
+
+    With ``X_cam = R_m x_m + t_m`` (``motion.camera``) and ``X_cam = R_o x_o + t_o``
+    (``other.camera``): ``x_o = R_o^T R_m x_m + R_o^T (t_m - t_o)``.
+
+    Args:
+        motion, other: two :class:`FittedMotion` of one input, with cameras of the same
+            intrinsics and size.
+
+    Returns:
+        A new :class:`FittedMotion`: ``poses`` (the root turned), ``trans``, ``rotation``,
+        ``offset``, ``camera`` (``other``'s) and ``frame`` (``other``'s) changed, ``world``
+        None (the floor is ``other``'s); the body projects onto the same pixels as before.
+
+    Raises:
+        DataError: the cameras differ in intrinsics or size (not one input's results).
+    """
+    a, b = motion.camera, other.camera
+    if (a.width, a.height, a.fx, a.fy, a.cx, a.cy) != (b.width, b.height, b.fx, b.fy, b.cx, b.cy):
+        raise DataError(f"the two results were tracked with other cameras ({a.width}x{a.height} px, focal {a.fx:g} "
+                        f"against {b.width}x{b.height} px, focal {b.fx:g}); only results of one input tracked at "
+                        "one size share a frame.")
+    M = b.R.T @ a.R
+    off = b.R.T @ (a.t - b.t)
+    poses, trans = rotate_motion(motion.poses, motion.trans, motion.rest_joints()[0], M)
+    return replace(motion, poses=poses, trans=trans + off, rotation=M @ motion.rotation,
+                   offset=M @ motion.offset + off, camera=b, frame=other.frame, world=None)

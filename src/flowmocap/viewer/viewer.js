@@ -1,13 +1,17 @@
 // flowmocap view: the input with the fitted body over it, and the body in 3D in the world
 // frame (floor at y = 0). Served by `flowmocap view RESULT` (flowmocap/commands/view.py):
 //   /api/meta.json  fps, frames, image size, the camera (OpenGL matrices, world frame), floor
-//   /motion.glb     the skinned, animated body (the same file `flowmocap export --format glb` writes)
-//   /frame/K.jpg    input frame of result row K
+//   /motion.glb     the skinned, animated body (the same file `flowmocap export --format glb` writes);
+//                   with several people (a `track --person all` folder) /motion/N.glb is person N's,
+//                   all in the first person's ground frame (meta.people: glb, colour, rows, path)
+//   /frame/K.jpg    input frame of page frame K (a result row; with several people, an input
+//                   frame any of them was tracked in)
 // URL parameters: ?frame=K (start at row K, paused), ?play=1 (start playing), ?scale=S (draw
 // the input at S x its size instead of fitting it into its pane), ?az=DEG (the 3D view's
 // start, turned DEG about the vertical from the video camera's side; default 30).
 // When a frame is drawn, <body> carries data-frame=K, data-ready=1, data-overlay=[left,
-// top, width, height] (the overlay's place on the page, CSS pixels) and, where the result has
+// top, width, height] (the overlay's place on the page, CSS pixels), data-people (one 0/1
+// per person: drawn in this frame or not) and, where the result has
 // the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
 // tenth), for tests. The strip under the slider marks those frames in red.
 import * as THREE from 'three';
@@ -30,8 +34,19 @@ const meta = await (await fetch('/api/meta.json')).json();
 const T = meta.num_frames;
 const fps = meta.fps;
 $('slider').max = String(T - 1);
+const many = meta.people.length > 1;
+const hex = (c) => '#' + c.map((v) => Math.round(255 * v).toString(16).padStart(2, '0')).join('');
 $('info').textContent = `${meta.name}: ${T} frames at ${fps} fps, floor: ${meta.floor}` +
   (meta.smoothed ? ', smoothed' : '') + (meta.has_input ? '' : ' (input not found: grey frames)');
+if (many) {  // a key of the people in their colours
+  $('info').append(', people: ');
+  meta.people.forEach((p, i) => {
+    const tag = document.createElement('span');
+    tag.textContent = p.name + (i < meta.people.length - 1 ? ' ' : '');
+    tag.style.color = hex(p.colour);
+    $('info').append(tag);
+  });
+}
 
 // one scene, seen by two renderers: the result's camera (over the image) and an orbit camera
 const scene = new THREE.Scene();
@@ -49,12 +64,21 @@ floor.position.y = -0.001;
 floor.layers.set(HELPERS);
 scene.add(floor);
 
-const gltf = await new GLTFLoader().loadAsync('/motion.glb');
-const body = gltf.scene;
-body.traverse((o) => { if (o.isMesh) o.frustumCulled = false; });
-scene.add(body);
-const mixer = new THREE.AnimationMixer(body);
-mixer.clipAction(gltf.animations[0]).play();
+// one skinned body per person, each with its own animation clock (its result's rows)
+const bodies = [];
+for (const p of meta.people) {
+  const gltf = await new GLTFLoader().loadAsync(p.glb);
+  const body = gltf.scene;
+  body.traverse((o) => {
+    if (!o.isMesh) return;
+    o.frustumCulled = false;
+    if (p.colour) { o.material = o.material.clone(); o.material.color.setRGB(...p.colour); }
+  });
+  scene.add(body);
+  const mixer = new THREE.AnimationMixer(body);
+  mixer.clipAction(gltf.animations[0]).play();
+  bodies.push({ body, mixer, rows: p.rows });
+}
 
 // the result's camera: world-to-camera as OpenGL matrices computed by the server
 const videoCam = new THREE.PerspectiveCamera();
@@ -82,12 +106,14 @@ videoCam.layers.set(0);
   scene.add(pyramid);
 }
 
-// the pelvis's path dropped onto the floor, and a disc under each foot while it stands
-{
-  const pts = meta.path.flatMap((p) => [p[0], 0.003, p[2]]);
+// each pelvis's path dropped onto the floor (in the person's colour with several), and a
+// disc under each of the first person's feet while it stands
+for (const person of meta.people) {
+  const pts = person.path.filter((q) => q !== null).flatMap((q) => [q[0], 0.003, q[2]]);
   const g = new THREE.BufferGeometry();
   g.setAttribute('position', new THREE.Float32BufferAttribute(pts, 3));
-  const path = new THREE.Line(g, new THREE.LineBasicMaterial({ color: 0x50a0ff }));
+  const colour = person.colour ? new THREE.Color(...person.colour) : new THREE.Color(0x50a0ff);
+  const path = new THREE.Line(g, new THREE.LineBasicMaterial({ color: colour }));
   path.layers.set(HELPERS);
   scene.add(path);
 }
@@ -163,12 +189,17 @@ let token = 0;
 function draw() {
   const r = $('overlay-box').getBoundingClientRect();
   document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
-  mixer.setTime(current / fps);
-  body.updateMatrixWorld(true);
+  const shown = [];
+  for (const b of bodies) {
+    const row = b.rows[current];
+    b.body.visible = row >= 0;  // a person not tracked in this frame is not drawn
+    if (row >= 0) { b.mixer.setTime(row / fps); b.body.updateMatrixWorld(true); shown.push(1); } else shown.push(0);
+  }
+  document.body.dataset.people = shown.join('');
   for (const side of [0, 1]) {
-    const f = meta.feet[current][side];
-    discs[side].visible = meta.contacts[current][side] === 1;
-    discs[side].position.set(f[0], 0.004, f[2]);
+    const f = meta.feet[current] && meta.feet[current][side];
+    discs[side].visible = !!f && meta.contacts[current][side] === 1;
+    if (f) discs[side].position.set(f[0], 0.004, f[2]);
   }
   overlayR.render(scene, videoCam);
   worldR.render(scene, orbitCam);
