@@ -252,6 +252,8 @@ def test_render_draws_every_person_of_a_people_folder(clip, tmp_path, monkeypatc
     assert len(frames) == 4 and frames[0].shape == (120, 160, 3)
     assert main(["render", str(out), "--figure1", "--quiet"]) != 0
     assert "render a person's folder" in capsys.readouterr().err
-    # the commands that take one result say which folders to give
-    assert main(["export", str(out), "--format", "bvh", "--quiet"]) != 0
-    assert "give one of its person folders" in capsys.readouterr().err
+    # export writes everyone (in one frame: tests/test_view.py); what takes one result says which to give
+    assert main(["export", str(out), "--format", "bvh", "--quiet"]) == 0
+    assert (out / "export" / "person0.bvh").is_file() and (out / "export" / "person1.bvh").is_file()
+    with pytest.raises(DataError, match="give one of its person folders"):
+        flowmocap.load_result(out)

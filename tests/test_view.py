@@ -349,3 +349,22 @@ def test_page_draws_every_person_in_their_colour_where_the_camera_sees_them(peop
     assert np.median(px[only1][:, 0] - px[only1][:, 2]) > 20
     dom = _chromium_run(url + f"/?frame={len(data.frame_index) - 1}", "--dump-dom")
     assert 'data-ready="1"' in dom.stdout and 'data-people="01"' in dom.stdout
+
+
+def test_export_of_a_people_folder_puts_everyone_in_the_first_persons_frame(people, tmp_path, capsys):
+    """`flowmocap export PEOPLE -f json`: one file per person, all with the first person's
+    camera, and each person's exported joints project through it onto their own pixels."""
+    from flowmocap.cli import main
+    from flowmocap.export import load_fitted_motion
+
+    data, _ = people
+    out = tmp_path / "export"
+    assert main(["export", str(data.result_dir), "--format", "json", "--out", str(out), "--quiet"]) == 0
+    assert "2 people in one frame" in capsys.readouterr().out
+    files = [json.loads((out / f"person{k}.json").read_text()) for k in range(2)]
+    assert files[0]["camera"] == files[1]["camera"] and files[0]["frame"] == "ground"
+    cam = PinholeCamera.from_dict(files[1]["camera"])
+    own = load_fitted_motion(data.result_dir / "person1", frame="world")
+    j3 = np.array([f["joints3d"] for f in files[1]["frames"]])
+    np.testing.assert_allclose(cam.project(j3), own.camera.project(own.joints()), atol=0.01)  # json keeps 4-6 digits
+    assert "contact" in files[0]["frames"][0] and "contact" not in files[1]["frames"][0]

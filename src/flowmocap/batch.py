@@ -49,6 +49,7 @@ import torch
 
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import DataError, FlowMocapError, InputError
+from flowmocap.io.results import PEOPLE_MANIFEST
 from flowmocap.io.sequence import IMAGE_SUFFIXES
 from flowmocap.io.video import VIDEO_SUFFIXES
 from flowmocap.pipeline import load_result, track
@@ -63,9 +64,6 @@ MANIFEST = "batch.json"
 #: The command line's exit status when some inputs of a batch failed and the others finished.
 BATCH_FAILED = 6
 
-#: The file under a :func:`track_people` output folder that lists the people found and each
-#: one's result.
-PEOPLE_MANIFEST = "people.json"
 
 #: :func:`track_people` tracks, besides the largest person, every person the detector follows
 #: in at least this share of as many frames as the largest one: someone really there, not a

@@ -83,7 +83,7 @@ def cmd_track(args) -> int:
         items = track_people(args.input[0], args.out, workers=args.workers, ray=ray, force=args.force,
                              progress=not args.quiet, **settings)
         print(summary_table(items, args.out, noun="people"))
-        return _export_items(items, formats, args)
+        return _export_people(args.out, items, formats, args)
     if not is_batch(args.input, lists):
         if args.workers > 1 or args.ray is not None:
             print("one input: tracking it in this process (--workers and --ray share out several inputs)")
@@ -101,6 +101,24 @@ def cmd_track(args) -> int:
                        progress=not args.quiet, **settings)
     print(summary_table(items, args.out))
     return _export_items(items, formats, args)
+
+
+def _export_people(root, items, formats: list[str], args) -> int:
+    """``track --person all --export``: every tracked person in each format, in one frame
+    (:func:`flowmocap.export.export_people`, into ``ROOT/export``); the exit status."""
+    from flowmocap.export import export_people
+
+    failed = any(it.status == "failed" for it in items)
+    if any(it.ok for it in items):
+        for fmt in formats:
+            try:
+                for path in export_people(root, fmt, progress=not args.quiet,
+                                          markers=args.export_markers if fmt in ("trc", "c3d") else "joints"):
+                    print(f"wrote {path} ({fmt})")
+            except FlowMocapError as e:  # the tracked results are kept
+                print(f"export ({fmt}) of {root} failed: {e}", file=sys.stderr)
+                failed = True
+    return BATCH_FAILED if failed else 0
 
 
 def _export_items(items, formats: list[str], args) -> int:

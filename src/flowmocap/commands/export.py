@@ -23,9 +23,11 @@ def register(subparsers) -> None:
         description="Export a result folder of `flowmocap track` (or demo's result/). 3D output is in "
         "metres in the ground frame: gravity up (+y), the floor at y = 0, estimated from the fitted feet "
         "(cached in RESULT/world.json with per-frame foot contacts); --frame up only turns the result "
-        "y up, --frame world keeps the result's own world frame. Formats: "
+        "y up, --frame world keeps the result's own world frame. Given the folder of `track --person all` "
+        "(people.json), every tracked person is exported into DIR/export/personN.<ext> (or --out, a folder), all "
+        "in the first person's frame, so the files line up. Formats: "
         + "; ".join(f"{k}: {v}" for k, v in FORMAT_HELP.items()) + ".")
-    p.add_argument("result", help="result folder (motion.npz, run.json)")
+    p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder")
     p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT",
                    help="one of: " + ", ".join(FORMAT_HELP))
     p.add_argument("--out", "-o", help="output file (a folder for obj); default RESULT/export/motion.<ext> (motion_frames.glb, "
@@ -62,8 +64,19 @@ def smooth_option(text: str | None, order: int) -> dict | bool:
 
 
 def run_export(args) -> int:
-    from flowmocap.export import export_result
+    from pathlib import Path
 
+    from flowmocap.export import export_people, export_result
+    from flowmocap.io.results import PEOPLE_MANIFEST
+
+    if (Path(args.result) / PEOPLE_MANIFEST).exists():
+        paths = export_people(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
+                              units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
+                              smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers)
+        for path in paths:
+            print(f"wrote {path} ({args.fmt}: {FORMAT_HELP.get(args.fmt, '')})")
+        print(f"{len(paths)} people in one frame: the first person's ({args.frame})")
+        return 0
     path = export_result(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
                          units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
                          smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers)

@@ -60,7 +60,7 @@ def run_render(args) -> int:
 
     if not 0.0 <= args.alpha <= 1.0:
         raise InputError(f"--alpha must be between 0 and 1, got {args.alpha}.")
-    from flowmocap.batch import PEOPLE_MANIFEST
+    from flowmocap.io.results import PEOPLE_MANIFEST
 
     wanted = {k: getattr(args, k) for k in OUTPUTS}
     if (Path(args.result) / PEOPLE_MANIFEST).exists():
@@ -95,10 +95,8 @@ def run_render(args) -> int:
 
 def _render_people(args, wanted: dict) -> int:
     """``flowmocap render DIR`` on a ``track --person all`` folder: the people's overlay video."""
-    import json
-
-    from flowmocap.batch import PEOPLE_MANIFEST
-    from flowmocap.errors import DataError, FlowMocapError, InputError
+    from flowmocap.errors import InputError
+    from flowmocap.io.results import PEOPLE_MANIFEST, people_results
     from flowmocap.viz.result_render import ResultScene, people_overlay_video
 
     root = Path(args.result)
@@ -106,24 +104,10 @@ def _render_people(args, wanted: dict) -> int:
     if others:
         raise InputError(f"{root} holds several people's results ({PEOPLE_MANIFEST}); {', '.join(others)} draw one "
                          f"result: render a person's folder ({root / 'person0'}, ...) for them.")
-    try:
-        people = json.loads((root / PEOPLE_MANIFEST).read_text())["people"]
-    except (OSError, ValueError, KeyError, TypeError):
-        raise DataError(f"{root / PEOPLE_MANIFEST} is not a list of people written by `flowmocap track --person all`; "
-                        "track again into this folder to rewrite it.") from None
     scenes, names = [], []
-    for name in sorted(people, key=lambda n: int(str(n).removeprefix("person") or 0)):
-        if not (root / name).is_dir():
-            continue
-        try:
-            scenes.append(ResultScene(root / name, input=args.input, model=args.model))
-        except FlowMocapError as e:  # a person not (yet) tracked: drawn without them
-            print(f"{name} left out: {e}")
-            continue
+    for name, folder in people_results(root):
+        scenes.append(ResultScene(folder, input=args.input, model=args.model))
         names.append(name)
-    if not scenes:
-        raise DataError(f"none of the people in {root} has a tracked result yet; run `flowmocap track INPUT --out "
-                        f"{root} --person all` first.")
     path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
         OUTPUTS["video"]
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -64,37 +64,6 @@ def gl_camera(camera, near: float = 0.05, far: float = 200.0, corner_depth: floa
             "corners": [c.tolist() for c in corners]}
 
 
-def _people_folders(root: Path) -> list[tuple[str, Path]]:
-    """``[(name, folder)]`` of the tracked people of a ``track --person all`` folder, by rank
-    (those with a result); ``[]`` for any other folder.
-
-    Raises:
-        DataError: a people folder without any tracked result yet.
-    """
-    from flowmocap.batch import PEOPLE_MANIFEST
-    from flowmocap.errors import DataError, FlowMocapError
-    from flowmocap.io.results import read_result
-
-    if not (root / PEOPLE_MANIFEST).exists():
-        return []
-    try:
-        names = list(json.loads((root / PEOPLE_MANIFEST).read_text())["people"])
-    except (OSError, ValueError, KeyError, TypeError):
-        raise DataError(f"{root / PEOPLE_MANIFEST} is not a list of people written by `flowmocap track --person all`; "
-                        "track again into this folder to rewrite it.") from None
-    found = []
-    for name in sorted(names, key=lambda n: int(str(n).removeprefix("person") or 0)):
-        try:
-            read_result(root / name)
-        except FlowMocapError:  # not (yet) tracked
-            continue
-        found.append((name, root / name))
-    if not found:
-        raise DataError(f"none of the people in {root} has a tracked result yet; run `flowmocap track INPUT --out "
-                        f"{root} --person all` first.")
-    return found
-
-
 class ViewerData:
     """What the page shows, built once: the motion in the ground frame, its glb, the frames.
 
@@ -111,10 +80,11 @@ class ViewerData:
 
     def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False):
         from flowmocap.export import load_fitted_motion, motion_in_frame_of, write_motion_glb
+        from flowmocap.io.results import people_results
         from flowmocap.viz.overlay import PEOPLE_RGB
 
         self.result_dir = Path(result_dir)
-        folders = _people_folders(self.result_dir)
+        folders = people_results(self.result_dir)
         first = folders[0][1] if folders else self.result_dir
         #: the first person's motion (the only one's for a result folder), ground frame
         self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from flowmocap.errors import InputError
+from flowmocap.errors import DataError, InputError
 from flowmocap.export.motion import (FRAMES, FittedMotion, load_fitted_motion, motion_in_frame_of, rotate_motion,
                                      up_rotation)
 
 __all__ = ["FORMATS", "export_result", "write_motion_glb", "default_output", "write_json", "FittedMotion", "load_fitted_motion",
-           "motion_in_frame_of", "rotate_motion", "up_rotation", "FRAMES"]
+           "motion_in_frame_of", "rotate_motion", "up_rotation", "FRAMES", "export_people"]
 
 #: format name -> default output name inside the result folder.
 FORMATS: dict[str, str] = {
@@ -140,7 +140,8 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
 
 def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground",
                   model=None, units_per_metre: float = 1.0, progress: bool = False,
-                  smooth: bool | dict = False, markers: str = "joints") -> Path:
+                  smooth: bool | dict = False, markers: str = "joints",
+                  frame_of: FittedMotion | None = None) -> Path:
     """Export a result folder.
 
     Args:
@@ -157,6 +158,9 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         markers: the marker set of ``trc`` and ``c3d``
             (:data:`flowmocap.export.marker_sets.MARKER_SETS`: ``"joints"``, the 24 joint
             centres, or ``"halpe26"``, Pose2Sim's keypoints); other formats take only the default.
+        frame_of: another result of the same input, loaded: export in its frame instead
+            (:func:`~flowmocap.export.motion.motion_in_frame_of`; ``frame`` is then not used,
+            and there are no foot contacts).
 
     Returns:
         The path written (file or folder).
@@ -172,7 +176,11 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     if markers != "joints" and fmt not in ("trc", "c3d"):
         raise InputError(f"a marker set ({markers!r}) is for the trc and c3d formats; {fmt!r} holds the body itself.")
     out = Path(out) if out is not None else default_output(result_dir, fmt)
-    motion = load_fitted_motion(result_dir, frame=frame, model=model, smooth=smooth)
+    if frame_of is not None:
+        motion = motion_in_frame_of(load_fitted_motion(result_dir, frame="world", model=model, smooth=smooth), frame_of)
+        frame = frame_of.frame
+    else:
+        motion = load_fitted_motion(result_dir, frame=frame, model=model, smooth=smooth)
     rest = motion.rest_joints()
     if fmt == "bvh":
         from flowmocap.export.bvh import write_motion_bvh
@@ -210,3 +218,43 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         raise InputError("the AMASS layout is always z up; use --frame ground (the default) or up for --format npz.")
     return write_amass_npz(out, motion.poses, motion.trans, motion.betas, motion.gender, motion.fps, rest[0],
                            frame_index=motion.frame_index)
+
+
+def export_people(root: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground", model=None,
+                  units_per_metre: float = 1.0, progress: bool = False, smooth: bool | dict = False,
+                  markers: str = "joints") -> list[Path]:
+    """Export every tracked person of a ``track --person all`` folder, all in one frame: the
+    first person's ``frame`` (by default their ground frame), each other person moved there
+    through the camera they share (:func:`~flowmocap.export.motion.motion_in_frame_of`), so
+    the files line up when imported together.
+
+    Args:
+        root: the ``track --person all`` folder (``people.json``, ``person0/``, ...).
+        fmt, frame, model, units_per_metre, progress, smooth, markers: as :func:`export_result`.
+        out: the folder for the files (default ``ROOT/export``); each is named after its
+            person: ``person0.bvh``, ``person1_frames.glb``, ``person0_obj/``, ...
+
+    Returns:
+        The paths written, one per tracked person, by rank. Only the first person's files
+        carry foot contacts (json, c3d).
+
+    Raises:
+        DataError: not a people folder, or nobody tracked yet. InputError: as :func:`export_result`.
+    """
+    from flowmocap.io.results import PEOPLE_MANIFEST, people_results
+
+    _check_format(fmt)
+    root = Path(root)
+    people = people_results(root)
+    if not people:
+        raise DataError(f"{root} holds no {PEOPLE_MANIFEST}: it is not the folder of `flowmocap track --person all`.")
+    folder = Path(out) if out is not None else root / "export"
+    first = load_fitted_motion(people[0][1], frame=frame, model=model, smooth=smooth)
+    paths = []
+    for k, (name, result) in enumerate(people):
+        target = folder / FORMATS[fmt].replace("motion", name, 1) if FORMATS[fmt].startswith("motion") else \
+            folder / f"{name}_{FORMATS[fmt]}"
+        paths.append(export_result(result, fmt, out=target, frame=frame, model=model, units_per_metre=units_per_metre,
+                                   progress=progress, smooth=smooth, markers=markers,
+                                   frame_of=None if k == 0 else first))
+    return paths

@@ -289,6 +289,42 @@ def is_result_folder(out_dir: str | Path) -> bool:
     return isinstance(run, dict) and "flowmocap" in run
 
 
+#: The file of a ``track --person all`` folder (:func:`flowmocap.batch.track_people`) that
+#: lists the people found and each one's result folder (``person0``, ``person1``, ...).
+PEOPLE_MANIFEST = "people.json"
+
+
+def people_results(root: str | Path) -> list[tuple[str, Path]]:
+    """The tracked people of a ``track --person all`` folder: ``[(name, result folder)]`` by
+    rank, those with a readable result (a person not yet tracked, or whose run failed
+    before its first frame, is left out); ``[]`` for a folder without ``people.json``.
+
+    Raises:
+        DataError: an unreadable ``people.json``, or none of its people tracked yet.
+    """
+    root = Path(root)
+    path = root / PEOPLE_MANIFEST
+    if not path.exists():
+        return []
+    try:
+        names = [str(n) for n in json.loads(path.read_text())["people"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DataError(f"{path} is not a list of people written by `flowmocap track --person all`; track again into "
+                        "this folder to rewrite it.") from None
+    found = []
+    for name in sorted(names, key=lambda n: int(n.removeprefix("person")) if n.removeprefix("person").isdigit()
+                       else 1 << 30):
+        try:
+            read_result(root / name)
+        except DataError:  # not (yet) tracked
+            continue
+        found.append((name, root / name))
+    if not found:
+        raise DataError(f"none of the people in {root} has a tracked result yet; run `flowmocap track INPUT --out "
+                        f"{root} --person all` first.")
+    return found
+
+
 def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     """``(motion arrays, run info)`` of a result folder, finished or not: a run that is
     still going, or was killed, gives its committed frames and events (see the module
@@ -319,7 +355,7 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
                 motion = {k: z[k] for k in z.files}
     except FileNotFoundError as e:
         hint = ""
-        if (out_dir / "people.json").exists():  # flowmocap.batch.PEOPLE_MANIFEST (io sits above batch's layer)
+        if (out_dir / PEOPLE_MANIFEST).exists():
             hint = (f"; it holds the people of `track --person all`: give one of its person folders "
                     f"({out_dir / 'person0'}, ...)")
         elif (out_dir / "batch.json").exists():  # flowmocap.batch.MANIFEST
