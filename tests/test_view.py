@@ -38,10 +38,13 @@ def result(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def served(result):
-    data = ViewerData(result)
+    yield from _serving(ViewerData(result))
+
+
+def _serving(data):
+    """Serve ``data`` on a free port while the fixture lasts: yields ``(data, url)``."""
     server = make_server(data, port=0)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
+    threading.Thread(target=server.serve_forever, daemon=True).start()
     yield data, f"http://127.0.0.1:{server.server_address[1]}"
     server.shutdown()
     server.server_close()
@@ -218,11 +221,7 @@ def reviewed(tmp_path_factory, result):
     dis[1] = np.nan  # a frame without sources
     write_motion(d, {**motion, "disagreement": dis})
     data = ViewerData(d)
-    server = make_server(data, port=0)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    yield data, f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
+    yield from _serving(data)
 
 
 def test_meta_marks_the_frames_where_the_3d_sources_part_most(served, reviewed):
@@ -266,11 +265,7 @@ def people(tmp_path_factory):
         "person0": {"rank": 0, "tracked": True}, "person1": {"rank": 1, "tracked": True},
         "person2": {"rank": 2, "tracked": False}}}))
     data = ViewerData(root)
-    server = make_server(data, port=0)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    yield data, f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
+    yield from _serving(data)
 
 
 def test_a_person_moved_into_anothers_frame_projects_onto_the_same_pixels(people):

@@ -283,16 +283,21 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
         done += 1
         results[res.name] = res
         _update_manifest(root, {res.name: _manifest_entry(res)})
-        if res.status == "failed":
-            say(f"[{done}/{len(todo)}] {res.name}: FAILED after {res.seconds:.1f} s: {res.error}")
-            if res.details:
-                print(res.details, file=sys.stderr, end="" if res.details.endswith("\n") else "\n")
-        else:
-            say(f"[{done}/{len(todo)}] {res.name}: {res.status}, {res.frames} frames "
-                f"({res.new_frames} new, {res.s_per_frame:.2f} s per frame, {res.seconds:.1f} s)")
+        _say_result(say, f"[{done}/{len(todo)}] ", res)
 
     _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
     return [results[it.name] for it in items]
+
+
+def _say_result(say: Callable[[str], None], prefix: str, res: BatchItem) -> None:
+    """One line on how an item's run ended (a failure's traceback, if any, to stderr)."""
+    if res.status == "failed":
+        say(f"{prefix}{res.name}: FAILED after {res.seconds:.1f} s: {res.error}")
+        if res.details:
+            print(res.details, file=sys.stderr, end="" if res.details.endswith("\n") else "\n")
+    else:
+        say(f"{prefix}{res.name}: {res.status}, {res.frames} frames "
+            f"({res.new_frames} new, {res.s_per_frame:.2f} s per frame, {res.seconds:.1f} s)")
 
 
 def _checked_kwargs(who: str, own: Sequence[str], track_kwargs: dict, workers, ray, force: bool) -> dict:
@@ -424,13 +429,7 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
         entry = _manifest_entry(res)
         del entry["input"]  # people.json names it once
         _update_people(root, src, min_share, {res.name: entry})
-        if res.status == "failed":
-            say(f"{res.name}: FAILED after {res.seconds:.1f} s: {res.error}")
-            if res.details:
-                print(res.details, file=sys.stderr, end="" if res.details.endswith("\n") else "\n")
-        else:
-            say(f"{res.name}: {res.status}, {res.frames} frames ({res.new_frames} new, {res.s_per_frame:.2f} s per "
-                f"frame, {res.seconds:.1f} s)")
+        _say_result(say, "", res)
 
     if first.status == "finished":
         say(f"{first.name} (the largest person) finished before: skipped")

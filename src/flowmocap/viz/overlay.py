@@ -32,6 +32,17 @@ def _shade_over(vertices: np.ndarray, faces, camera: PinholeCamera, background: 
     return shade(px, v_cam[:, 2], faces, v_cam, colours, background=background, supersample=supersample)
 
 
+def _checked_image(image: np.ndarray, camera: PinholeCamera, alpha: float) -> np.ndarray:
+    """``image`` as uint8 once it is the camera's size and RGB and ``alpha`` is in [0, 1]."""
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (camera.height, camera.width):
+        raise InputError(f"image must be ({camera.height}, {camera.width}, 3) RGB for this camera; "
+                         f"got {img.shape}.")
+    if not 0.0 <= alpha <= 1.0:
+        raise InputError(f"alpha must be in [0, 1], got {alpha}.")
+    return img.astype(np.uint8)
+
+
 def overlay_body(image: np.ndarray, vertices: np.ndarray, faces, camera: PinholeCamera, alpha: float = 0.6,
                  colour=BODY_RGB, supersample: int = 2) -> np.ndarray:
     """Draw a shaded, semi-transparent body over an image.
@@ -48,13 +59,7 @@ def overlay_body(image: np.ndarray, vertices: np.ndarray, faces, camera: Pinhole
     Returns:
         ``(H, W, 3)`` uint8 RGB; pixels off the body are ``image`` unchanged.
     """
-    img = np.asarray(image)
-    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (camera.height, camera.width):
-        raise InputError(f"image must be ({camera.height}, {camera.width}, 3) RGB for this camera; "
-                         f"got {img.shape}.")
-    if not 0.0 <= alpha <= 1.0:
-        raise InputError(f"alpha must be in [0, 1], got {alpha}.")
-    img = img.astype(np.uint8)
+    img = _checked_image(image, camera, alpha)
     shaded = _shade_over(vertices, faces, camera, img, colour, supersample)
     out = alpha * shaded.astype(np.float32) + (1.0 - alpha) * img.astype(np.float32)
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
@@ -81,17 +86,11 @@ def overlay_bodies(image: np.ndarray, bodies, camera: PinholeCamera, alpha: floa
     """
     from flowmocap.render import shade
 
-    img = np.asarray(image)
-    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (camera.height, camera.width):
-        raise InputError(f"image must be ({camera.height}, {camera.width}, 3) RGB for this camera; "
-                         f"got {img.shape}.")
-    if not 0.0 <= alpha <= 1.0:
-        raise InputError(f"alpha must be in [0, 1], got {alpha}.")
+    img = _checked_image(image, camera, alpha)
     if colours is None:
         colours = [PEOPLE_RGB[k % len(PEOPLE_RGB)] for k in range(len(bodies))]
     if len(colours) != len(bodies):
         raise InputError(f"one colour per body: {len(bodies)} bodies, {len(colours)} colours.")
-    img = img.astype(np.uint8)
     verts, faces, cols, offset = [], [], [], 0
     for (v, f), c in zip(bodies, colours):
         v = np.asarray(v, np.float64)
