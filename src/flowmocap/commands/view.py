@@ -86,6 +86,7 @@ class ViewerData:
         self.result_dir = Path(result_dir)
         folders = people_results(self.result_dir)
         first = folders[0][1] if folders else self.result_dir
+        self._home = Path(first).parent  # where a moved input is looked for, beside the result folder
         #: the first person's motion (the only one's for a result folder), ground frame
         self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)
         motions = [self.motion] + [motion_in_frame_of(load_fitted_motion(d, frame="world", model=model, smooth=smooth),
@@ -121,7 +122,7 @@ class ViewerData:
         recorded = given or self.motion.run.get("input")
         if not recorded:
             return None
-        home = self.result_dir.parent
+        home = self._home
         for p in (Path(recorded), home / str(recorded), home / Path(recorded).name):
             if not p.exists():
                 continue
