@@ -128,7 +128,7 @@ def test_a_first_run_that_finds_nobody_ends_there(clip, tmp_path, monkeypatch):
     assert "no person found" in items[0].error
 
 
-def test_bad_arguments_are_refused_before_anything_runs(clip, tmp_path, capsys):
+def test_bad_arguments_are_refused_before_anything_runs(clip, tmp_path):
     with pytest.raises(InputError, match="automatic masks"):
         track_people(clip / "walk", tmp_path / "a", masks=clip / "walk" / "masks", log=None)
     with pytest.raises(InputError, match="automatic init"):
@@ -147,10 +147,35 @@ def test_bad_arguments_are_refused_before_anything_runs(clip, tmp_path, capsys):
     with pytest.raises(InputError, match="batch of inputs"):
         track_people(clip / "walk", tmp_path / "b", log=None)
     assert not (tmp_path / "a").exists()
-    # the command line: one input only
-    assert main(["track", str(clip / "walk"), str(clip / "walk"), "--out", str(tmp_path / "c"), "--person", "all",
-                 "--quiet"]) != 0
-    assert "--person all tracks every person of one input" in capsys.readouterr().err
+
+
+def test_several_inputs_each_get_a_folder_of_people_and_a_missing_one_stops_nothing(clip, tmp_path, monkeypatch):
+    import shutil
+
+    from flowmocap.batch import MANIFEST, track_people_many
+
+    fake = FakeDetections(clip)
+    monkeypatch.setattr(batch, "track", fake)
+    shutil.copytree(clip / "walk", tmp_path / "dance")
+    out = tmp_path / "out"
+    items = track_people_many([clip / "walk", tmp_path / "missing.mp4", tmp_path / "dance"], out, log=None,
+                              progress=False)
+    assert [(it.name, it.status) for it in items] == [("walk/person0", "tracked"), ("walk/person1", "tracked"),
+                                                      ("missing/person0", "failed"), ("dance/person0", "tracked"),
+                                                      ("dance/person1", "tracked")]
+    assert "does not exist" in items[2].error
+    assert fake.asked == [0, 1, 0, 1]
+    manifest = json.loads((out / MANIFEST).read_text())["results"]
+    assert manifest["walk"]["status"] == "finished" and manifest["walk"]["people"] == 2
+    assert manifest["missing"]["status"] == "failed"
+    for name in ("walk", "dance"):
+        assert json.loads((out / name / PEOPLE_MANIFEST).read_text())["people"]["person1"]["status"] == "tracked"
+    # again: everyone finished is skipped
+    items = track_people_many([clip / "walk", tmp_path / "dance"], out, log=None, progress=False)
+    assert fake.asked == [0, 1, 0, 1] and {it.status for it in items} == {"skipped"}
+    # the command line takes several inputs with --person all
+    assert main(["track", str(clip / "walk"), str(tmp_path / "dance"), "--out", str(out), "--person", "all",
+                 "--quiet"]) == 0
 
 
 _CAM01 = SHARED_DATA / "video" / "pose2sim-multi" / "videos" / "cam01.mp4"

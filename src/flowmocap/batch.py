@@ -56,7 +56,7 @@ from flowmocap.pipeline import load_result, track
 from flowmocap.version import __version__
 
 __all__ = ["BATCH_FAILED", "MANIFEST", "PEOPLE_MANIFEST", "PEOPLE_MIN_SHARE", "BatchItem", "expand_inputs",
-           "is_batch", "people_to_track", "plan", "summary_table", "track_many", "track_people"]
+           "is_batch", "people_to_track", "plan", "summary_table", "track_many", "track_people", "track_people_many"]
 
 #: The file under ``out_root`` that maps result folder names to inputs.
 MANIFEST = "batch.json"
@@ -397,13 +397,7 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
             ``out_root`` that is a single result folder or a batch's folder.
     """
     say = log if log is not None else (lambda _msg: None)
-    for key in ("masks", "init"):
-        if track_kwargs.get(key) not in (None, "auto"):
-            raise InputError(f"every person is tracked with automatic {key}: your own {key} ({track_kwargs[key]}) "
-                             "would say who is tracked; leave it out, or track that person alone.")
-    if not 0.0 <= float(min_share) <= 1.0:
-        raise InputError(f"min_share must lie in 0..1; got {min_share!r}.")
-    kwargs = _checked_kwargs("track_people", (*_OWN_ARGS, "person"), track_kwargs, workers, ray, force)
+    kwargs = _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
     root = Path(out_root)
     if _holds_result(root):
         raise InputError(f"{root} is the result folder of a single run; give another --out folder for every person "
@@ -461,6 +455,73 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
         + (f"; {len(todo)} more to track" if todo else "") + (f", {skipped} finished before (skipped)" if skipped else ""))
     _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
     return [results[r] for r in sorted(results)]
+
+
+def track_people_many(inputs: Sequence[str | Path], out_root: str | Path, min_share: float = PEOPLE_MIN_SHARE,
+                      workers: int = 1, ray: bool | str = False, force: bool = False, progress: bool = True,
+                      log: Callable[[str], None] | None = print, **track_kwargs) -> list[BatchItem]:
+    """:func:`track_people` for each of several inputs, one after the other: input ``x``'s
+    people go to ``out_root/<name>/person0``, ... (``<name>`` as :func:`track_many` names
+    result folders; ``out_root/batch.json`` keeps the names and each input's status). One
+    input's failure does not stop the others; run again, finished people are skipped.
+
+    Args:
+        inputs: as :func:`track_many` (:func:`expand_inputs` first).
+        out_root, min_share, workers, ray, force, progress, log, track_kwargs: as
+            :func:`track_people` (``workers`` and ``ray`` share out each input's people).
+
+    Returns:
+        one :class:`BatchItem` per person tracked (``name`` is ``<name>/personN``), input by
+        input; an input that failed before anyone was tracked gives one failed item.
+
+    Raises:
+        InputError: as :func:`track_people`, before anything runs.
+    """
+    say = log if log is not None else (lambda _msg: None)
+    _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
+    root = Path(out_root)
+    if _holds_result(root):
+        raise InputError(f"{root} is the result folder of a single input; give another --out folder for several "
+                         "inputs (each gets its own folder of people inside it).")
+    root.mkdir(parents=True, exist_ok=True)
+    paths = [Path(p) for p in inputs]
+    names = _names(paths, root, _read_manifest(root))
+    _update_manifest(root, {names[_absolute(p)]: {"input": _absolute(p)} for p in paths})
+    done: set[str] = set()
+    items: list[BatchItem] = []
+    for p in paths:
+        name = names[_absolute(p)]
+        if name in done:
+            continue
+        done.add(name)
+        say(f"[{len(done)}/{len(names)}] {p}: every person into {root / name}")
+        t0 = time.perf_counter()
+        try:
+            if not p.exists():
+                raise DataError(f"{p} does not exist; give a video file, a folder of frames or a sequence folder.")
+            people = track_people(p, root / name, min_share=min_share, workers=workers, ray=ray, force=force,
+                                  progress=progress, log=log, **track_kwargs)
+        except FlowMocapError as e:  # this input's own trouble (e.g. its folder holds another input's people)
+            people = [BatchItem(input=str(p), name="person0", out=root / name / "person0", status="failed",
+                                seconds=time.perf_counter() - t0, error=str(e), person=0)]
+        items += [replace(it, name=f"{name}/{it.name}") for it in people]
+        failed = [it.name for it in people if it.status == "failed"]
+        _update_manifest(root, {name: {"status": "failed" if failed else "finished", "people": len(people),
+                                       **({"failed": failed} if failed else {}),
+                                       "when": time.strftime("%Y-%m-%dT%H:%M:%S%z")}})
+    return items
+
+
+def _checked_people_kwargs(track_kwargs: dict, min_share: float, workers, ray, force: bool) -> dict:
+    """:func:`_checked_kwargs` for :func:`track_people`: no person, masks or init of one's own,
+    ``min_share`` in 0..1."""
+    for key in ("masks", "init"):
+        if track_kwargs.get(key) not in (None, "auto"):
+            raise InputError(f"every person is tracked with automatic {key}: your own {key} ({track_kwargs[key]}) "
+                             "would say who is tracked; leave it out, or track that person alone.")
+    if not 0.0 <= float(min_share) <= 1.0:
+        raise InputError(f"min_share must lie in 0..1; got {min_share!r}.")
+    return _checked_kwargs("track_people", (*_OWN_ARGS, "person"), track_kwargs, workers, ray, force)
 
 
 def _person_item(root: Path, source: str, rank: int, force: bool) -> BatchItem:

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from flowmocap.batch import BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many, track_people
+from flowmocap.batch import (BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many, track_people,
+                             track_people_many)
 from flowmocap.commands import register_all
 from flowmocap.errors import FlowMocapError, InputError, OutputError
 from flowmocap.export.marker_sets import MARKER_SETS
@@ -76,10 +77,16 @@ def cmd_track(args) -> int:
     formats = _export_formats(args.export, args.export_markers)
     ray = False if args.ray is None else (args.ray or True)
     if str(args.person).strip().lower() == "all":
-        if is_batch(args.input, lists):
-            raise InputError("--person all tracks every person of one input; give one video, frames folder or "
-                             "sequence folder (or run the command once per input).")
         del settings["person"]
+        if is_batch(args.input, lists):  # OUT/<name>/personN for each input
+            items = track_people_many(expand_inputs(args.input, lists), args.out, workers=args.workers, ray=ray,
+                                      force=args.force, progress=not args.quiet, **settings)
+            print(summary_table(items, args.out, noun="people"))
+            status = 0
+            for name in dict.fromkeys(it.name.split("/")[0] for it in items):
+                mine = [it for it in items if it.name.split("/")[0] == name]
+                status = max(status, _export_people(Path(args.out) / name, mine, formats, args))
+            return status
         items = track_people(args.input[0], args.out, workers=args.workers, ray=ray, force=args.force,
                              progress=not args.quiet, **settings)
         print(summary_table(items, args.out, noun="people"))
@@ -252,7 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the person seen biggest, nearest and longest), N (the N-th by that measure, 0 = the "
                    "largest), x,y (a pixel of the video's frames, before --max-size, on the person in the first "
                    "frame they appear in), or all (every person the detector follows in at least a quarter as many "
-                   "frames as the largest, each into --out/personN by that rank, listed in --out/people.json; "
+                   "frames as the largest, each into --out/personN by that rank, listed in --out/people.json (with several "
+                   "inputs: --out/<name>/personN); "
                    "--workers and --ray share them out); recorded in run.json")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"],
