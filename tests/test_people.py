@@ -282,3 +282,18 @@ def test_render_draws_every_person_of_a_people_folder(clip, tmp_path, monkeypatc
     assert (out / "export" / "person0.bvh").is_file() and (out / "export" / "person1.bvh").is_file()
     with pytest.raises(DataError, match="give one of its person folders"):
         flowmocap.load_result(out)
+
+
+def test_someone_back_in_view_far_from_where_they_left_is_a_second_track():
+    """What the docs say of --person all: a person back after a gap is the same track when
+    they come back near where they left, a second one when more than two body heights away."""
+    from flowmocap.vision.auto import find_people, split_tracks
+
+    from test_person_choice import ColourDetector, People
+
+    for x_back, tracks in ((30, 1), (400, 2)):
+        seen = {i: (10, 20, 24, 60) for i in range(5)}  # 40 px tall; gone in frames 5-14
+        seen.update({i: (x_back, 20, x_back + 14, 60) for i in range(15, 20)})
+        scene = People([seen], n=20, size=(512, 128))
+        found = find_people(scene, ColourDetector(scene), ColourDetector(scene), progress=False)
+        assert len(split_tracks(found)) == tracks, x_back

@@ -389,8 +389,9 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
 
     Returns:
         one :class:`BatchItem` per person tracked, by rank (``person`` holds the rank). A
-        person counted once may be two people to the eye: someone who leaves the view and
-        comes back is followed as two.
+        person to the eye may be two here: someone who comes back into view more than two
+        body heights from where they were last seen is followed as two
+        (:func:`flowmocap.vision.person.same_person`).
 
     Raises:
         InputError: bad arguments (as :func:`track_many`), own masks or init, or an
