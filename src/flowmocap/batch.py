@@ -453,7 +453,8 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
     skipped = len(items) - len(todo)
     found_n = len(info["person"]["people"])
     say(f"{found_n} {'person' if found_n == 1 else 'people'} found, {len(chosen)} followed long enough to track"
-        + (f"; {len(todo)} more to track" if todo else "") + (f", {skipped} finished before (skipped)" if skipped else ""))
+        + (f"; {len(todo)} more to track" if todo else "")
+        + (f", {skipped} finished before (skipped)" if skipped else ""))
     _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
     return [results[r] for r in sorted(results)]
 

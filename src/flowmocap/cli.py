@@ -221,7 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "resumes interrupted ones, and one input's failure does not stop the others. --person all "
                        "tracks every person in one input the same way, one result folder each.",
                        epilog=f"Exit status: 0 when every input has a finished result; {BATCH_FAILED} when some inputs "
-                       "of a batch (or people of --person all) failed (the others are done; the summary says why; run again to retry them); "
+                       "of a batch (or people of --person all) failed (the others are done; the summary says why; "
+                       "run again to retry them); "
                        "other non-zero values on an error that stopped the command.")
     t.add_argument("input", nargs="*", help="a video file, a sequence folder (frames/, masks/, camera.json) or a "
                    "folder of frames; for a batch: several of them, a folder of videos and sequence folders, or "
@@ -259,9 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the person seen biggest, nearest and longest), N (the N-th by that measure, 0 = the "
                    "largest), x,y (a pixel of the video's frames, before --max-size, on the person in the first "
                    "frame they appear in), or all (every person the detector follows in at least a quarter as many "
-                   "frames as the largest, each into --out/personN by that rank, listed in --out/people.json (with several "
-                   "inputs: --out/<name>/personN); "
-                   "--workers and --ray share them out); recorded in run.json")
+                   "frames as the largest, each into --out/personN by that rank, listed in --out/people.json; "
+                   "with several inputs --out/<name>/personN; --workers and --ray share them out); recorded in "
+                   "run.json")
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"],
                    help="which body of the model file (default neutral)")

@@ -199,8 +199,8 @@ class ViewerData:
         if d is None or not np.isfinite(d).any():
             return {"disagreement_cm": None, "review": None}
         per_frame, flagged = review_frames(d)
-        return {"disagreement_cm": [None if r < 0 or not np.isfinite(per_frame[r]) else round(100 * float(per_frame[r]), 1)
-                                    for r in rows],
+        return {"disagreement_cm": [None if r < 0 or not np.isfinite(per_frame[r])
+                                    else round(100 * float(per_frame[r]), 1) for r in rows],
                 "review": [0 if r < 0 else int(flagged[r]) for r in rows]}
 
     def frame_jpeg(self, k: int) -> bytes:
