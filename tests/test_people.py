@@ -13,7 +13,7 @@ import pytest
 
 import flowmocap
 from flowmocap import batch
-from flowmocap.batch import PEOPLE_MANIFEST, people_to_track, track_people
+from flowmocap.batch import PEOPLE_MANIFEST, PEOPLE_SEARCH, people_to_track, track_people
 from flowmocap.cli import main
 from flowmocap.errors import DataError, InputError
 from flowmocap.eval.protocol import noisy_init
@@ -73,6 +73,10 @@ class FakeDetections:
     def __call__(self, src, out, person="largest", resume=False, progress=False, log=None, **kwargs):
         self.asked.append(person)
         assert kwargs.get("masks") in (None, "auto") and kwargs.get("init") in (None, "auto")
+        search = Path(kwargs["search_dir"])  # every person's run is given the same search folder
+        assert search == (Path(out).parent / PEOPLE_SEARCH).resolve()
+        search.mkdir(exist_ok=True)  # as the detector's search would be stored there
+        (search / "find-000000-000004.npz").touch()
         if person == self.fail:
             self.fail = None
             raise DataError(f"person {person} could not be tracked (a test's failure)")
@@ -99,11 +103,13 @@ def test_every_person_gets_a_result_folder_and_a_failure_is_retried_on_the_next_
     assert [people[n]["tracked"] for n in people] == [True, True, False]
     assert people["person0"]["status"] == "tracked" and people["person1"]["status"] == "failed"
     assert people["person2"]["detections"] == 5 and "status" not in people["person2"]
+    assert (out / PEOPLE_SEARCH).is_dir()  # someone is left to track: the search is kept for them
 
     # run again: the finished largest person is skipped, the failed one tracked
     items = track_people(clip / "walk", out, log=None, progress=False)
     assert fake.asked == [0, 1, 1]
     assert [(it.name, it.status) for it in items] == [("person0", "skipped"), ("person1", "tracked")]
+    assert not (out / PEOPLE_SEARCH).exists()  # everyone tracked: no longer needed
     np.testing.assert_array_equal(flowmocap.load_result(out / "person0").poses,
                                   flowmocap.load_result(out / "person1").poses)  # the fake tracks one clip
     # and again: nothing to do
@@ -137,6 +143,11 @@ def test_bad_arguments_are_refused_before_anything_runs(clip, tmp_path):
         track_people(clip / "walk", tmp_path / "a", person=1, log=None)
     with pytest.raises(InputError, match="0..1"):
         track_people(clip / "walk", tmp_path / "a", min_share=-0.1, log=None)
+    # one input's search is shared by its people, never by several inputs
+    for run in (track_people, batch.track_many):
+        with pytest.raises(InputError, match="search_dir"):
+            run(clip / "walk" if run is track_people else [clip / "walk"], tmp_path / "a", search_dir=tmp_path / "s",
+                log=None)
     single = tmp_path / "single"
     flowmocap.track(clip / "walk", single, init=clip / "init.json", config=QUICK, joints3d="off", log=None,
                     progress=False)
@@ -183,13 +194,25 @@ _CAM01 = SHARED_DATA / "video" / "pose2sim-multi" / "videos" / "cam01.mp4"
 
 @pytest.mark.skipif(not _CAM01.exists(), reason="the Pose2Sim recording (../shared/data/video/pose2sim-multi) is "
                     "not here; it holds the two people this test tracks")
-def test_both_people_of_the_real_recording_are_tracked(tmp_path, capsys):
+def test_both_people_of_the_real_recording_are_tracked(tmp_path, capsys, monkeypatch):
     """cam01 of the two-person recording, its first 4 frames at a third of their size: two
     result folders, on two different people (their fitted 2D joints lie apart by more than
     a body's width), each where its own detections put it, the second the same as tracked
-    alone with ``--person 1``."""
+    alone with ``--person 1``. The detector searches the frames for everyone once: the
+    second person's run only follows them, and the search is removed at the end."""
     import av
     import cv2
+
+    from flowmocap.vision import auto
+
+    passes = []
+    run_process = auto._run_detector_process
+
+    def counted(task, folder, a, b):
+        passes.append((Path(task["path"]).parent.name, task["kind"]))
+        return run_process(task, folder, a, b)
+
+    monkeypatch.setattr(auto, "_run_detector_process", counted)
 
     frames = tmp_path / "frames"
     frames.mkdir()
@@ -205,6 +228,9 @@ def test_both_people_of_the_real_recording_are_tracked(tmp_path, capsys):
     assert main(["track", str(frames), "--out", str(out), "--person", "all", "--config", str(tmp_path / "quick.json"),
                  "--quiet"]) == 0
     assert "2 people: 2 tracked" in capsys.readouterr().out
+    # one search, in the shared folder; each person followed in their own run's folder
+    assert passes == [(PEOPLE_SEARCH, "find"), ("chunks", "follow"), ("chunks", "follow")], passes
+    assert not (out / PEOPLE_SEARCH).exists()
     people = json.loads((out / PEOPLE_MANIFEST).read_text())["people"]
     assert [people[n]["tracked"] for n in ("person0", "person1")] == [True, True]
     centres = []

@@ -34,6 +34,7 @@ import json
 import multiprocessing
 import os
 import re
+import shutil
 import socket
 import sys
 import time
@@ -71,6 +72,11 @@ BATCH_FAILED = 6
 #: dancer's 90; the same share decides when the largest person is re-detected with the others
 #: blanked, :data:`flowmocap.vision.auto.LARGEST_FOLLOW_SHARE`).
 PEOPLE_MIN_SHARE = 0.25
+
+#: The folder in :func:`track_people`'s output where the detector's search for everyone is
+#: kept while people remain to be tracked: each person's run reads it instead of searching
+#: the video again (about half of each detection pass); removed once everyone is tracked.
+PEOPLE_SEARCH = "search"
 
 #: Arguments of :func:`flowmocap.track` that may name a file or folder: made absolute before
 #: they go to another process (a Ray worker need not share this process's working folder).
@@ -306,6 +312,9 @@ def _checked_kwargs(who: str, own: Sequence[str], track_kwargs: dict, workers, r
     clash = sorted(set(track_kwargs) & set(own))
     if clash:
         raise InputError(f"{who} sets {', '.join(clash)} for each result itself; leave them out.")
+    if "search_dir" in track_kwargs:  # one input's search, shared by its people: never by several inputs
+        raise InputError(f"{who} does not take search_dir: it is for the runs of one input that choose different "
+                         "people (track_people keeps one for them itself); leave it out.")
     if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
     if ray is not False and ray is not None and workers != 1:
@@ -374,7 +383,9 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
     of as many frames (:func:`people_to_track`) is tracked by their rank N into
     ``out_root/personN``, with the others blanked for the detector. ``out_root/people.json``
     lists the people found, which were tracked and how each run ended. Run again, finished
-    people are skipped and interrupted ones resumed, as in :func:`track_many`.
+    people are skipped and interrupted ones resumed, as in :func:`track_many`. The
+    detector's search for everyone is made once, in ``out_root/search``
+    (:data:`PEOPLE_SEARCH`), read by every person's run, and removed once all are tracked.
 
     Args:
         source: one video, frames folder or sequence folder (its masks are not used: the
@@ -416,6 +427,7 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
                          "same input to go on with it.")
     root.mkdir(parents=True, exist_ok=True)
     _update_people(root, src, min_share, {})
+    kwargs["search_dir"] = str((root / PEOPLE_SEARCH).resolve())
     first = _person_item(root, src, 0, force)
     results: dict[int, BatchItem] = {}
 
@@ -456,6 +468,8 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
         + (f"; {len(todo)} more to track" if todo else "")
         + (f", {skipped} finished before (skipped)" if skipped else ""))
     _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
+    if all(results[r].status != "failed" for r in results):  # nobody left to search for
+        shutil.rmtree(root / PEOPLE_SEARCH, ignore_errors=True)
     return [results[r] for r in sorted(results)]
 
 

@@ -205,7 +205,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           max_size: int | None = 640, reinit: bool = True, joints3d: str = "auto",
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
           force: bool = False, keep_flow: bool | None = None, fast: bool = False,
-          height: float | None = None, detector: str | None = None) -> Result:
+          height: float | None = None, detector: str | None = None,
+          search_dir: str | Path | None = None) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -276,6 +277,11 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             settings tied to it (:data:`~flowmocap.fit.config.NETWORK_SETTINGS`, under ``config``);
             None: the profile's and ``config``'s (a config naming ``detector_model`` names
             those settings itself).
+        search_dir: a folder where the detector's search for everyone in ``source`` is
+            kept, for runs of the same input that choose another ``person``
+            (:func:`~flowmocap.vision.auto.detect_sequence`; :func:`flowmocap.batch.track_people`
+            gives one); the result does not depend on it. None: in ``out``, removed when the
+            detection pass ends.
 
     Returns:
         the :class:`Result`.
@@ -303,7 +309,8 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
-                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height, detector)
+                          flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height, detector,
+                          search_dir)
         except BaseException as e:
             _failed_before_tracking(out, e)
             if not isinstance(e, OSError):
@@ -332,7 +339,7 @@ def _failed_before_tracking(out: Path, error: BaseException) -> None:
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
            flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False, height=None,
-           detector=None) -> Result:
+           detector=None, search_dir=None) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -423,7 +430,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # --fast: MediaPipe without the mask augmentation (its three extra runs a frame); the
         # search for other people stays (without it the tracked person can be the wrong one)
         detections = detect_sequence(seq, out, progress=progress, detector="unaugmented" if fast else None,
-                                     person="largest" if choice[0] == "largest" else choice[1], model=cfg.detector_model)
+                                     person="largest" if choice[0] == "largest" else choice[1], model=cfg.detector_model,
+                                     search_dir=search_dir)
         if auto_masks:
             seq.masks = list(detections.mask_paths)
     notes: dict = {"camera_source": camera_source,

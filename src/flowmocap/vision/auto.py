@@ -241,7 +241,7 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
                     reuse: bool = True, searcher: PersonDetector | None | str = "default",
-                    person="largest", model: str = "full") -> PersonTrack:
+                    person="largest", model: str = "full", search_dir: str | Path | None = None) -> PersonTrack:
     """Masks and keypoints of one person in every frame of ``seq``, stored in ``out_dir``.
 
     A detector that tracks follows the first person it finds. To find the others, the
@@ -271,6 +271,12 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
         model: the landmark model of the MediaPipe detectors made here
             (:data:`~flowmocap.vision.detect.MODELS`: "full" or "heavy"); not used with a
             detector object.
+        search_dir: a folder where the search for everyone (the pass before the chosen
+            person is followed, the same whoever is chosen) is stored by stretches and kept,
+            to be read by later passes over the same ``seq`` that choose another person
+            (:func:`flowmocap.batch.track_people` gives one for all the people of an
+            input); None: inside ``out_dir/detections``, removed when the pass ends. Used
+            when the detector runs in processes of its own (the default).
 
     Raises:
         NoPersonError: no frame shows a person.
@@ -293,11 +299,11 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     if (detector is None or isinstance(detector, str)) and searcher in ("default", None) and DETECT_IN_CHILD \
             and _picklable(seq):
         spec = {"augment": augment, "search": searcher == "default" and not plain, "model": model}
-        name = MediaPipePoseDetector.describe(augment=spec["augment"], model=model)
+        base = MediaPipePoseDetector.describe(augment=spec["augment"], model=model)
         if spec["search"]:
-            name += f"+search:{MediaPipePoseDetector.describe(augment=False, model=model)}"
-        name += _choice_suffix(choice, spec["search"])
-        passes = _InChildren(seq, out_dir, spec, name, progress)
+            base += f"+search:{MediaPipePoseDetector.describe(augment=False, model=model)}"
+        name = base + _choice_suffix(choice, spec["search"])
+        passes = _InChildren(seq, out_dir, spec, name, progress, base=base, search_dir=search_dir)
         track = _detect_sequence(seq, out_dir, passes, name, choice, reuse)
         passes.clear()  # the stretches are in keypoints.npz and the masks now
         return track
@@ -352,17 +358,23 @@ class _InChildren:
     a pass that is stopped (Ctrl-C, ``kill``, the detector's process killed for memory)
     goes on from the first stretch not stored; :meth:`clear` removes them once the
     detections are written. ``spec``: ``{"augment": bool, "search": bool, "model": str}``.
+    ``name`` names the detections (``base``, the detectors, and the person chosen); the
+    search's stretches are tagged with ``base`` and the input alone, and stored in
+    ``search_dir`` where one is given (kept there for passes that choose another person).
     """
 
-    def __init__(self, seq, out_dir: Path, spec: dict, name: str, progress: bool):
+    def __init__(self, seq, out_dir: Path, spec: dict, name: str, progress: bool, base: str | None = None,
+                 search_dir: str | Path | None = None):
         self.seq, self.spec, self.name, self.progress = seq, spec, name, progress
+        self.base = name if base is None else base
         self.folder = _chunk_dir(out_dir)
+        self.search_folder = self.folder if search_dir is None else Path(search_dir)
 
     def find(self) -> list[list[Candidate]]:
-        if not any(self.folder.glob("find-*.npz")):  # a new pass: no person followed in an older one
+        if not any(self.search_folder.glob("find-*.npz")):  # a new pass: no person followed in an older one
             for old in self.folder.glob("follow-*.npz"):
                 old.unlink()
-        return self._chunks("find", self.name, lambda a, b, got: {})
+        return self._chunks("find", f"{self.base}|{getattr(self.seq, 'root', '')}", lambda a, b, got: {})
 
     def follow(self, cands, tracks, chosen: int) -> list[Candidate | None]:
         own, others = _chosen_and_others(cands, tracks, chosen)
@@ -385,9 +397,11 @@ class _InChildren:
         T = len(self.seq)
         key = f"{key}|{kind}|{T}|{self.seq.size[0]}x{self.seq.size[1]}"
         got: list[list[Candidate]] = [[] for _ in range(T)]
+        store = self.search_folder if kind == "find" else self.folder
+        store.mkdir(parents=True, exist_ok=True)
         for a in range(0, T, DETECT_CHUNK):
             b = min(T, a + DETECT_CHUNK)
-            path = self.folder / f"{kind}-{a:06d}-{b:06d}.npz"
+            path = store / f"{kind}-{a:06d}-{b:06d}.npz"
             stretch = load_chunk(path, key, a, b, masks=False)
             if stretch is None:
                 _run_detector_process({**task(a, b, got), "seq": self.seq, "spec": self.spec, "kind": kind,
