@@ -360,3 +360,18 @@ def test_real3d_draws_config_and_summary(tmp_path):
     assert (dst / "runs" / "person1-cam01" / "detections" / "keypoints.npz").exists()
     assert not (dst / "runs" / "person1-cam01" / "motion.npz").exists()  # the tracking is the draw's own
     dr._reuse(src, dst)  # again: nothing to do, no error
+
+
+def test_people_floor_measures_are_zero_at_the_reference_and_see_a_wrong_depth():
+    """benchmarks/people_floor.py: the depth-ratio and gap errors are 0 for the reference at any
+    overall scale, and for the other person at 1.2 times the depth log(1.2) and the gap's change."""
+    floor = _load("people_floor")
+    rng = np.random.default_rng(0)
+    ref_f = rng.uniform(-0.5, 0.5, (20, 3)) + (0.0, 0.0, 3.0)
+    ref_o = rng.uniform(-0.5, 0.5, (20, 3)) + (1.0, 0.0, 4.0)
+    m = floor.pair_measures(2.0 * ref_f, 2.0 * ref_o, ref_f, ref_o)  # the same scene, twice as large
+    assert m["depth_ratio"] == pytest.approx(0.0, abs=1e-12) and m["gap"] == pytest.approx(0.0, abs=1e-12)
+    m = floor.pair_measures(ref_f, 1.2 * ref_o, ref_f, ref_o)  # the other 1.2 times as far along its ray
+    assert m["depth_ratio"] == pytest.approx(np.log(1.2))
+    gap = np.abs(np.linalg.norm(1.2 * ref_o - ref_f, axis=1) - np.linalg.norm(ref_o - ref_f, axis=1)) / ref_f[:, 2]
+    assert m["gap"] == pytest.approx(np.median(gap))

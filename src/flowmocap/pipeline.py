@@ -430,8 +430,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # --fast: MediaPipe without the mask augmentation (its three extra runs a frame); the
         # search for other people stays (without it the tracked person can be the wrong one)
         detections = detect_sequence(seq, out, progress=progress, detector="unaugmented" if fast else None,
-                                     person="largest" if choice[0] == "largest" else choice[1], model=cfg.detector_model,
-                                     search_dir=search_dir)
+                                     person="largest" if choice[0] == "largest" else choice[1],
+                                     model=cfg.detector_model, search_dir=search_dir)
         if auto_masks:
             seq.masks = list(detections.mask_paths)
     notes: dict = {"camera_source": camera_source,

@@ -45,6 +45,10 @@ def register(subparsers) -> None:
                    "halpe26 (Pose2Sim's HALPE_26 keypoints Hip, RHip, ..., RHeel, as its OpenSim model "
                    "Model_Pose2Sim_Halpe26 names them: where a detector puts them on the fitted body)")
     p.add_argument("--bvh-unit", default="m", choices=["m", "cm"], help="BVH length unit (default m)")
+    p.add_argument("--own-size", action="store_true",
+                   help="a `track --person all` folder: each person keeps the size and distance of their own fit "
+                        "(by default everyone after the first is scaled about the camera to stand on the first "
+                        "person's floor)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_export)
 
@@ -66,17 +70,22 @@ def smooth_option(text: str | None, order: int) -> dict | bool:
 def run_export(args) -> int:
     from pathlib import Path
 
+    from flowmocap.errors import InputError
     from flowmocap.export import export_people, export_result
     from flowmocap.io.results import PEOPLE_MANIFEST
 
     if (Path(args.result) / PEOPLE_MANIFEST).exists():
         paths = export_people(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
                               units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
-                              smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers)
+                              smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers,
+                              floor=not args.own_size, log=print)
         for path in paths:
             print(f"wrote {path} ({args.fmt}: {FORMAT_HELP.get(args.fmt, '')})")
-        print(f"{len(paths)} people in one frame: the first person's ({args.frame})")
+        print(f"{len(paths)} people in one frame: the first person's ({args.frame})"
+              + ("" if args.own_size else "; on one floor (floor.json)"))
         return 0
+    if args.own_size:
+        raise InputError(f"--own-size is for the folder of `track --person all`; {args.result} is one result.")
     path = export_result(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
                          units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,
                          smooth=smooth_option(args.smooth, args.smooth_order), markers=args.markers)

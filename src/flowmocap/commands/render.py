@@ -36,6 +36,10 @@ def register(subparsers) -> None:
     p.add_argument("--history", type=int, default=None, help="frames of joint history to draw (default all)")
     p.add_argument("--input", help="the tracked video or sequence folder, if it moved since tracking")
     p.add_argument("--model", default=None, help="body model (default: the one recorded in run.json)")
+    p.add_argument("--own-size", action="store_true",
+                   help="a `track --person all` folder: each person keeps the size and distance of their own fit "
+                        "(by default everyone after the first is scaled about the camera to stand on the first "
+                        "person's floor)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_render)
 
@@ -65,6 +69,8 @@ def run_render(args) -> int:
     wanted = {k: getattr(args, k) for k in OUTPUTS}
     if (Path(args.result) / PEOPLE_MANIFEST).exists():
         return _render_people(args, wanted)
+    if args.own_size:
+        raise InputError(f"--own-size is for the folder of `track --person all`; {args.result} is one result.")
     if all(v is None for v in wanted.values()):
         wanted = {k: "" for k in OUTPUTS}
     out_dir = Path(args.out) if args.out else Path(args.result) / "render"
@@ -105,9 +111,17 @@ def _render_people(args, wanted: dict) -> int:
         raise InputError(f"{root} holds several people's results ({PEOPLE_MANIFEST}); {', '.join(others)} draw one "
                          f"result: render a person's folder ({root / 'person0'}, ...) for them.")
     scenes, names = [], []
-    for name, folder in people_results(root):
+    folders = people_results(root)
+    for name, folder in folders:
         scenes.append(ResultScene(folder, input=args.input, model=args.model))
         names.append(name)
+    if not args.own_size and len(folders) > 1:  # everyone stood on the first person's floor: who is nearer is drawn
+        from flowmocap.export.floor import people_floor, scaled_about_camera
+
+        for k, fit in enumerate(people_floor([d for _, d in folders], model=args.model)):
+            print(fit.describe(names[k], names[0]))
+            if k > 0 and fit.scale is not None:
+                scenes[k].motion = scaled_about_camera(scenes[k].motion, fit.scale)
     path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
         OUTPUTS["video"]
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -78,8 +78,9 @@ class ViewerData:
             be decoded or is not the tracked one (its size or length differs).
     """
 
-    def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False):
+    def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False, floor: bool = True):
         from flowmocap.export import load_fitted_motion, motion_in_frame_of, write_motion_glb
+        from flowmocap.export.floor import people_floor, scaled_about_camera
         from flowmocap.io.results import people_results
         from flowmocap.viz.overlay import PEOPLE_RGB
 
@@ -89,8 +90,15 @@ class ViewerData:
         self._home = Path(first).parent  # where a moved input is looked for, beside the result folder
         #: the first person's motion (the only one's for a result folder), ground frame
         self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)
-        motions = [self.motion] + [motion_in_frame_of(load_fitted_motion(d, frame="world", model=model, smooth=smooth),
-                                                      self.motion) for _, d in folders[1:]]
+        #: with several people and ``floor``: how each was stood on the first person's floor
+        #: (:func:`flowmocap.export.floor.people_floor`), else None
+        self.floor = people_floor([d for _, d in folders], model=model) if floor and len(folders) > 1 else None
+        motions = [self.motion]
+        for k, (_, d) in enumerate(folders[1:], start=1):
+            m = load_fitted_motion(d, frame="world", model=model, smooth=smooth)
+            if self.floor is not None and self.floor[k].scale is not None:
+                m = scaled_about_camera(m, self.floor[k].scale)
+            motions.append(motion_in_frame_of(m, self.motion))
         names = [n for n, _ in folders] or [self.result_dir.name]
         #: the page's frames: the input frames any person was tracked in, ascending
         self.frame_index = np.unique(np.concatenate([m.frame_index for m in motions])).astype(np.int64)
@@ -307,6 +315,10 @@ def register(subparsers) -> None:
     p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
                    help="show the motion smoothed offline (as flowmocap export --smooth)")
     p.add_argument("--model", default=None, help="body model (default: the one recorded in run.json)")
+    p.add_argument("--own-size", action="store_true",
+                   help="a `track --person all` folder: each person keeps the size and distance of their own fit "
+                        "(by default everyone after the first is scaled about the camera to stand on the first "
+                        "person's floor)")
     p.add_argument("--verbose", action="store_true", help="log every request")
     p.set_defaults(func=run_view)
 
@@ -321,8 +333,18 @@ def run_view(args) -> int:
         from flowmocap.errors import InputError
 
         raise InputError(f"--port must be 0..65535, got {args.port}.")
+    from flowmocap.io.results import PEOPLE_MANIFEST
+
+    if args.own_size and not (Path(args.result) / PEOPLE_MANIFEST).exists():
+        from flowmocap.errors import InputError
+
+        raise InputError(f"--own-size is for the folder of `track --person all`; {args.result} is one result.")
     print(f"preparing {args.result} ...", flush=True)
-    data = ViewerData(args.result, input=args.input, model=args.model, smooth=smooth_option(args.smooth, 2))
+    data = ViewerData(args.result, input=args.input, model=args.model, smooth=smooth_option(args.smooth, 2),
+                      floor=not args.own_size)
+    if data.floor is not None:
+        for p, fit in zip(data.people, data.floor):
+            print(fit.describe(p["name"], data.people[0]["name"]), flush=True)
     server = make_server(data, args.port, quiet=not args.verbose)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     who = f"; {', '.join(p['name'] for p in data.people)}" if len(data.people) > 1 else ""

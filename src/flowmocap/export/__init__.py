@@ -15,6 +15,7 @@ file is z up, as AMASS's own; the C3D file is z up and in millimetres, as labs w
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -141,7 +142,7 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
 def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground",
                   model=None, units_per_metre: float = 1.0, progress: bool = False,
                   smooth: bool | dict = False, markers: str = "joints",
-                  frame_of: FittedMotion | None = None) -> Path:
+                  frame_of: FittedMotion | None = None, scale: float | None = None) -> Path:
     """Export a result folder.
 
     Args:
@@ -161,6 +162,9 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         frame_of: another result of the same input, loaded: export in its frame instead
             (:func:`~flowmocap.export.motion.motion_in_frame_of`; ``frame`` is then not used,
             and there are no foot contacts).
+        scale: with ``frame_of``, scale the body about the camera centre by this first
+            (:func:`~flowmocap.export.floor.scaled_about_camera`; e.g. the factor that
+            stands it on ``frame_of``'s floor, :func:`~flowmocap.export.floor.floor_scale`).
 
     Returns:
         The path written (file or folder).
@@ -176,8 +180,15 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     if markers != "joints" and fmt not in ("trc", "c3d"):
         raise InputError(f"a marker set ({markers!r}) is for the trc and c3d formats; {fmt!r} holds the body itself.")
     out = Path(out) if out is not None else default_output(result_dir, fmt)
+    if scale is not None and frame_of is None:
+        raise InputError("a scale moves a person onto another's floor: give the other's motion too (frame_of).")
     if frame_of is not None:
-        motion = motion_in_frame_of(load_fitted_motion(result_dir, frame="world", model=model, smooth=smooth), frame_of)
+        motion = load_fitted_motion(result_dir, frame="world", model=model, smooth=smooth)
+        if scale is not None:
+            from flowmocap.export.floor import scaled_about_camera
+
+            motion = scaled_about_camera(motion, scale)
+        motion = motion_in_frame_of(motion, frame_of)
         frame = frame_of.frame
     else:
         motion = load_fitted_motion(result_dir, frame=frame, model=model, smooth=smooth)
@@ -222,7 +233,8 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
 
 def export_people(root: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground", model=None,
                   units_per_metre: float = 1.0, progress: bool = False, smooth: bool | dict = False,
-                  markers: str = "joints") -> list[Path]:
+                  markers: str = "joints", floor: bool = True,
+                  log: Callable[[str], None] | None = None) -> list[Path]:
     """Export every tracked person of a ``track --person all`` folder, all in one frame: the
     first person's ``frame`` (by default their ground frame), each other person moved there
     through the camera they share (:func:`~flowmocap.export.motion.motion_in_frame_of`), so
@@ -233,6 +245,11 @@ def export_people(root: str | Path, fmt: str, out: str | Path | None = None, fra
         fmt, frame, model, units_per_metre, progress, smooth, markers: as :func:`export_result`.
         out: the folder for the files (default ``ROOT/export``); each is named after its
             person: ``person0.bvh``, ``person1_frames.glb``, ``person0_obj/``, ...
+        floor: stand everyone on the first person's floor (:mod:`flowmocap.export.floor`:
+            each other person scaled about the camera centre, where the factor is accepted);
+            what was done is written to ``floor.json`` beside the files. False: each keeps
+            their own fit's size and distance.
+        log: where to say, one line per person, how they were put on the floor.
 
     Returns:
         The paths written, one per tracked person, by rank. Only the first person's files
@@ -250,11 +267,21 @@ def export_people(root: str | Path, fmt: str, out: str | Path | None = None, fra
         raise DataError(f"{root} holds no {PEOPLE_MANIFEST}: it is not the folder of `flowmocap track --person all`.")
     folder = Path(out) if out is not None else root / "export"
     first = load_fitted_motion(people[0][1], frame=frame, model=model, smooth=smooth)
+    from flowmocap.export.floor import people_floor, write_floor
+
+    fits = None
+    if floor:
+        fits = people_floor([d for _, d in people], model=model)
+        for (name, _), fit in zip(people, fits):
+            if log is not None:
+                log(fit.describe(name, people[0][0]))
     paths = []
     for k, (name, result) in enumerate(people):
         target = folder / FORMATS[fmt].replace("motion", name, 1) if FORMATS[fmt].startswith("motion") else \
             folder / f"{name}_{FORMATS[fmt]}"
         paths.append(export_result(result, fmt, out=target, frame=frame, model=model, units_per_metre=units_per_metre,
                                    progress=progress, smooth=smooth, markers=markers,
-                                   frame_of=None if k == 0 else first))
+                                   frame_of=None if k == 0 else first,
+                                   scale=None if k == 0 or fits is None else fits[k].scale))
+    write_floor(folder / "floor.json", [n for n, _ in people], fits)
     return paths

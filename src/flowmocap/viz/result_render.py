@@ -239,8 +239,10 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     (:data:`~flowmocap.viz.overlay.PEOPLE_RGB` in the scenes' order) and named in a key at
     the top left (grey where that person's result has no such frame; "not seen" where it was
     tracked through the frame by flow alone, run.json's ``gaps``). Where bodies overlap, the
-    one nearer the camera is drawn; each body's depth is its own fit's, which one camera
-    leaves uncertain (a body's size and distance trade).
+    one nearer the camera is drawn, at the depths the scenes' motions give: each fit's own,
+    which one camera leaves uncertain (a body's size and distance trade), unless the caller
+    stood them on one floor first (``flowmocap render`` does,
+    :func:`flowmocap.export.floor.people_floor`).
 
     Args:
         scenes: the results of one input (e.g. ``DIR/person0``, ``DIR/person1`` of ``track

@@ -1,0 +1,257 @@
+"""One floor for the people of one video (``flowmocap track --person all``).
+
+One camera leaves each body's absolute size open: a body ``s`` times larger, ``s`` times
+further from the camera, gives nearly the same image. Each person of a video is fitted
+alone, so each body's size is what its own fit and the shape prior settle on (about 1.6 m
+for anyone), and two people of different heights come out the same height, at depths that
+do not stand them on one floor. The people of one video do share a floor. This module puts
+each person after the first on the first person's floor:
+
+- :func:`floor_in_camera`: the first person's floor (their ground frame,
+  :mod:`flowmocap.export.world`, fitted to their standing feet) as a plane in camera
+  coordinates;
+- :func:`floor_scale`: the factor ``s`` that scales another person about the camera centre
+  so that their standing feet (the lowest vertex of each foot in the frames it stands still)
+  rest on that plane, the median over those points of ``d / (n . p)``;
+- :func:`scaled_about_camera`: the person's body scaled by ``s`` (the shape nearest to it
+  scaled, :func:`flowmocap.body.stature.scaled_shape`) with the root ``s`` times as far from
+  the camera along its ray: the image stays, up to the few millimetres by which a shape
+  space misses an exact scaling.
+
+Measured on the four-camera recording (``benchmarks/people_floor.py``; ``docs/experiments.md``,
+"The people of one video on one floor"): the second person's depth relative to the first's is
+nearer the four-camera reference in 23 of 24 camera / floor pairs, and their size relative to
+the first comes out 0.77-0.87x (the reference's bones 0.81x), where each fit alone makes them
+0.91-1.10x.
+
+The floor is not shared where a person stands on something else (a box, stairs, a step):
+a factor outside :data:`SCALE_RANGE` is refused and that person keeps their own size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from flowmocap.errors import DataError
+
+__all__ = ["FloorFit", "SCALE_RANGE", "MIN_POINTS", "floor_in_camera", "standing_feet_in_camera", "floor_scale",
+           "scaled_about_camera", "people_floor", "write_floor", "FLOOR_FILE"]
+
+#: What :func:`write_floor` writes beside a people folder's exports.
+FLOOR_FILE = "floor.json"
+
+#: Factors a person may be scaled by to stand on the first person's floor; one outside is
+#: refused (the person keeps their own fit's size): more than half again or a third less
+#: than the body's fitted size is a person on something else, or a floor fitted wrong.
+SCALE_RANGE = (0.67, 1.5)
+
+#: Standing-foot points (one per foot and frame it stands still) a person needs for a factor.
+MIN_POINTS = 10
+
+
+@dataclass
+class FloorFit:
+    """How a person was put on the first person's floor.
+
+    Attributes:
+        scale: the factor about the camera centre (1.0 for the first person), or None
+            where it was refused or could not be found (``why`` says which): the person
+            then keeps their own size.
+        points: standing-foot points it was found from.
+        stature_m: the body's stature after scaling (its own where ``scale`` is None), metres.
+        own_stature_m: the stature of the person's own fit, metres.
+        why: None, or why the person keeps their own size.
+    """
+
+    scale: float | None
+    points: int
+    stature_m: float
+    own_stature_m: float
+    why: str | None = None
+
+    def to_dict(self) -> dict:
+        return {"scale": None if self.scale is None else round(self.scale, 4), "points": self.points,
+                "stature_m": round(self.stature_m, 3), "own_stature_m": round(self.own_stature_m, 3),
+                "why": self.why}
+
+    def describe(self, name: str, first: str) -> str:
+        """One line for the user."""
+        if self.scale is None:
+            return f"{name}: kept the size of its own fit ({self.own_stature_m:.2f} m tall): {self.why}"
+        if name == first:
+            return f"{name}: its floor is everyone's ({self.own_stature_m:.2f} m tall)"
+        return (f"{name}: stood on {first}'s floor: {self.scale:.2f}x the size and distance of its own fit "
+                f"({self.own_stature_m:.2f} -> {self.stature_m:.2f} m tall; {self.points} standing-foot points)")
+
+
+def floor_in_camera(motion) -> tuple[np.ndarray, float]:
+    """The floor of ``motion`` as the plane ``n . X = d`` in its camera's coordinates.
+
+    Args:
+        motion: a :class:`~flowmocap.export.motion.FittedMotion` loaded with
+            ``frame="ground"`` (its ``world`` holds the floor).
+
+    Returns:
+        ``n`` ``(3,)`` the unit normal pointing up, and ``d`` (metres; negative when the
+        camera is above the floor).
+
+    Raises:
+        DataError: ``motion`` has no floor (loaded in another frame).
+    """
+    if motion.world is None:
+        raise DataError("this motion has no floor: load it with frame='ground'.")
+    plane = motion.world.plane
+    n_e = motion.rotation @ np.asarray(plane.normal, np.float64)  # the result's frame -> the export frame
+    h_e = float(plane.height) + n_e @ np.asarray(motion.offset, np.float64)
+    R, t = np.asarray(motion.camera.R, np.float64), np.asarray(motion.camera.t, np.float64)
+    n_c = R @ n_e
+    return n_c, h_e + float(n_c @ t)
+
+
+def standing_feet_in_camera(motion, up_camera: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """The lowest vertex along ``up_camera`` of each foot in the frames it stands still.
+
+    Args:
+        motion: a :class:`~flowmocap.export.motion.FittedMotion` loaded with
+            ``frame="ground"`` (its ``world.contacts``, ``(T, 2)`` left/right).
+        up_camera: ``(3,)`` the up direction in camera coordinates.
+
+    Returns:
+        ``(P, 3)`` camera coordinates, metres; P = the number of standing feet over the frames.
+    """
+    from flowmocap.export.world import foot_vertex_sets
+
+    if motion.world is None:
+        raise DataError("this motion has no foot contacts: load it with frame='ground'.")
+    contacts = np.asarray(motion.world.contacts, bool)
+    R, t = np.asarray(motion.camera.R, np.float64), np.asarray(motion.camera.t, np.float64)
+    up = R.T @ np.asarray(up_camera, np.float64)  # in the motion's export frame
+    feet = foot_vertex_sets(motion.model.weights.cpu().numpy())
+    out = []
+    start = 0
+    for body in motion.posed(chunk=chunk, with_vertices=True):
+        v = body.vertices.numpy()
+        for k, idx in enumerate(feet):
+            rows = np.flatnonzero(contacts[start:start + len(v), k])
+            if rows.size:
+                f = v[rows][:, idx]
+                out.append(np.take_along_axis(f, np.argmin(f @ up, axis=1)[:, None, None], axis=1)[:, 0])
+        start += len(v)
+    pts = np.concatenate(out) if out else np.zeros((0, 3))
+    return pts @ R.T + t
+
+
+def floor_scale(motion, first, scale_range: tuple[float, float] = SCALE_RANGE,
+                min_points: int = MIN_POINTS) -> FloorFit:
+    """The factor about the camera centre that stands ``motion`` on ``first``'s floor.
+
+    Args:
+        motion, first: two :class:`~flowmocap.export.motion.FittedMotion` of one input (one
+            camera), both loaded with ``frame="ground"``.
+        scale_range: the factors accepted (:data:`SCALE_RANGE`).
+        min_points: the standing-foot points needed (:data:`MIN_POINTS`).
+
+    Returns:
+        :class:`FloorFit`; ``scale`` None (with ``why``) where ``first``'s floor is not
+        fitted to standing feet, the camera is not above it, ``motion`` stands still on too
+        few feet, or the factor lies outside ``scale_range``.
+    """
+    from flowmocap.body.stature import STATURE_RANGE_M, scaled_shape, stature
+
+    own = stature(motion.model, motion.betas)
+    keep = lambda why, points=0: FloorFit(None, points, own, own, why)  # noqa: E731
+    if first.world is None or first.world.plane.method != "contacts":
+        return keep("the first person's floor is not fitted to standing feet")
+    n_c, d_c = floor_in_camera(first)
+    if d_c >= 0:
+        return keep("the camera is not above the first person's floor")
+    pts = standing_feet_in_camera(motion, n_c)
+    below = pts[pts @ n_c < 0]  # a point level with the camera or above it cannot be scaled onto the floor
+    if len(below) < min_points:
+        return keep(f"it stands still on a foot in too few frames ({len(below)} foot points, {min_points} needed)",
+                    len(below))
+    s = float(np.median(d_c / (below @ n_c)))
+    if not scale_range[0] <= s <= scale_range[1] or not STATURE_RANGE_M[0] <= s * own <= STATURE_RANGE_M[1]:
+        return keep(f"its standing feet would need {s:.2f}x its size and distance to rest on the first person's "
+                    "floor: not the same floor (a box, stairs, a step?)", len(below))
+    return FloorFit(s, len(below), stature(motion.model, scaled_shape(motion.model, motion.betas, s)), own)
+
+
+def scaled_about_camera(motion, scale: float):
+    """``motion`` scaled about its camera's centre by ``scale``: the body given the shape
+    nearest to it scaled by ``scale`` (:func:`flowmocap.body.stature.scaled_shape`) and its
+    root ``scale`` times as far from the camera along the same ray, in every frame.
+
+    Args:
+        motion: a :class:`~flowmocap.export.motion.FittedMotion` (any frame).
+        scale: the factor (> 0).
+
+    Returns:
+        A new :class:`FittedMotion` in the same frame: ``betas``, ``trans`` and ``joints2d``
+        (re-projected) changed, ``world`` None (its floor moved with it).
+    """
+    import torch
+
+    from flowmocap.body.stature import scaled_shape
+
+    if not scale > 0:
+        raise DataError(f"a scale must be positive; got {scale!r}.")
+    betas = np.asarray(motion.betas, np.float64)
+    new = scaled_shape(motion.model, betas, scale)
+    with torch.no_grad():
+        root_old = motion.model(betas=torch.as_tensor(betas[None])).rest_joints[0, 0].double().numpy()
+        root_new = motion.model(betas=torch.as_tensor(new[None])).rest_joints[0, 0].double().numpy()
+    R, t = np.asarray(motion.camera.R, np.float64), np.asarray(motion.camera.t, np.float64)
+    root_cam = (np.asarray(motion.trans, np.float64) + root_old) @ R.T + t  # (T, 3): the posed root, camera
+    trans = (scale * root_cam - t) @ R - root_new
+    out = replace(motion, betas=new, trans=trans, world=None)
+    out.joints2d = out.camera.project(out.joints()).astype(np.float64)
+    return out
+
+
+def people_floor(folders, model=None) -> list[FloorFit]:
+    """:func:`floor_scale` for each result of one input against the first.
+
+    Args:
+        folders: result folders of one input (``track --person all``'s ``person0``, ...),
+            the first's floor shared.
+        model: body model override.
+
+    Returns:
+        one :class:`FloorFit` per folder; the first's scale 1.0 (None where its floor is
+        not fitted to standing feet: then nobody is scaled).
+    """
+    from flowmocap.body.stature import stature
+    from flowmocap.export.motion import load_fitted_motion
+
+    motions = [load_fitted_motion(d, frame="ground", model=model) for d in folders]
+    if not motions:
+        return []
+    first = motions[0]
+    own = stature(first.model, first.betas)
+    fits = [FloorFit(1.0, int(np.asarray(first.world.contacts).sum()), own, own)
+            if first.world.plane.method == "contacts"
+            else FloorFit(None, 0, own, own, "its floor is not fitted to standing feet: nobody is moved onto it")]
+    for m in motions[1:]:
+        fits.append(floor_scale(m, first))
+    return fits
+
+
+def write_floor(path, names: list[str], fits: list[FloorFit] | None):
+    """Write how the people were put on one floor (``fits`` from :func:`people_floor`, or
+    None where they were not) as JSON, atomically: ``{"format": "flowmocap-floor",
+    "version": 1, "shared": bool, "first": name, "people": {name: FloorFit.to_dict()}}``.
+    Returns the path."""
+    import json
+    from pathlib import Path
+
+    from flowmocap.atomic import atomic_write
+
+    doc = {"format": "flowmocap-floor", "version": 1, "shared": fits is not None, "first": names[0] if names else None,
+           "people": {} if fits is None else {n: f.to_dict() for n, f in zip(names, fits)}}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=2)))
+    return path

@@ -1,0 +1,169 @@
+"""The people of one video on one floor (flowmocap.export.floor): a body scaled about the
+camera centre, the factor that stands a person on another's floor, and the people folder's
+exports, page and overlay video using it."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from flowmocap.body import load_body_model
+from flowmocap.body.stature import scaled_shape, stature, with_stature
+from flowmocap.cli import main
+from flowmocap.errors import DataError
+from flowmocap.export import load_fitted_motion
+from flowmocap.export.floor import (FLOOR_FILE, SCALE_RANGE, floor_in_camera, floor_scale, people_floor,
+                                    scaled_about_camera, standing_feet_in_camera)
+from flowmocap.io.results import write_motion, write_run
+
+from test_ground import _walk_result
+
+
+def _rest_mesh(model, betas) -> np.ndarray:
+    """``(V, 3)`` the rest mesh of shape ``betas`` relative to its root joint (the template plus
+    the shape's offsets, as the model shapes it)."""
+    b = torch.as_tensor(np.asarray(betas, np.float64)[None])
+    with torch.no_grad():
+        out = model(betas=b, pose=torch.zeros(1, 72, dtype=torch.float64), trans=torch.zeros(1, 3, dtype=torch.float64))
+    return (out.vertices[0] - out.joints[0, 0]).double().numpy()
+
+
+def test_scaled_shape_is_nearly_the_body_scaled_about_its_root():
+    model = load_body_model("default")
+    betas = np.random.default_rng(3).normal(0.0, 1.0, 10)
+    np.testing.assert_allclose(scaled_shape(model, betas, 1.0), betas, atol=1e-8)  # no scaling: the same shape
+    base = _rest_mesh(model, betas)
+    for s in (0.8, 1.25):
+        fitted = np.linalg.norm(_rest_mesh(model, scaled_shape(model, betas, s)) - s * base, axis=1)
+        along = with_stature(model, torch.as_tensor(betas[None]), s * stature(model, betas))[0].numpy()
+        stature_only = np.linalg.norm(_rest_mesh(model, along) - s * base, axis=1)
+        assert np.median(fitted) < 0.008 and fitted.max() < 0.04, (s, np.median(fitted), fitted.max())
+        assert np.median(fitted) < np.median(stature_only) / 3  # why it is not the stature's direction alone
+        assert stature(model, scaled_shape(model, betas, s)) == pytest.approx(s * stature(model, betas), rel=0.01)
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    """The built-in walk (75 frames, feet on its floor) seen by a camera 1.5 m up, pitched
+    10 degrees down; the result's world is the camera's frame, as for a video."""
+    d = tmp_path_factory.mktemp("floor") / "person0"
+    _walk_result(d, 10.0, height=1.5)
+    return d
+
+
+def _write(folder, motion, like):
+    """``motion`` (the result's own frame, ``frame="world"``) written as a result folder."""
+    from flowmocap.io.results import read_result
+
+    arrays, run = read_result(like)
+    j = motion.joints()
+    write_motion(folder, {**arrays, "poses": motion.poses.astype(np.float32), "trans": motion.trans.astype(np.float32),
+                          "betas": np.asarray(motion.betas, np.float32), "joints3d": j.astype(np.float32),
+                          "joints2d": motion.camera.project(j).astype(np.float32)})
+    write_run(folder, run)
+    return folder
+
+
+def test_a_body_scaled_about_the_camera_keeps_its_image(walk):
+    m = load_fitted_motion(walk, frame="world")
+    big = scaled_about_camera(m, 1.3)
+    R, t = np.asarray(m.camera.R), np.asarray(m.camera.t)
+    root = lambda x: x.joints()[:, 0] @ R.T + t  # noqa: E731 -- the root joint in camera coordinates
+    np.testing.assert_allclose(root(big), 1.3 * root(m), atol=1e-6)  # the root: 1.3 times as far along its ray
+    shift = np.linalg.norm(big.joints2d - m.camera.project(m.joints()), axis=-1)
+    assert np.median(shift) < 1.0 and shift.max() < 3.0, (np.median(shift), shift.max())  # 320x240 px frames
+    assert stature(m.model, big.betas) == pytest.approx(1.3 * stature(m.model, m.betas), rel=0.01)
+    assert big.world is None
+    with pytest.raises(DataError, match="positive"):
+        scaled_about_camera(m, 0.0)
+
+
+def test_a_person_scaled_off_the_floor_is_stood_back_on_it(walk):
+    first = load_fitted_motion(walk, frame="ground")
+    n, d = floor_in_camera(first)
+    assert d == pytest.approx(-1.5, abs=0.03)  # the camera 1.5 m above the floor
+    # the same walk 1.25 times as large and as far: its feet 1.25 x 1.5 m below the camera
+    other = replace(scaled_about_camera(first, 1.25), world=first.world)  # still feet: the same frames
+    feet = standing_feet_in_camera(other, n)
+    assert len(feet) > 20 and np.median(feet @ n) == pytest.approx(1.25 * d, rel=0.02)
+    fit = floor_scale(other, first)
+    assert fit.scale == pytest.approx(0.8, rel=0.02) and fit.why is None
+    assert fit.stature_m == pytest.approx(stature(first.model, first.betas), rel=0.02)
+    back = replace(scaled_about_camera(other, fit.scale), world=first.world)
+    assert np.median(np.abs(standing_feet_in_camera(back, n) @ n - d)) < 0.01  # on the floor to a centimetre
+
+    # on a box: feet 0.7 m above the floor would need 1.5 / 0.8 of the size: refused
+    up = first.camera.R.T @ n  # the floor's normal in the export frame
+    boxed = replace(first, trans=first.trans + 0.7 * up)
+    fit = floor_scale(boxed, first)
+    assert fit.scale is None and "not the same floor" in fit.why and not SCALE_RANGE[0] <= 1.5 / 0.8 <= SCALE_RANGE[1]
+    # never standing still: no factor
+    still = replace(first.world, contacts=np.zeros_like(first.world.contacts))
+    fit = floor_scale(replace(other, world=still), first)
+    assert fit.scale is None and "too few" in fit.why
+    # a first floor not fitted to standing feet is nobody's
+    guessed = replace(first.world, plane=replace(first.world.plane, method="fallback"))
+    assert "not fitted" in floor_scale(other, replace(first, world=guessed)).why
+    with pytest.raises(DataError, match="frame='ground'"):
+        floor_in_camera(load_fitted_motion(walk, frame="world"))
+
+
+@pytest.fixture(scope="module")
+def people(walk, tmp_path_factory):
+    """A people folder: person0 the walk, person1 the same walk 1.25 times as large and far."""
+    root = tmp_path_factory.mktemp("floor_people")
+    import shutil
+
+    shutil.copytree(walk, root / "person0")
+    _write(root / "person1", scaled_about_camera(load_fitted_motion(walk, frame="world"), 1.25), walk)
+    (root / "people.json").write_text(json.dumps({"input": "missing", "people": {
+        "person0": {"rank": 0, "tracked": True}, "person1": {"rank": 1, "tracked": True}}}))
+    return root
+
+
+def test_people_folders_are_exported_on_one_floor(people, capsys):
+    fits = people_floor([people / "person0", people / "person1"])
+    assert fits[0].scale == 1.0 and fits[1].scale == pytest.approx(0.8, rel=0.02)
+
+    def ankles(out):  # (T, 2, 3) the exported ankles, the first person's ground frame
+        frames = json.loads((out / "person1.json").read_text())["frames"]
+        return np.array([f["joints3d"] for f in frames])[:, [7, 8]]
+
+    assert main(["export", str(people), "-f", "json", "--out", str(people / "a"), "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "person1: stood on person0's floor: 0.8" in said and "on one floor (floor.json)" in said
+    doc = json.loads((people / "a" / FLOOR_FILE).read_text())
+    assert doc["shared"] and doc["people"]["person1"]["scale"] == pytest.approx(0.8, rel=0.02)
+    first = np.array([f["joints3d"] for f in json.loads((people / "a" / "person0.json").read_text())["frames"]])
+    # on one floor the two are the same walk again, to a centimetre or so
+    assert np.median(np.abs(ankles(people / "a") - first[:, [7, 8]])) < 0.01
+    assert main(["export", str(people), "-f", "json", "--out", str(people / "b"), "--own-size", "--quiet"]) == 0
+    assert not json.loads((people / "b" / FLOOR_FILE).read_text())["shared"]
+    own = ankles(people / "b")
+    assert np.median(own[..., 1] - first[:, [7, 8], 1]) < -0.2  # its own size: its feet well below the floor
+    assert main(["export", str(people / "person0"), "-f", "json", "--own-size"]) == 2  # one result: refused
+
+
+def test_the_page_and_the_overlay_video_use_the_floor(people, tmp_path, capsys):
+    import imageio.v3 as iio
+
+    from flowmocap.commands.view import ViewerData
+
+    data = ViewerData(people)
+    assert data.floor[1].scale == pytest.approx(0.8, rel=0.02)
+    a, b = (p["motion"].joints() for p in data.people)
+    assert np.median(np.abs(a - b)) < 0.01  # the same walk, on one floor
+    assert ViewerData(people, floor=False).floor is None
+    frames = tmp_path / "frames"  # grey frames of the walk's size
+    frames.mkdir()
+    for i in range(75):
+        iio.imwrite(frames / f"{i:06d}.png", np.full((240, 320, 3), 90, np.uint8))
+    assert main(["render", str(people), "--out", str(tmp_path), "--quiet", "--input", str(frames)]) == 0
+    said = capsys.readouterr().out
+    assert "person1: stood on person0's floor: 0.8" in said and (tmp_path / "overlay.mp4").stat().st_size > 0
+    assert main(["render", str(people), "--out", str(tmp_path), "--quiet", "--input", str(frames), "--own-size"]) == 0
+    assert "stood on" not in capsys.readouterr().out
