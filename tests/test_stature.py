@@ -101,3 +101,49 @@ def test_track_with_a_height_gives_the_body_that_stature(seq_dir, tmp_path, caps
     assert depth(tall) / depth(own) == pytest.approx(ratio, rel=0.05)
     # and is seen where the other was
     assert np.median(np.linalg.norm(tall.joints2d - own.joints2d, axis=-1)) < 3.0
+
+
+def test_a_fitted_stature_is_held_within_what_people_measure(model):
+    from flowmocap.body.stature import FITTED_STATURE_M, held_stature
+
+    b = np.zeros(10)
+    assert held_stature(model, b) is None  # the mean shape is a person
+    a = np.zeros(10)
+    a[0] = 1.0
+    slope = stature(model, a) - stature(model, b)  # the stature is linear in the shape
+    lo, hi = FITTED_STATURE_M
+    for target, held in ((hi + 0.3, hi), (lo - 0.2, lo), (0.5 * (lo + hi), None)):
+        a[0] = (target - stature(model, b)) / slope
+        assert stature(model, a) == pytest.approx(target, abs=1e-9)
+        assert held_stature(model, a) == held
+
+
+def test_a_first_frame_no_person_could_be_is_held_at_the_nearer_bound(seq_dir, tmp_path, capsys,  # noqa: F811
+                                                                       monkeypatch):
+    """A first frame's fit that makes a giant (as a mask holding a tree does): the body is held
+    at 2.2 m, where the image put it, and the run says so."""
+    from flowmocap.fit import init as init_module
+
+    fit = init_module.fit_frame0
+
+    def giant(*args, **kwargs):
+        pose, trans, betas, terms = fit(*args, **kwargs)
+        betas = betas.clone()
+        betas[0, 0] += 14.0  # about 3.3 m
+        return pose, trans, betas, terms
+
+    monkeypatch.setattr(init_module, "fit_frame0", giant)
+    args = ["track", str(seq_dir), "--init", str(seq_dir.parent / "init.json"), "--config",
+            str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "held")]) == 0
+    said = capsys.readouterr().out
+    res = flowmocap.load_result(tmp_path / "held")
+    held = res.run["init_stature_held"]
+    assert held["fitted_m"] > 3.0 and held["held_m"] == 2.2
+    assert stature(load_body_model("default"), res.betas) == pytest.approx(2.2, abs=1e-3)
+    assert "which no person is" in said and "held at 2.20 m" in said
+    # a stated height is the person's, whatever the fit made
+    assert main([*args, "--out", str(tmp_path / "stated"), "--height", "1.7"]) == 0
+    stated = flowmocap.load_result(tmp_path / "stated")
+    assert "init_stature_held" not in stated.run
+    assert stature(load_body_model("default"), stated.betas) == pytest.approx(1.7, abs=1e-3)

@@ -921,6 +921,8 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
                 scene, s0, s1 = start.scene, start.first, start.second
                 if start.shape is not None:
                     run["init_shape"] = start.shape
+                if start.stature_held is not None:  # said with the body's stature when the run ends
+                    run["init_stature_held"] = start.stature_held
                 terms0, terms1 = start.first_terms, start.second_terms
                 # E_a holds the track only to a start someone vouched for, unless asked otherwise
                 anchored = init.states_rough_pose or cfg.anchor_any_start
@@ -987,6 +989,10 @@ def _record_body(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say)
         write_run(out, run)
         if tall is not None:
             given = " (as stated)" if cfg.body_height_m else " (one camera's estimate: give --height if you know it)"
+            held = run.get("init_stature_held")
+            if held and not cfg.body_height_m:
+                given = (f" (the first frame's fit made it {held['fitted_m']:.2f} m, which no person is: the mask may "
+                         f"hold more than the person; held at {held['held_m']:.2f} m. Give --height if you know it)")
             say(f"the body stands {tall:.2f} m tall{given}")
     return run
 

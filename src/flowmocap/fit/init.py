@@ -357,6 +357,9 @@ class Start:
     first_terms: dict
     second_terms: dict
     shape: dict | None = None  # with TrackerConfig.init_shape_share: the proportions before, seen and after
+    #: where frame 0's fit gave a stature outside FITTED_STATURE_M (no height stated):
+    #: ``{"fitted_m", "held_m"}``, else None
+    stature_held: dict | None = None
 
 
 def shape_towards_seen(model: BodyModel, betas: torch.Tensor, pose: torch.Tensor, seen: np.ndarray, share: float,
@@ -425,7 +428,9 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
             ``cfg.init_shape_share`` > 0, the shape fitted on frame 0 moves that share of
             the way towards them (:func:`shape_towards_seen`, girth held at
             ``cfg.init_shape_girth``) before step 3. With ``cfg.body_height_m`` the body is
-            then given that stature (:func:`given_stature`), before step 3 too.
+            then given that stature (:func:`given_stature`), before step 3 too; without it, a
+            stature outside :data:`~flowmocap.body.stature.FITTED_STATURE_M` is held at the
+            nearer bound the same way (``Start.stature_held``).
 
     Returns:
         a :class:`Start`; ``second_terms`` are the energies of frame 1 against frame 0.
@@ -435,8 +440,16 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
     if proportions is not None and cfg.init_shape_share > 0:
         betas, shape = shape_towards_seen(model, betas, pose0, proportions, cfg.init_shape_share,
                                           cfg.init_shape_girth or None)
+    held = None
     if cfg.body_height_m:
         betas, trans0 = given_stature(model, camera, betas, trans0, cfg.body_height_m)
+    else:  # a body no person has (a mask that holds more than the person): held at the nearer bound
+        from flowmocap.body.stature import held_stature, stature
+
+        bound = held_stature(model, betas)
+        if bound is not None:
+            held = {"fitted_m": round(stature(model, betas), 4), "held_m": bound}
+            betas, trans0 = given_stature(model, camera, betas, trans0, bound)
     scene = Scene(model, betas, camera)
     s0 = FrameState(pose0, trans0)
     j2d = torch.as_tensor(spec.joints2d, dtype=torch.float32)
@@ -448,4 +461,4 @@ def initialise(model: BodyModel, camera: PinholeCamera, spec: InitSpec, d0: Fram
                                joints_from_detector=spec.from_detector)
     _, second_terms = frame_energy(scene, s1, d1, cfg, len(cfg.stages) - 1,
                                    scene.forward(s0.pose, s0.trans)[1].detach(), s0.pose)
-    return Start(scene, s0, s1, first_terms, second_terms, shape)
+    return Start(scene, s0, s1, first_terms, second_terms, shape, held)
