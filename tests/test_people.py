@@ -323,3 +323,18 @@ def test_someone_back_in_view_far_from_where_they_left_is_a_second_track():
         scene = People([seen], n=20, size=(512, 128))
         found = find_people(scene, ColourDetector(scene), ColourDetector(scene), progress=False)
         assert len(split_tracks(found)) == tracks, x_back
+
+
+def test_track_with_export_writes_everyone_in_one_frame_and_says_how_they_share_a_floor(clip, tmp_path, monkeypatch,
+                                                                                          capsys):
+    monkeypatch.setattr(batch, "track", FakeDetections(clip))
+    out = tmp_path / "people"
+    assert main(["track", str(clip / "walk"), "--out", str(out), "--person", "all", "--export", "json",
+                 "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert (out / "export" / "person0.json").exists() and (out / "export" / "person1.json").exists()
+    floor = json.loads((out / "export" / "floor.json").read_text())
+    assert floor["shared"] and set(floor["people"]) == {"person0", "person1"}
+    # one line per person on how they stand on the first person's floor (4 frames: no standing foot, no floor)
+    assert "person0: kept the size of its own fit" in said and "person1: kept the size of its own fit" in said
+    assert floor["people"]["person1"]["scale"] is None and "not fitted" in floor["people"]["person1"]["why"]

@@ -117,10 +117,11 @@ def _export_people(root, items, formats: list[str], args) -> int:
 
     failed = any(it.status == "failed" for it in items)
     if any(it.ok for it in items):
-        for fmt in formats:
-            try:
+        for k, fmt in enumerate(formats):
+            try:  # how everyone was stood on one floor: said with the first format's files
                 for path in export_people(root, fmt, progress=not args.quiet,
-                                          markers=args.export_markers if fmt in ("trc", "c3d") else "joints"):
+                                          markers=args.export_markers if fmt in ("trc", "c3d") else "joints",
+                                          log=print if k == 0 else None):
                     print(f"wrote {path} ({fmt})")
             except FlowMocapError as e:  # the tracked results are kept
                 print(f"export ({fmt}) of {root} failed: {e}", file=sys.stderr)
