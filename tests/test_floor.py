@@ -139,6 +139,10 @@ def test_people_folders_are_exported_on_one_floor(people, capsys):
     doc = json.loads((people / "a" / FLOOR_FILE).read_text())
     assert doc["shared"] and doc["people"]["person1"]["scale"] == pytest.approx(0.8, rel=0.02)
     first = np.array([f["joints3d"] for f in json.loads((people / "a" / "person0.json").read_text())["frames"]])
+    # person1 carries its own foot contacts, found in its own ground frame
+    contacts = [f["contact"] for f in json.loads((people / "a" / "person1.json").read_text())["frames"]]
+    own = load_fitted_motion(people / "person1", frame="ground").world.contacts
+    assert contacts == own.tolist() and own.any()
     # on one floor the two are the same walk again, to a centimetre or so
     assert np.median(np.abs(ankles(people / "a") - first[:, [7, 8]])) < 0.01
     assert main(["export", str(people), "-f", "json", "--out", str(people / "b"), "--own-size", "--quiet"]) == 0

@@ -79,6 +79,7 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     except ModelFileError:
         tall = None
     r = lambda a, n=6: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
+    contacts = motion.foot_contacts
 
     def frame(k):
         return {
@@ -88,7 +89,7 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
             "trans": r(motion.trans[k]),
             "joints3d": r(j3d[k]),
             "joints2d": r(motion.joints2d[k], 3),
-            **({"contact": [bool(c) for c in motion.world.contacts[k]]} if motion.world is not None else {}),
+            **({"contact": [bool(c) for c in contacts[k]]} if contacts is not None else {}),
             **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
                if motion.disagreement is not None else {}),
         }
@@ -133,7 +134,8 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
               "frame_index": [int(i) for i in motion.frame_index], "smoothed": motion.smoothed}
     if motion.world is not None:
         extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
-        extras["contacts"] = motion.world.contacts.astype(int).tolist()
+    if motion.foot_contacts is not None:
+        extras["contacts"] = motion.foot_contacts.astype(int).tolist()
     return write_skinned_glb(path, motion.poses, motion.trans, out.rest_vertices[0].double().numpy(),
                              out.rest_joints[0].double().numpy(), motion.model.faces_np,
                              motion.model.weights.double().numpy(), motion.fps, extras=extras)
@@ -160,8 +162,8 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
             (:data:`flowmocap.export.marker_sets.MARKER_SETS`: ``"joints"``, the 24 joint
             centres, or ``"halpe26"``, Pose2Sim's keypoints); other formats take only the default.
         frame_of: another result of the same input, loaded: export in its frame instead
-            (:func:`~flowmocap.export.motion.motion_in_frame_of`; ``frame`` is then not used,
-            and there are no foot contacts).
+            (:func:`~flowmocap.export.motion.motion_in_frame_of`; ``frame`` is then not used;
+            the foot contacts are the result's own).
         scale: with ``frame_of``, scale the body about the camera centre by this first
             (:func:`~flowmocap.export.floor.scaled_about_camera`; e.g. the factor that
             stands it on ``frame_of``'s floor, :func:`~flowmocap.export.floor.floor_scale`).
@@ -182,8 +184,8 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     out = Path(out) if out is not None else default_output(result_dir, fmt)
     if scale is not None and frame_of is None:
         raise InputError("a scale moves a person onto another's floor: give the other's motion too (frame_of).")
-    if frame_of is not None:
-        motion = load_fitted_motion(result_dir, frame="world", model=model, smooth=smooth)
+    if frame_of is not None:  # loaded in its own ground frame for its foot contacts, then moved
+        motion = load_fitted_motion(result_dir, frame="ground", model=model, smooth=smooth)
         if scale is not None:
             from flowmocap.export.floor import scaled_about_camera
 
@@ -222,7 +224,7 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
             return write_trc(out, points, names, motion.fps, first_frame=first)
         return write_c3d(out, points, names, motion.fps, first_frame=first,
                          up="none" if frame == "world" else "y",
-                         contacts=motion.world.contacts if motion.world is not None else None)
+                         contacts=motion.foot_contacts)
     from flowmocap.io.amass import write_amass_npz
 
     if frame == "world":
@@ -252,8 +254,8 @@ def export_people(root: str | Path, fmt: str, out: str | Path | None = None, fra
         log: where to say, one line per person, how they were put on the floor.
 
     Returns:
-        The paths written, one per tracked person, by rank. Only the first person's files
-        carry foot contacts (json, c3d).
+        The paths written, one per tracked person, by rank; each person's files carry their
+        own foot contacts (json, c3d, glb).
 
     Raises:
         DataError: not a people folder, or nobody tracked yet. InputError: as :func:`export_result`.

@@ -190,7 +190,8 @@ def scaled_about_camera(motion, scale: float):
 
     Returns:
         A new :class:`FittedMotion` in the same frame: ``betas``, ``trans`` and ``joints2d``
-        (re-projected) changed, ``world`` None (its floor moved with it).
+        (re-projected) changed, ``world`` None (its floor moved with it), ``contacts`` its
+        foot contacts (:attr:`~flowmocap.export.motion.FittedMotion.foot_contacts`).
     """
     import torch
 
@@ -206,7 +207,7 @@ def scaled_about_camera(motion, scale: float):
     R, t = np.asarray(motion.camera.R, np.float64), np.asarray(motion.camera.t, np.float64)
     root_cam = (np.asarray(motion.trans, np.float64) + root_old) @ R.T + t  # (T, 3): the posed root, camera
     trans = (scale * root_cam - t) @ R - root_new
-    out = replace(motion, betas=new, trans=trans, world=None)
+    out = replace(motion, betas=new, trans=trans, world=None, contacts=motion.foot_contacts)
     out.joints2d = out.camera.project(out.joints()).astype(np.float64)
     return out
 

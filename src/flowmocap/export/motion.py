@@ -63,6 +63,9 @@ class FittedMotion:
         disagreement: ``(T, 24)`` metres, the result's ``disagreement``
             (:func:`~flowmocap.fit.disagreement.source_disagreement`; NaN outside the 13
             scored joints), or None where the result has none.
+        contacts: ``(T, 2)`` bool, left/right foot standing still on the floor, where the
+            motion was moved out of its own ground frame (:func:`motion_in_frame_of`) and so
+            has no ``world``; else None (see :attr:`foot_contacts`).
     """
 
     poses: np.ndarray
@@ -81,10 +84,20 @@ class FittedMotion:
     world: object = None
     smoothed: dict | None = None
     disagreement: np.ndarray | None = None
+    contacts: np.ndarray | None = None
 
     def __post_init__(self):
         if self.offset is None:
             self.offset = np.zeros(3)
+
+    @property
+    def foot_contacts(self) -> np.ndarray | None:
+        """``(T, 2)`` bool, left/right foot standing still on the floor: the ground frame's
+        (``world``), or those the motion kept when it was moved into another's frame; None
+        where neither is known."""
+        if self.world is not None:
+            return np.asarray(self.world.contacts, bool)
+        return None if self.contacts is None else np.asarray(self.contacts, bool)
 
     @property
     def num_frames(self) -> int:
@@ -310,7 +323,8 @@ def motion_in_frame_of(motion: FittedMotion, other: FittedMotion) -> FittedMotio
     Returns:
         A new :class:`FittedMotion`: ``poses`` (the root turned), ``trans``, ``rotation``,
         ``offset``, ``camera`` (``other``'s) and ``frame`` (``other``'s) changed, ``world``
-        None (the floor is ``other``'s); the body projects onto the same pixels as before.
+        None (the floor is ``other``'s) and ``contacts`` the motion's own foot contacts
+        (:attr:`FittedMotion.foot_contacts`); the body projects onto the same pixels as before.
 
     Raises:
         DataError: the cameras differ in intrinsics or size (not one input's results).
@@ -324,4 +338,5 @@ def motion_in_frame_of(motion: FittedMotion, other: FittedMotion) -> FittedMotio
     off = b.R.T @ (a.t - b.t)
     poses, trans = rotate_motion(motion.poses, motion.trans, motion.rest_joints()[0], M)
     return replace(motion, poses=poses, trans=trans + off, rotation=M @ motion.rotation,
-                   offset=M @ motion.offset + off, camera=b, frame=other.frame, world=None)
+                   offset=M @ motion.offset + off, camera=b, frame=other.frame, world=None,
+                   contacts=motion.foot_contacts)
