@@ -171,3 +171,27 @@ def test_the_page_and_the_overlay_video_use_the_floor(people, tmp_path, capsys):
     assert "person1: stood on person0's floor: 0.8" in said and (tmp_path / "overlay.mp4").stat().st_size > 0
     assert main(["render", str(people), "--out", str(tmp_path), "--quiet", "--input", str(frames), "--own-size"]) == 0
     assert "stood on" not in capsys.readouterr().out
+
+
+def test_the_page_puts_a_disc_under_every_persons_standing_feet(people):
+    """meta.json gives each person their own foot contacts and lowest foot points (person1 on
+    person0's floor: at its height), and the page shows a disc under each standing foot."""
+    from test_view import _chromium, _chromium_run, _get, _serving
+
+    from flowmocap.commands.view import ViewerData
+
+    for data, url in _serving(ViewerData(people)):
+        meta = json.loads(_get(url + "/api/meta.json")[2])
+        p0, p1 = meta["people"]
+        assert p1["contacts"] == load_fitted_motion(people / "person1", frame="ground").world.contacts.astype(int).tolist()
+        standing = [k for k, c in enumerate(p1["contacts"]) if any(c)]
+        assert standing and p0["contacts"] == meta["contacts"]
+        heights = [p1["feet"][k][s][1] for k in standing for s in (0, 1) if p1["contacts"][k][s]]
+        assert abs(np.median(heights)) < 0.02  # person1's standing feet on person0's floor (y = 0)
+        if _chromium() is None:
+            pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+        k = standing[0]
+        dom = _chromium_run(url + f"/?frame={k}", "--dump-dom")
+        assert 'data-ready="1"' in dom.stdout, dom.stderr[-2000:]
+        want = "".join(str(c) for p in (p0, p1) for c in p["contacts"][k])
+        assert f'data-feet="{want}"' in dom.stdout and want[2:] != "00"

@@ -95,7 +95,7 @@ class ViewerData:
         self.floor = people_floor([d for _, d in folders], model=model) if floor and len(folders) > 1 else None
         motions = [self.motion]
         for k, (_, d) in enumerate(folders[1:], start=1):
-            m = load_fitted_motion(d, frame="world", model=model, smooth=smooth)
+            m = load_fitted_motion(d, frame="ground", model=model, smooth=smooth)  # its own foot contacts
             if self.floor is not None and self.floor[k].scale is not None:
                 m = scaled_about_camera(m, self.floor[k].scale)
             motions.append(motion_in_frame_of(m, self.motion))
@@ -160,9 +160,10 @@ class ViewerData:
         (how the floor was found), ``people`` (per person: ``name``, ``glb`` (its URL),
         ``colour`` (RGB 0..1, or None: the glb's own), ``rows`` (T: the person's result row
         of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
-        where not tracked)); for the first person: ``contacts`` (T x 2), ``feet`` (T x 2 x 3:
-        the lowest point of the left and right foot, metres; None where not tracked), ``path``,
-        ``smoothed``, ``has_input``, and from the result's ``disagreement``
+        where not tracked), ``contacts`` (T x 2: left/right foot standing still, 0/1, their
+        own), ``feet`` (T x 2 x 3: the lowest point of the left and right foot, metres; None
+        where not tracked)); the first person's ``contacts``, ``feet`` and ``path`` again at the
+        top level; ``smoothed``, ``has_input``, and from the result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
         per frame the mean over the scored joints, centimetres; None where there is none)
         and ``review`` (T, 0/1: :func:`~flowmocap.fit.disagreement.review_frames`, the tenth
@@ -174,29 +175,36 @@ class ViewerData:
         w = m.world
         rows0 = self.people[0]["rows"]
         left, right = foot_vertex_sets(m.model.weights.cpu().numpy())
-        feet = []
-        for s in range(0, m.num_frames, 64):
-            v = m.body(s, s + 64)[0]
-            feet.append(np.stack([v[np.arange(len(v)), f[np.argmin(v[:, f, 1], axis=1)]]
-                                  for f in (left, right)], 1))
-        feet = np.round(np.concatenate(feet), 4).tolist()
-        contacts = w.contacts.astype(int).tolist()
+
+        def lowest_feet(motion) -> list:  # (T, 2, 3) per result row: the lowest point of each foot
+            feet = []
+            for s in range(0, motion.num_frames, 64):
+                v = motion.body(s, s + 64)[0]
+                feet.append(np.stack([v[np.arange(len(v)), f[np.argmin(v[:, f, 1], axis=1)]]
+                                      for f in (left, right)], 1))
+            return np.round(np.concatenate(feet), 4).tolist()
+
         floor = (f"{w.plane.method} ({w.plane.inliers} foot points)" if w.plane.method == "contacts"
                  else "fallback (lowest foot point)")
         people, pelvis = [], []
         for k, p in enumerate(self.people):
-            root = p["motion"].joints()[:, 0]
+            pm = p["motion"]
+            root = pm.joints()[:, 0]
             pelvis.append(root)
             path = np.round(root, 4).tolist()
+            feet = lowest_feet(pm)
+            own = pm.foot_contacts
+            contacts = own.astype(int).tolist() if own is not None else [[0, 0]] * pm.num_frames
             people.append({"name": p["name"], "glb": "/motion.glb" if k == 0 else f"/motion/{k}.glb",
                            "colour": p["colour"], "rows": p["rows"],
-                           "path": [None if r < 0 else path[r] for r in p["rows"]]})
+                           "path": [None if r < 0 else path[r] for r in p["rows"]],
+                           "contacts": [[0, 0] if r < 0 else contacts[r] for r in p["rows"]],
+                           "feet": [None if r < 0 else feet[r] for r in p["rows"]]})
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
                 "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "people": people,
-                "contacts": [[0, 0] if r < 0 else contacts[r] for r in rows0],
-                "feet": [None if r < 0 else feet[r] for r in rows0], "path": people[0]["path"],
+                "contacts": people[0]["contacts"], "feet": people[0]["feet"], "path": people[0]["path"],
                 "smoothed": m.smoothed, "has_input": self.seq is not None, **self._review(rows0)}
 
     def _review(self, rows: list[int]) -> dict:

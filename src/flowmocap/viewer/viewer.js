@@ -11,7 +11,8 @@
 // start, turned DEG about the vertical from the video camera's side; default 30).
 // When a frame is drawn, <body> carries data-frame=K, data-ready=1, data-overlay=[left,
 // top, width, height] (the overlay's place on the page, CSS pixels), data-people (one 0/1
-// per person: drawn in this frame or not) and, where the result has
+// per person: drawn in this frame or not), data-feet (two 0/1 per person, left and right:
+// a disc under that foot, standing) and, where the result has
 // the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
 // tenth), for tests. The strip under the slider marks those frames in red.
 import * as THREE from 'three';
@@ -107,7 +108,7 @@ videoCam.layers.set(0);
 }
 
 // each pelvis's path dropped onto the floor (in the person's colour with several), and a
-// disc under each of the first person's feet while it stands
+// disc under each foot of every person while it stands (left green, right red)
 for (const person of meta.people) {
   const pts = person.path.filter((q) => q !== null).flatMap((q) => [q[0], 0.003, q[2]]);
   const g = new THREE.BufferGeometry();
@@ -117,13 +118,13 @@ for (const person of meta.people) {
   path.layers.set(HELPERS);
   scene.add(path);
 }
-const discs = [0, 1].map((side) => {
+const discs = meta.people.map(() => [0, 1].map((side) => {
   const d = new THREE.Mesh(new THREE.CircleGeometry(0.07, 24).rotateX(-Math.PI / 2),
     new THREE.MeshBasicMaterial({ color: side ? 0xff6060 : 0x60d060 }));
   d.layers.set(HELPERS);
   scene.add(d);
   return d;
-});
+}));
 
 const overlayR = new THREE.WebGLRenderer({ canvas: $('overlay'), alpha: true, antialias: true,
   preserveDrawingBuffer: true });
@@ -196,11 +197,17 @@ function draw() {
     if (row >= 0) { b.mixer.setTime(row / fps); b.body.updateMatrixWorld(true); shown.push(1); } else shown.push(0);
   }
   document.body.dataset.people = shown.join('');
-  for (const side of [0, 1]) {
-    const f = meta.feet[current] && meta.feet[current][side];
-    discs[side].visible = !!f && meta.contacts[current][side] === 1;
-    if (f) discs[side].position.set(f[0], 0.004, f[2]);
-  }
+  const standing = [];
+  meta.people.forEach((person, k) => {
+    for (const side of [0, 1]) {
+      const f = person.feet[current] && person.feet[current][side];
+      discs[k][side].visible = !!f && person.contacts[current][side] === 1;
+      // on the floor for the first person; where the foot stands for the others (a box, a step)
+      if (f) discs[k][side].position.set(f[0], k === 0 ? 0.004 : f[1] + 0.004, f[2]);
+      standing.push(discs[k][side].visible ? 1 : 0);
+    }
+  });
+  document.body.dataset.feet = standing.join('');  // per person, left then right: a disc shown
   overlayR.render(scene, videoCam);
   worldR.render(scene, orbitCam);
 }
