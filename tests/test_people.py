@@ -72,6 +72,7 @@ class FakeDetections:
 
     def __call__(self, src, out, person="largest", resume=False, progress=False, log=None, **kwargs):
         self.asked.append(person)
+        self.heights = getattr(self, "heights", []) + [kwargs.get("height")]
         assert kwargs.get("masks") in (None, "auto") and kwargs.get("init") in (None, "auto")
         search = Path(kwargs["search_dir"])  # every person's run is given the same search folder
         assert search == (Path(out).parent / PEOPLE_SEARCH).resolve()
@@ -327,10 +328,12 @@ def test_someone_back_in_view_far_from_where_they_left_is_a_second_track():
 
 def test_track_with_export_writes_everyone_in_one_frame_and_says_how_they_share_a_floor(clip, tmp_path, monkeypatch,
                                                                                           capsys):
-    monkeypatch.setattr(batch, "track", FakeDetections(clip))
+    fake = FakeDetections(clip)
+    monkeypatch.setattr(batch, "track", fake)
     out = tmp_path / "people"
     assert main(["track", str(clip / "walk"), "--out", str(out), "--person", "all", "--export", "json",
-                 "--quiet"]) == 0
+                 "--height", "1.8", "--quiet"]) == 0
+    assert fake.heights == [1.8, None]  # a stated height is the largest person's alone
     said = capsys.readouterr().out
     assert (out / "export" / "person0.json").exists() and (out / "export" / "person1.json").exists()
     floor = json.loads((out / "export" / "floor.json").read_text())

@@ -396,7 +396,9 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
             largest are tracked in parallel with ``workers`` > 1 or ``ray``.
         **track_kwargs: settings for every person, as :func:`flowmocap.track` takes them,
             except ``source``, ``out``, ``resume``, ``force``, ``log``, ``person``, and
-            ``masks`` or ``init`` other than ``"auto"`` (they would say who is tracked).
+            ``masks`` or ``init`` other than ``"auto"`` (they would say who is tracked). A
+            ``height`` is the first (largest) person's alone: the others' sizes then follow
+            from standing on their floor (:mod:`flowmocap.export.floor`).
 
     Returns:
         one :class:`BatchItem` per person tracked, by rank (``person`` holds the rank). A
@@ -467,7 +469,9 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
     say(f"{found_n} {'person' if found_n == 1 else 'people'} found, {len(chosen)} followed long enough to track"
         + (f"; {len(todo)} more to track" if todo else "")
         + (f", {skipped} finished before (skipped)" if skipped else ""))
-    _dispatch(todo, kwargs, workers, ray, report, say, progress, log)
+    # a stated height is the first (largest) person's; the others' sizes come from standing on
+    # that person's floor where the people are viewed or exported together (flowmocap.export.floor)
+    _dispatch(todo, {k: v for k, v in kwargs.items() if k != "height"}, workers, ray, report, say, progress, log)
     if all(results[r].status != "failed" for r in results):  # nobody left to search for
         shutil.rmtree(root / PEOPLE_SEARCH, ignore_errors=True)
     return [results[r] for r in sorted(results)]

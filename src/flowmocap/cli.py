@@ -276,7 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the person's standing height in metres, if known (e.g. 1.78): the body is given that "
                    "height and placed at the depth that goes with it, so lengths, speeds and positions come out in "
                    "the person's metres (one camera leaves the size open; default: the fit's own estimate, "
-                   "recorded in run.json as body.stature_m). In a batch it applies to every input")
+                   "recorded in run.json as body.stature_m). In a batch it applies to every input; with "
+                   "--person all to the largest person, and the others' sizes follow from standing on their floor "
+                   "in render, view and export")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same input and "
                    "set-up only; it ends exactly as an uninterrupted run would)")
     t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "
