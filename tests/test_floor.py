@@ -195,3 +195,60 @@ def test_the_page_puts_a_disc_under_every_persons_standing_feet(people):
         assert 'data-ready="1"' in dom.stdout, dom.stderr[-2000:]
         want = "".join(str(c) for p in (p0, p1) for c in p["contacts"][k])
         assert f'data-feet="{want}"' in dom.stdout and want[2:] != "00"
+
+
+@pytest.fixture(scope="module")
+def reviewed_people(people, tmp_path_factory):
+    """The people folder with the 3D sources' disagreement: person0's first frames part most,
+    person1's last ones."""
+    import shutil
+
+    from flowmocap.io.results import read_result, write_motion
+
+    root = tmp_path_factory.mktemp("floor_review")
+    for name in ("person0", "person1"):
+        shutil.copytree(people / name, root / name)
+    shutil.copy(people / "people.json", root / "people.json")
+    for name, ramp in (("person0", -1), ("person1", 1)):
+        motion, _ = read_result(root / name)
+        T = len(motion["poses"])
+        dis = np.repeat((0.05 + 0.001 * ramp * np.arange(T))[:, None], 24, 1).astype(np.float32)
+        write_motion(root / name, {**motion, "disagreement": dis})
+    return root
+
+
+def test_every_persons_frames_to_review_are_marked(reviewed_people, tmp_path):
+    """Each person's frames to review are theirs on the page (meta per person, the union at the
+    top, the label naming whose) and in the people overlay video (a red frame)."""
+    import imageio.v3 as iio
+
+    from test_view import _chromium, _chromium_run, _get, _serving
+
+    from flowmocap.commands.view import ViewerData
+
+    first, last = 2, 72  # among person0's and person1's flagged tenth; frame 40 is nobody's
+    for data, url in _serving(ViewerData(reviewed_people)):
+        meta = json.loads(_get(url + "/api/meta.json")[2])
+        p0, p1 = meta["people"]
+        assert p0["review"][first] == 1 and p1["review"][first] == 0
+        assert p0["review"][last] == 0 and p1["review"][last] == 1
+        assert sum(p0["review"]) == sum(p1["review"]) == 8  # the tenth of 75 frames each
+        assert meta["review"] == [a | b for a, b in zip(p0["review"], p1["review"])] and meta["review"][40] == 0
+        assert p1["disagreement_cm"][last] == pytest.approx(5.0 + 0.1 * last, abs=0.05)
+        assert meta["disagreement_cm"] == p0["disagreement_cm"]
+        if _chromium() is None:
+            pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+        for k, want in ((first, "10"), (last, "01"), (40, "00")):
+            dom = _chromium_run(url + f"/?frame={k}", "--dump-dom")
+            assert 'data-ready="1"' in dom.stdout, dom.stderr[-2000:]
+            assert f'data-review-people="{want}"' in dom.stdout and f'data-review="{int(want != "00")}"' in dom.stdout
+            assert ("person1: 3D sources part" in dom.stdout) and (("(review)" in dom.stdout) == (want != "00"))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(75):
+        iio.imwrite(frames / f"{i:06d}.png", np.full((240, 320, 3), 90, np.uint8))
+    assert main(["render", str(reviewed_people), "--out", str(tmp_path), "--quiet", "--input", str(frames)]) == 0
+    video = iio.imread(tmp_path / "overlay.mp4", plugin="pyav").astype(int)
+    edge = lambda f: np.concatenate([video[f, :2].reshape(-1, 3), video[f, -2:].reshape(-1, 3)])  # noqa: E731
+    red = lambda px: ((px[:, 0] > 150) & (px[:, 1] < 100) & (px[:, 2] < 100)).mean()  # noqa: E731
+    assert red(edge(first)) > 0.8 and red(edge(last)) > 0.8 and red(edge(40)) < 0.1

@@ -162,18 +162,19 @@ class ViewerData:
         of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
         where not tracked), ``contacts`` (T x 2: left/right foot standing still, 0/1, their
         own), ``feet`` (T x 2 x 3: the lowest point of the left and right foot, metres; None
-        where not tracked)); the first person's ``contacts``, ``feet`` and ``path`` again at the
-        top level; ``smoothed``, ``has_input``, and from the result's ``disagreement``
+        where not tracked), and from their result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
-        per frame the mean over the scored joints, centimetres; None where there is none)
-        and ``review`` (T, 0/1: :func:`~flowmocap.fit.disagreement.review_frames`, the tenth
-        of the frames where the sources part most; 0 where the first person is not tracked).
-        For one result the page frames are its rows."""
+        per frame the mean over the scored joints, centimetres; None where there is none or
+        the person is not tracked) and ``review`` (T, 0/1:
+        :func:`~flowmocap.fit.disagreement.review_frames`, the tenth of their frames where
+        the sources part most; 0 where not tracked)); the first person's ``contacts``,
+        ``feet``, ``path`` and ``disagreement_cm`` again at the top level; ``review`` at the
+        top level: 1 where anyone's frame is to be reviewed (None where nobody's result has a
+        disagreement); ``smoothed``, ``has_input``. For one result the page frames are its rows."""
         from flowmocap.export.world import foot_vertex_sets
 
         m = self.motion
         w = m.world
-        rows0 = self.people[0]["rows"]
         left, right = foot_vertex_sets(m.model.weights.cpu().numpy())
 
         def lowest_feet(motion) -> list:  # (T, 2, 3) per result row: the lowest point of each foot
@@ -199,19 +200,25 @@ class ViewerData:
                            "colour": p["colour"], "rows": p["rows"],
                            "path": [None if r < 0 else path[r] for r in p["rows"]],
                            "contacts": [[0, 0] if r < 0 else contacts[r] for r in p["rows"]],
-                           "feet": [None if r < 0 else feet[r] for r in p["rows"]]})
+                           "feet": [None if r < 0 else feet[r] for r in p["rows"]],
+                           **self._review(pm, p["rows"])})
+        marked = [p["review"] for p in people if p["review"] is not None]
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
                 "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "people": people,
                 "contacts": people[0]["contacts"], "feet": people[0]["feet"], "path": people[0]["path"],
-                "smoothed": m.smoothed, "has_input": self.seq is not None, **self._review(rows0)}
+                "smoothed": m.smoothed, "has_input": self.seq is not None,
+                "disagreement_cm": people[0]["disagreement_cm"],
+                "review": [int(any(r[k] for r in marked)) for k in range(self.num_frames)] if marked else None}
 
-    def _review(self, rows: list[int]) -> dict:
-        """``disagreement_cm`` and ``review`` of :meth:`meta` (the first person's, by page frame)."""
+    @staticmethod
+    def _review(motion, rows: list[int]) -> dict:
+        """A person's ``disagreement_cm`` and ``review`` by page frame (see :meth:`meta`;
+        None and None where their result has no disagreement)."""
         from flowmocap.fit.disagreement import review_frames
 
-        d = self.motion.disagreement
+        d = motion.disagreement
         if d is None or not np.isfinite(d).any():
             return {"disagreement_cm": None, "review": None}
         per_frame, flagged = review_frames(d)

@@ -14,7 +14,8 @@
 // per person: drawn in this frame or not), data-feet (two 0/1 per person, left and right:
 // a disc under that foot, standing) and, where the result has
 // the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
-// tenth), for tests. The strip under the slider marks those frames in red.
+// tenth, for anyone) and data-review-people (one 0/1 per person), for tests. The strip under
+// the slider marks those frames in red; the label names whose.
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -218,10 +219,18 @@ async function setFrame(k) {
   $('slider').value = String(current);
   label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(current / fps).toFixed(2)} s`;
   if (meta.review) {
-    const d = meta.disagreement_cm[current];
-    label.textContent += d === null ? '' : `, 3D sources part ${d.toFixed(1)} cm` + (meta.review[current] ? ' (review)' : '');
+    // each person's: "3D sources part 4.2 cm (review)"; with several people, named
+    const parts = meta.people.map((person) => {
+      const d = person.disagreement_cm ? person.disagreement_cm[current] : null;
+      if (d === null || d === undefined) return null;
+      return (many ? `${person.name}: ` : '') + `3D sources part ${d.toFixed(1)} cm` +
+        (person.review[current] ? ' (review)' : '');
+    }).filter((x) => x !== null);
+    if (parts.length) label.textContent += ', ' + parts.join(', ');
     label.classList.toggle('review', meta.review[current] === 1);
     document.body.dataset.review = String(meta.review[current]);
+    // per person, 0/1: that person's frame is to be reviewed
+    document.body.dataset.reviewPeople = meta.people.map((person) => (person.review ? person.review[current] : 0)).join('');
   }
   const img = $('frame');
   await new Promise((resolve) => { img.onload = resolve; img.onerror = resolve; img.src = `/frame/${current}.jpg`; });

@@ -238,7 +238,9 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     """Write one MP4 with every person's fitted body over the input, each in its own colour
     (:data:`~flowmocap.viz.overlay.PEOPLE_RGB` in the scenes' order) and named in a key at
     the top left (grey where that person's result has no such frame; "not seen" where it was
-    tracked through the frame by flow alone, run.json's ``gaps``). Where bodies overlap, the
+    tracked through the frame by flow alone, run.json's ``gaps``). A frame that is one of a
+    person's frames to review (:func:`~flowmocap.fit.disagreement.review_frames`) gets a red
+    frame and a caption naming whose and their value. Where bodies overlap, the
     one nearer the camera is drawn, at the depths the scenes' motions give: each fit's own,
     which one camera leaves uncertain (a body's size and distance trade), unless the caller
     stood them on one floor first (``flowmocap render`` does,
@@ -284,6 +286,14 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     # frames a person was tracked through without being seen (by flow alone): their name says so
     unseen = [{i for g in sc.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
               for sc in scenes]
+    # each person's frames to review (the 3D sources part most), by input frame: {frame: metres}
+    from flowmocap.fit.disagreement import review_frames
+
+    review = []
+    for sc in scenes:
+        got = review_frames(sc.arrays["disagreement"]) if "disagreement" in sc.arrays else None
+        review.append({} if got is None else {int(sc.motion.frame_index[r]): float(got[0][r])
+                                               for r in np.flatnonzero(got[1])})
     R0, t0 = np.asarray(ref.R, np.float64), np.asarray(ref.t, np.float64)
 
     def in_ref_world(sc: ResultScene, v: np.ndarray) -> np.ndarray:
@@ -300,6 +310,10 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
                     cols.append(col)
                     present.append(name)
             img = overlay_bodies(scenes[0].seq.frame(i), bodies, ref, alpha=alpha, colours=cols)
+            flagged = [(name, r[i]) for name, r in zip(names, review) if name in present and i in r]
+            if flagged:
+                img = _flag(img, "review: " + ", ".join(f"{name}'s 3D sources part {100 * d:.0f} cm"
+                                                        for name, d in flagged))
             scale = max(0.35, min(0.6, img.shape[0] / 800))
             y = int(6 + 30 * scale)
             for name, col, gaps in zip(names, colours, unseen):
