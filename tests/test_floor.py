@@ -16,7 +16,7 @@ from flowmocap.body.stature import scaled_shape, stature, with_stature
 from flowmocap.cli import main
 from flowmocap.errors import DataError
 from flowmocap.export import load_fitted_motion
-from flowmocap.export.floor import (FLOOR_FILE, SCALE_RANGE, floor_in_camera, floor_scale, people_floor,
+from flowmocap.export.floor import (FLOOR_FILE, SCALE_RANGE, floor_in_camera, floor_owner, floor_scale, people_floor,
                                     scaled_about_camera, standing_feet_in_camera)
 from flowmocap.io.results import write_motion, write_run
 
@@ -252,3 +252,44 @@ def test_every_persons_frames_to_review_are_marked(reviewed_people, tmp_path):
     edge = lambda f: np.concatenate([video[f, :2].reshape(-1, 3), video[f, -2:].reshape(-1, 3)])  # noqa: E731
     red = lambda px: ((px[:, 0] > 150) & (px[:, 1] < 100) & (px[:, 2] < 100)).mean()  # noqa: E731
     assert red(edge(first)) > 0.8 and red(edge(last)) > 0.8 and red(edge(40)) < 0.1
+
+
+def test_the_floor_of_the_first_person_who_stands_is_shared_when_the_first_never_does(walk, tmp_path, capsys):
+    """person0 jumps all through (never a still foot: their floor is a guess); person1 walks
+    and person2 is the same walk 1.25 times as large and far. person1's floor is shared:
+    person2 is stood on it, person0 keeps their size, and the people are exported and shown in
+    person1's ground frame."""
+    from flowmocap.commands.view import ViewerData
+
+    m = load_fitted_motion(walk, frame="world")  # the camera's frame: y down
+    up = np.asarray(m.camera.R) @ np.array([0.0, 1.0, 0.0])  # the walk's up in this frame
+    bounce = 0.05 * (np.arange(m.num_frames) % 8)  # metres: up 1.5 m/s, then back down: feet never still
+    jumper = scaled_about_camera(m, 1.2)
+    _write(tmp_path / "person0", replace(jumper, trans=jumper.trans + bounce[:, None] * up), walk)
+    import shutil
+
+    shutil.copytree(walk, tmp_path / "person1")
+    _write(tmp_path / "person2", scaled_about_camera(m, 1.25), walk)
+    (tmp_path / "people.json").write_text(json.dumps({"input": "missing", "people": {
+        f"person{k}": {"rank": k, "tracked": True} for k in range(3)}}))
+    assert load_fitted_motion(tmp_path / "person0", frame="ground").world.plane.method == "fallback"
+    fits = people_floor([tmp_path / f"person{k}" for k in range(3)])
+    assert [f.floor_of for f in fits] == [1, 1, 1] and floor_owner(fits) == 1
+    assert fits[0].scale is None and "too few" in fits[0].why  # no standing foot to stand anywhere
+    assert fits[1].scale == 1.0 and fits[2].scale == pytest.approx(0.8, rel=0.02)
+    assert main(["export", str(tmp_path), "-f", "json", "--out", str(tmp_path / "x"), "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "person2: stood on person1's floor: 0.8" in said and "person1: its floor is everyone's" in said
+    assert json.loads((tmp_path / "x" / FLOOR_FILE).read_text())["first"] == "person1"
+
+    def joints(name):
+        return np.array([f["joints3d"] for f in json.loads((tmp_path / "x" / f"{name}.json").read_text())["frames"]])
+
+    own = load_fitted_motion(tmp_path / "person1", frame="ground").joints()
+    np.testing.assert_allclose(joints("person1"), own, atol=2e-4)  # person1's own ground frame holds everyone
+    assert np.median(np.abs(joints("person2") - own)) < 0.01  # person2: the same walk, on person1's floor
+    assert np.median(joints("person2")[:, [7, 8], 1].min(1)) < 0.12  # its lower ankle near the floor, y = 0
+    data = ViewerData(tmp_path)
+    assert data.owner == 1 and data.meta()["floor_of"] == 1
+    assert np.median(np.abs(data.people[2]["motion"].joints() - own)) < 0.01
+    assert np.abs(data.people[0]["motion"].joints2d - load_fitted_motion(tmp_path / "person0").joints2d).max() < 0.5

@@ -338,6 +338,6 @@ def test_track_with_export_writes_everyone_in_one_frame_and_says_how_they_share_
     assert (out / "export" / "person0.json").exists() and (out / "export" / "person1.json").exists()
     floor = json.loads((out / "export" / "floor.json").read_text())
     assert floor["shared"] and set(floor["people"]) == {"person0", "person1"}
-    # one line per person on how they stand on the first person's floor (4 frames: no standing foot, no floor)
+    # one line per person on how they stand on one floor (4 frames: nobody's foot stands, no floor)
     assert "person0: kept the size of its own fit" in said and "person1: kept the size of its own fit" in said
-    assert floor["people"]["person1"]["scale"] is None and "not fitted" in floor["people"]["person1"]["why"]
+    assert floor["people"]["person1"]["scale"] is None and "nobody's floor" in floor["people"]["person1"]["why"]

@@ -115,12 +115,14 @@ def _render_people(args, wanted: dict) -> int:
     for name, folder in folders:
         scenes.append(ResultScene(folder, input=args.input, model=args.model))
         names.append(name)
-    if not args.own_size and len(folders) > 1:  # everyone stood on the first person's floor: who is nearer is drawn
-        from flowmocap.export.floor import people_floor, scaled_about_camera
+    if not args.own_size and len(folders) > 1:  # everyone stood on one floor: who is nearer is drawn
+        from flowmocap.export.floor import floor_owner, people_floor, scaled_about_camera
 
-        for k, fit in enumerate(people_floor([d for _, d in folders], model=args.model)):
-            print(fit.describe(names[k], names[0]))
-            if k > 0 and fit.scale is not None:
+        fits = people_floor([d for _, d in folders], model=args.model)
+        owner = floor_owner(fits)
+        for k, fit in enumerate(fits):
+            print(fit.describe(names[k], names[owner]))
+            if k != owner and fit.scale is not None:
                 scenes[k].motion = scaled_about_camera(scenes[k].motion, fit.scale)
     path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
         OUTPUTS["video"]

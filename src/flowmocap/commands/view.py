@@ -13,9 +13,11 @@ camera in that frame, and the input's frames as JPEG. Routes:
   frame when the input is not found).
 
 Given the folder of ``flowmocap track --person all`` (``people.json``), the page shows every
-tracked person, each in their own colour, in the first person's ground frame (moved there
-through the camera they share, :func:`flowmocap.export.motion.motion_in_frame_of`), over
-every input frame any of them was tracked in.
+tracked person, each in their own colour, in the ground frame of the person whose floor they
+all stand on (the first person's unless they never stand still,
+:func:`flowmocap.export.floor.people_floor`; moved there through the camera they share,
+:func:`flowmocap.export.motion.motion_in_frame_of`), over every input frame any of them was
+tracked in.
 
 Ctrl-C (SIGINT) or SIGTERM stops the server cleanly.
 """
@@ -80,25 +82,32 @@ class ViewerData:
 
     def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False, floor: bool = True):
         from flowmocap.export import load_fitted_motion, motion_in_frame_of, write_motion_glb
-        from flowmocap.export.floor import people_floor, scaled_about_camera
+        from flowmocap.export.floor import floor_owner, people_floor, scaled_about_camera
         from flowmocap.io.results import people_results
         from flowmocap.viz.overlay import PEOPLE_RGB
 
         self.result_dir = Path(result_dir)
         folders = people_results(self.result_dir)
-        first = folders[0][1] if folders else self.result_dir
-        self._home = Path(first).parent  # where a moved input is looked for, beside the result folder
-        #: the first person's motion (the only one's for a result folder), ground frame
-        self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)
-        #: with several people and ``floor``: how each was stood on the first person's floor
+        #: with several people and ``floor``: how each was stood on one floor
         #: (:func:`flowmocap.export.floor.people_floor`), else None
         self.floor = people_floor([d for _, d in folders], model=model) if floor and len(folders) > 1 else None
-        motions = [self.motion]
-        for k, (_, d) in enumerate(folders[1:], start=1):
+        #: the index of the person whose ground frame holds everyone: whose floor is shared
+        #: (the first person unless they never stand still), else the first
+        self.owner = floor_owner(self.floor)
+        first = folders[self.owner][1] if folders else self.result_dir
+        self._home = Path(first).parent  # where a moved input is looked for, beside the result folder
+        #: that person's motion (the only one's for a result folder), ground frame
+        self.motion = load_fitted_motion(first, frame="ground", model=model, smooth=smooth)
+        motions = []
+        for k, (_, d) in enumerate(folders):
+            if k == self.owner:
+                motions.append(self.motion)
+                continue
             m = load_fitted_motion(d, frame="ground", model=model, smooth=smooth)  # its own foot contacts
             if self.floor is not None and self.floor[k].scale is not None:
                 m = scaled_about_camera(m, self.floor[k].scale)
             motions.append(motion_in_frame_of(m, self.motion))
+        motions = motions or [self.motion]
         names = [n for n, _ in folders] or [self.result_dir.name]
         #: the page's frames: the input frames any person was tracked in, ascending
         self.frame_index = np.unique(np.concatenate([m.frame_index for m in motions])).astype(np.int64)
@@ -157,7 +166,8 @@ class ViewerData:
         ``num_frames``, ``frame_index`` (T: input frame numbers), ``width``, ``height``
         (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground frame),
         ``camera`` (its ``to_dict``), ``centre`` (mean pelvis of everyone, metres), ``floor``
-        (how the floor was found), ``people`` (per person: ``name``, ``glb`` (its URL),
+        (how the floor was found), ``floor_of`` (the index of the person whose ground frame
+        and floor these are), ``people`` (per person: ``name``, ``glb`` (its URL),
         ``colour`` (RGB 0..1, or None: the glb's own), ``rows`` (T: the person's result row
         of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
         where not tracked), ``contacts`` (T x 2: left/right foot standing still, 0/1, their
@@ -206,7 +216,8 @@ class ViewerData:
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
-                "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "people": people,
+                "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "floor_of": self.owner,
+                "people": people,
                 "contacts": people[0]["contacts"], "feet": people[0]["feet"], "path": people[0]["path"],
                 "smoothed": m.smoothed, "has_input": self.seq is not None,
                 "disagreement_cm": people[0]["disagreement_cm"],
@@ -359,7 +370,7 @@ def run_view(args) -> int:
                       floor=not args.own_size)
     if data.floor is not None:
         for p, fit in zip(data.people, data.floor):
-            print(fit.describe(p["name"], data.people[0]["name"]), flush=True)
+            print(fit.describe(p["name"], data.people[data.owner]["name"]), flush=True)
     server = make_server(data, args.port, quiet=not args.verbose)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     who = f"; {', '.join(p['name'] for p in data.people)}" if len(data.people) > 1 else ""

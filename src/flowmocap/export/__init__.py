@@ -238,17 +238,20 @@ def export_people(root: str | Path, fmt: str, out: str | Path | None = None, fra
                   markers: str = "joints", floor: bool = True,
                   log: Callable[[str], None] | None = None) -> list[Path]:
     """Export every tracked person of a ``track --person all`` folder, all in one frame: the
-    first person's ``frame`` (by default their ground frame), each other person moved there
-    through the camera they share (:func:`~flowmocap.export.motion.motion_in_frame_of`), so
-    the files line up when imported together.
+    first person's ``frame`` (by default their ground frame; with ``floor``, that of the
+    person whose floor is shared, :func:`~flowmocap.export.floor.people_floor`), each other
+    person moved there through the camera they share
+    (:func:`~flowmocap.export.motion.motion_in_frame_of`), so the files line up when
+    imported together.
 
     Args:
         root: the ``track --person all`` folder (``people.json``, ``person0/``, ...).
         fmt, frame, model, units_per_metre, progress, smooth, markers: as :func:`export_result`.
         out: the folder for the files (default ``ROOT/export``); each is named after its
             person: ``person0.bvh``, ``person1_frames.glb``, ``person0_obj/``, ...
-        floor: stand everyone on the first person's floor (:mod:`flowmocap.export.floor`:
-            each other person scaled about the camera centre, where the factor is accepted);
+        floor: stand everyone on the first person's floor, or where they never stand still
+            the next standing person's (:mod:`flowmocap.export.floor`: each other person
+            scaled about the camera centre, where the factor is accepted);
             what was done is written to ``floor.json`` beside the files. False: each keeps
             their own fit's size and distance.
         log: where to say, one line per person, how they were put on the floor.
@@ -268,22 +271,23 @@ def export_people(root: str | Path, fmt: str, out: str | Path | None = None, fra
     if not people:
         raise DataError(f"{root} holds no {PEOPLE_MANIFEST}: it is not the folder of `flowmocap track --person all`.")
     folder = Path(out) if out is not None else root / "export"
-    first = load_fitted_motion(people[0][1], frame=frame, model=model, smooth=smooth)
-    from flowmocap.export.floor import people_floor, write_floor
+    from flowmocap.export.floor import floor_owner, people_floor, write_floor
 
     fits = None
     if floor:
         fits = people_floor([d for _, d in people], model=model)
-        for (name, _), fit in zip(people, fits):
-            if log is not None:
-                log(fit.describe(name, people[0][0]))
+    owner = floor_owner(fits)  # whose floor is shared holds everyone in their frame
+    for (name, _), fit in zip(people, fits or []):
+        if log is not None:
+            log(fit.describe(name, people[owner][0]))
+    holder = load_fitted_motion(people[owner][1], frame=frame, model=model, smooth=smooth)
     paths = []
     for k, (name, result) in enumerate(people):
         target = folder / FORMATS[fmt].replace("motion", name, 1) if FORMATS[fmt].startswith("motion") else \
             folder / f"{name}_{FORMATS[fmt]}"
         paths.append(export_result(result, fmt, out=target, frame=frame, model=model, units_per_metre=units_per_metre,
                                    progress=progress, smooth=smooth, markers=markers,
-                                   frame_of=None if k == 0 else first,
-                                   scale=None if k == 0 or fits is None else fits[k].scale))
+                                   frame_of=None if k == owner else holder,
+                                   scale=None if k == owner or fits is None else fits[k].scale))
     write_floor(folder / "floor.json", [n for n, _ in people], fits)
     return paths

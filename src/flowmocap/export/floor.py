@@ -5,9 +5,10 @@ further from the camera, gives nearly the same image. Each person of a video is 
 alone, so each body's size is what its own fit and the shape prior settle on (about 1.6 m
 for anyone), and two people of different heights come out the same height, at depths that
 do not stand them on one floor. The people of one video do share a floor. This module puts
-each person after the first on the first person's floor:
+everyone on the first person's floor (or, where the first person never stands still, on the
+floor of the next person in rank order who does: :func:`people_floor`):
 
-- :func:`floor_in_camera`: the first person's floor (their ground frame,
+- :func:`floor_in_camera`: a person's floor (their ground frame,
   :mod:`flowmocap.export.world`, fitted to their standing feet) as a plane in camera
   coordinates;
 - :func:`floor_scale`: the factor ``s`` that scales another person about the camera centre
@@ -36,13 +37,13 @@ import numpy as np
 
 from flowmocap.errors import DataError
 
-__all__ = ["FloorFit", "SCALE_RANGE", "MIN_POINTS", "floor_in_camera", "standing_feet_in_camera", "floor_scale",
+__all__ = ["FloorFit", "floor_owner", "SCALE_RANGE", "MIN_POINTS", "floor_in_camera", "standing_feet_in_camera", "floor_scale",
            "scaled_about_camera", "people_floor", "write_floor", "FLOOR_FILE"]
 
 #: What :func:`write_floor` writes beside a people folder's exports.
 FLOOR_FILE = "floor.json"
 
-#: Factors a person may be scaled by to stand on the first person's floor; one outside is
+#: Factors a person may be scaled by to stand on the shared floor; one outside is
 #: refused (the person keeps their own fit's size): more than half again or a third less
 #: than the body's fitted size is a person on something else, or a floor fitted wrong.
 SCALE_RANGE = (0.67, 1.5)
@@ -53,16 +54,18 @@ MIN_POINTS = 10
 
 @dataclass
 class FloorFit:
-    """How a person was put on the first person's floor.
+    """How a person was put on the shared floor.
 
     Attributes:
-        scale: the factor about the camera centre (1.0 for the first person), or None
+        scale: the factor about the camera centre (1.0 for the person whose floor it is), or None
             where it was refused or could not be found (``why`` says which): the person
             then keeps their own size.
         points: standing-foot points it was found from.
         stature_m: the body's stature after scaling (its own where ``scale`` is None), metres.
         own_stature_m: the stature of the person's own fit, metres.
         why: None, or why the person keeps their own size.
+        floor_of: the index (rank order) of the person whose floor is shared; None where
+            nobody's is.
     """
 
     scale: float | None
@@ -70,20 +73,30 @@ class FloorFit:
     stature_m: float
     own_stature_m: float
     why: str | None = None
+    floor_of: int | None = None
 
     def to_dict(self) -> dict:
         return {"scale": None if self.scale is None else round(self.scale, 4), "points": self.points,
                 "stature_m": round(self.stature_m, 3), "own_stature_m": round(self.own_stature_m, 3),
                 "why": self.why}
 
-    def describe(self, name: str, first: str) -> str:
-        """One line for the user."""
+    def describe(self, name: str, owner: str) -> str:
+        """One line for the user; ``owner``: the name of the person whose floor is shared."""
         if self.scale is None:
             return f"{name}: kept the size of its own fit ({self.own_stature_m:.2f} m tall): {self.why}"
-        if name == first:
+        if name == owner:
             return f"{name}: its floor is everyone's ({self.own_stature_m:.2f} m tall)"
-        return (f"{name}: stood on {first}'s floor: {self.scale:.2f}x the size and distance of its own fit "
+        return (f"{name}: stood on {owner}'s floor: {self.scale:.2f}x the size and distance of its own fit "
                 f"({self.own_stature_m:.2f} -> {self.stature_m:.2f} m tall; {self.points} standing-foot points)")
+
+
+def floor_owner(fits: list[FloorFit] | None) -> int:
+    """The index of the person whose floor :func:`people_floor` shared (and whose frame the
+    people are shown and exported in); 0 where nobody's was (``fits`` None or no floor)."""
+    for f in fits or []:
+        if f.floor_of is not None:
+            return f.floor_of
+    return 0
 
 
 def floor_in_camera(motion) -> tuple[np.ndarray, float]:
@@ -163,10 +176,10 @@ def floor_scale(motion, first, scale_range: tuple[float, float] = SCALE_RANGE,
     own = stature(motion.model, motion.betas)
     keep = lambda why, points=0: FloorFit(None, points, own, own, why)  # noqa: E731
     if first.world is None or first.world.plane.method != "contacts":
-        return keep("the first person's floor is not fitted to standing feet")
+        return keep("the shared floor is not fitted to standing feet")
     n_c, d_c = floor_in_camera(first)
     if d_c >= 0:
-        return keep("the camera is not above the first person's floor")
+        return keep("the camera is not above the shared floor")
     pts = standing_feet_in_camera(motion, n_c)
     below = pts[pts @ n_c < 0]  # a point level with the camera or above it cannot be scaled onto the floor
     if len(below) < min_points:
@@ -174,7 +187,7 @@ def floor_scale(motion, first, scale_range: tuple[float, float] = SCALE_RANGE,
                     len(below))
     s = float(np.median(d_c / (below @ n_c)))
     if not scale_range[0] <= s <= scale_range[1] or not STATURE_RANGE_M[0] <= s * own <= STATURE_RANGE_M[1]:
-        return keep(f"its standing feet would need {s:.2f}x its size and distance to rest on the first person's "
+        return keep(f"its standing feet would need {s:.2f}x its size and distance to rest on the shared "
                     "floor: not the same floor (a box, stairs, a step?)", len(below))
     return FloorFit(s, len(below), stature(motion.model, scaled_shape(motion.model, motion.betas, s)), own)
 
@@ -213,44 +226,53 @@ def scaled_about_camera(motion, scale: float):
 
 
 def people_floor(folders, model=None) -> list[FloorFit]:
-    """:func:`floor_scale` for each result of one input against the first.
+    """:func:`floor_scale` for each result of one input against the floor of the first
+    person whose floor is fitted to their standing feet.
+
+    That is the first person's (the largest) unless they never stand still (a jump, a
+    dance, a person seen only from the waist up), whose floor is then only a guess (through
+    their lowest foot point): the floor of the next person in order who does stand is
+    shared, and the first person is stood on it like anyone else.
 
     Args:
         folders: result folders of one input (``track --person all``'s ``person0``, ...),
-            the first's floor shared.
+            in rank order.
         model: body model override.
 
     Returns:
-        one :class:`FloorFit` per folder; the first's scale 1.0 (None where its floor is
-        not fitted to standing feet: then nobody is scaled).
+        one :class:`FloorFit` per folder, each with ``floor_of`` the index of the person
+        whose floor is shared (:func:`floor_owner`); that person's scale 1.0. Where nobody's
+        floor is fitted to standing feet, every scale is None and nobody is moved.
     """
     from flowmocap.body.stature import stature
     from flowmocap.export.motion import load_fitted_motion
 
     motions = [load_fitted_motion(d, frame="ground", model=model) for d in folders]
-    if not motions:
-        return []
-    first = motions[0]
-    own = stature(first.model, first.betas)
-    fits = [FloorFit(1.0, int(np.asarray(first.world.contacts).sum()), own, own)
-            if first.world.plane.method == "contacts"
-            else FloorFit(None, 0, own, own, "its floor is not fitted to standing feet: nobody is moved onto it")]
-    for m in motions[1:]:
-        fits.append(floor_scale(m, first))
+    standing = [k for k, m in enumerate(motions) if m.world.plane.method == "contacts"]
+    fits = []
+    for k, m in enumerate(motions):
+        own = stature(m.model, m.betas)
+        if not standing:
+            fits.append(FloorFit(None, 0, own, own, "nobody's floor is fitted to standing feet: nobody is moved"))
+        elif k == standing[0]:
+            fits.append(FloorFit(1.0, int(np.asarray(m.world.contacts).sum()), own, own, floor_of=k))
+        else:
+            fits.append(replace(floor_scale(m, motions[standing[0]]), floor_of=standing[0]))
     return fits
 
 
 def write_floor(path, names: list[str], fits: list[FloorFit] | None):
     """Write how the people were put on one floor (``fits`` from :func:`people_floor`, or
     None where they were not) as JSON, atomically: ``{"format": "flowmocap-floor",
-    "version": 1, "shared": bool, "first": name, "people": {name: FloorFit.to_dict()}}``.
-    Returns the path."""
+    "version": 1, "shared": bool, "first": name (whose floor is shared and whose frame the
+    exports are in), "people": {name: FloorFit.to_dict()}}``. Returns the path."""
     import json
     from pathlib import Path
 
     from flowmocap.atomic import atomic_write
 
-    doc = {"format": "flowmocap-floor", "version": 1, "shared": fits is not None, "first": names[0] if names else None,
+    doc = {"format": "flowmocap-floor", "version": 1, "shared": fits is not None,
+           "first": names[floor_owner(fits)] if names else None,
            "people": {} if fits is None else {n: f.to_dict() for n, f in zip(names, fits)}}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

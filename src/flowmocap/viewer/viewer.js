@@ -3,7 +3,8 @@
 //   /api/meta.json  fps, frames, image size, the camera (OpenGL matrices, world frame), floor
 //   /motion.glb     the skinned, animated body (the same file `flowmocap export --format glb` writes);
 //                   with several people (a `track --person all` folder) /motion/N.glb is person N's,
-//                   all in the first person's ground frame (meta.people: glb, colour, rows, path)
+//                   all in the ground frame of the person whose floor is shared, meta.floor_of
+//                   (meta.people: glb, colour, rows, path)
 //   /frame/K.jpg    input frame of page frame K (a result row; with several people, an input
 //                   frame any of them was tracked in)
 // URL parameters: ?frame=K (start at row K, paused), ?play=1 (start playing), ?scale=S (draw
@@ -203,8 +204,8 @@ function draw() {
     for (const side of [0, 1]) {
       const f = person.feet[current] && person.feet[current][side];
       discs[k][side].visible = !!f && person.contacts[current][side] === 1;
-      // on the floor for the first person; where the foot stands for the others (a box, a step)
-      if (f) discs[k][side].position.set(f[0], k === 0 ? 0.004 : f[1] + 0.004, f[2]);
+      // on the floor for the person whose floor it is; where the foot stands for the others (a box, a step)
+      if (f) discs[k][side].position.set(f[0], k === (meta.floor_of || 0) ? 0.004 : f[1] + 0.004, f[2]);
       standing.push(discs[k][side].visible ? 1 : 0);
     }
   });
