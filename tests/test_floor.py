@@ -280,6 +280,7 @@ def test_the_floor_of_the_first_person_who_stands_is_shared_when_the_first_never
     assert main(["export", str(tmp_path), "-f", "json", "--out", str(tmp_path / "x"), "--quiet"]) == 0
     said = capsys.readouterr().out
     assert "person2: stood on person1's floor: 0.8" in said and "person1: its floor is everyone's" in said
+    assert "3 people in one frame: person1's (ground)" in said
     assert json.loads((tmp_path / "x" / FLOOR_FILE).read_text())["first"] == "person1"
 
     def joints(name):

@@ -25,7 +25,8 @@ def register(subparsers) -> None:
         "(cached in RESULT/world.json with per-frame foot contacts); --frame up only turns the result "
         "y up, --frame world keeps the result's own world frame. Given the folder of `track --person all` "
         "(people.json), every tracked person is exported into DIR/export/personN.<ext> (or --out, a folder), all "
-        "in the first person's frame, so the files line up. Formats: "
+        "in the first person's frame (or, where the first never stands still, that of the person whose floor "
+        "everyone is stood on), so the files line up. Formats: "
         + "; ".join(f"{k}: {v}" for k, v in FORMAT_HELP.items()) + ".")
     p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder")
     p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT",
@@ -81,7 +82,12 @@ def run_export(args) -> int:
                               floor=not args.own_size, log=print)
         for path in paths:
             print(f"wrote {path} ({args.fmt}: {FORMAT_HELP.get(args.fmt, '')})")
-        print(f"{len(paths)} people in one frame: the first person's ({args.frame})"
+        import json
+
+        from flowmocap.export.floor import FLOOR_FILE
+
+        holder = json.loads((paths[0].parent / FLOOR_FILE).read_text())["first"] if paths else None
+        print(f"{len(paths)} people in one frame: {holder}'s ({args.frame})"
               + ("" if args.own_size else "; on one floor (floor.json)"))
         return 0
     if args.own_size:
