@@ -4,6 +4,8 @@ through ``flowmocap.track`` and ``flowmocap track --person``."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -389,3 +391,83 @@ def test_what_is_left_of_a_blanked_person_is_not_found_again():
     scene = People([{i: (10, 20, 50, 126) for i in range(12)}])
     got = find_people(scene, ColourDetector(scene), Echo(scene), progress=False)
     assert all(len(g) == 1 for g in got)
+
+
+# ------------------------------------------------------------------ a person seen again after a time out of sight
+
+
+def _walker(frames, x0=10):
+    """A person's boxes in ``frames``, walking right 1 px a frame."""
+    return {i: (x0 + i, 20, x0 + 40 + i, 126) for i in frames}
+
+
+@pytest.mark.parametrize("case", ["same", "other", "too_long", "fragment"])
+def test_a_person_hidden_for_longer_than_a_gap_is_joined_again(tmp_path, case):
+    """Someone out of sight for 20 frames (more than split_tracks' 15) comes back as a new
+    track. The same clothes within LINK_MAX_S seconds: one person, tracked in both stretches;
+    someone else, a longer time away, or a fragment of fewer than 10 detections: two."""
+    before, after = range(0, 15), range(35, 50) if case != "fragment" else range(35, 43)
+    if case == "other":  # green comes in where red left
+        scene = People([_walker(before), _walker(after)], n=50, size=(128, 160))
+    else:
+        scene = People([{**_walker(before), **_walker(after)}], n=50, size=(128, 160))
+    scene.meta = {"fps": 5.0 if case == "too_long" else 30.0}  # 20 frames: 4 s at 5 fps, above LINK_MAX_S
+    track = detect_sequence(scene, tmp_path, ColourDetector(scene), searcher=ColourDetector(scene), progress=False)
+    people = track.info["person"]["people"]
+    if case == "same":
+        assert track.found[list(before)].all() and track.found[list(after)].all() and not track.found[15:35].any()
+        assert [p["frames"] for p in people] == [[0, 49]] and people[0]["detections"] == 30
+        assert [lk["frames"] for lk in track.info["person"]["seen_again"]] == [[14, 35]]
+        assert track.info["person"]["seen_again"][0]["distance"] < 0.01
+        assert not track.info["ignored_people"]
+    else:
+        assert len(people) == 2 and not track.info["person"]["seen_again"]
+        # only one stretch is tracked: the first (as large and long as the other, or longer)
+        assert track.found[list(before)].all() and track.found.sum() == len(before)
+
+
+def test_appearance_tells_clothes_apart():
+    """The hue-saturation histograms of a person's upper and lower half: the same clothes
+    moved elsewhere are 0 apart, another shirt over the same trousers about half, other
+    clothes 1."""
+    from flowmocap.vision.auto import Candidate, PackedMask, appearance, appearance_distance
+
+    def person(top, bottom, x0=10):
+        img = np.zeros((120, 100, 3), np.uint8)
+        img[10:60, x0:x0 + 30], img[60:110, x0:x0 + 30] = top, bottom
+        mask = np.zeros((120, 100), bool)
+        mask[10:110, x0:x0 + 30] = True
+        return img, Candidate((x0, 10, x0 + 30, 110), np.zeros((15, 2)), np.ones(15), PackedMask.pack(mask), None)
+
+    red, blue, green = (200, 30, 30), (30, 30, 200), (30, 200, 30)
+    a = appearance(*person(red, blue))
+    assert appearance_distance(a, appearance(*person(red, blue, x0=50))) == pytest.approx(0.0, abs=1e-3)
+    assert appearance_distance(a, appearance(*person(green, blue))) == pytest.approx(0.5, abs=0.01)
+    assert appearance_distance(a, appearance(*person(green, red))) == pytest.approx(1.0, abs=0.01)
+    img, cand = person(red, blue)
+    tiny = np.zeros((120, 100), bool)
+    tiny[10:14, 10:14] = True
+    assert appearance(img, cand._replace(mask=PackedMask.pack(tiny))) is None  # too few pixels to say
+
+
+DAVIS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video" / "davis-dance-twirl"
+
+
+@pytest.mark.skipif(not DAVIS.exists(), reason=f"shared data not found at {DAVIS} (real frames for MediaPipe)")
+def test_the_dancer_is_joined_across_a_cut(tmp_path):
+    """DAVIS dance-twirl with frames 20-44 grey (a cut of 25 frames): MediaPipe finds the
+    dancer before and after, and the two stretches are one person by her clothes, so both are
+    kept (before, only the longer one was)."""
+    import imageio.v3 as iio
+
+    from flowmocap.io.sequence import load_sequence
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(60):
+        img = iio.imread(DAVIS / "JPEGImages" / f"{i:05d}.jpg")
+        iio.imwrite(frames / f"{i:05d}.png", np.full_like(img, 110) if 20 <= i < 45 else img)
+    track = detect_sequence(load_sequence(frames), tmp_path / "out", detector="unaugmented", progress=False)
+    links = track.info["person"]["seen_again"]
+    assert [lk["frames"] for lk in links] == [[19, 45]] and links[0]["distance"] < 0.45
+    assert track.found[:20].sum() >= 18 and track.found[45:].sum() >= 13 and not track.found[20:45].any()
