@@ -204,3 +204,26 @@ def test_overlay_video_frames_the_frames_to_review_in_red(demo, tmp_path):
     edge = lambda f: np.concatenate([video[f, :2].reshape(-1, 3), video[f, -2:].reshape(-1, 3)])  # noqa: E731
     red = lambda px: ((px[:, 0] > 150) & (px[:, 1] < 100) & (px[:, 2] < 100)).mean()  # noqa: E731
     assert red(edge(3)) > 0.8 and all(red(edge(f)) < 0.1 for f in (0, 1, 2, 4))
+
+
+def test_overlay_video_says_which_frames_were_not_seen(demo, tmp_path):
+    """Frames tracked by flow alone (run.json's gaps) carry "not seen" at the top left."""
+    import shutil
+
+    import imageio.v3 as iio
+
+    from flowmocap.io.results import read_result, write_run
+
+    root, _, _ = demo
+    res = tmp_path / "unseen"
+    shutil.copytree(root / "exact", res)
+    _, run = read_result(res)
+    write_run(res, {**run, "gaps": [{"frames": [1, 2], "why": "no person found"}]})
+    assert main(["render", str(res), "--video", str(tmp_path / "u.mp4"), "--quiet"]) == 0
+    plain = main(["render", str(root / "exact"), "--video", str(tmp_path / "p.mp4"), "--quiet"])
+    assert plain == 0
+    a = iio.imread(tmp_path / "u.mp4", plugin="pyav").astype(int)
+    b = iio.imread(tmp_path / "p.mp4", plugin="pyav").astype(int)
+    corner = lambda v, f: v[f, :30, :200]  # noqa: E731 -- where the words go
+    changed = [np.abs(corner(a, f) - corner(b, f)).max(-1).__gt__(60).mean() for f in range(T)]
+    assert changed[1] > 0.02 and changed[2] > 0.02 and changed[0] < 0.005 and changed[3] < 0.005, changed

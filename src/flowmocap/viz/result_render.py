@@ -201,7 +201,8 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
     (twice as wide with ``side``: the view from a camera orbited 90 degrees about the
     body's mean pelvis, on the right). Where the result has the 3D sources' disagreement,
     the frames to review (:func:`~flowmocap.fit.disagreement.review_frames`) get a red frame
-    and a caption with the frame's value.
+    and a caption with the frame's value; frames the person was tracked through without being
+    seen (``run.json``'s ``gaps``) say so at the top left.
 
     Args:
         scene: the result.
@@ -219,12 +220,22 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     from flowmocap.fit.disagreement import review_frames
 
+    import cv2
+
     cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
     review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
+    # frames the person was tracked through without being seen (run.json's gaps): said so
+    unseen = {i for g in scene.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
     with VideoWriter(path, scene.motion.fps) as out:
         for k in tqdm(range(scene.num_frames), disable=not progress, unit="frame", desc="overlay video"):
             v = scene.vertices(k)
             img = overlay_body(scene.image(k), v, scene.faces, scene.camera, alpha=alpha)
+            if int(scene.motion.frame_index[k]) in unseen:
+                img = np.ascontiguousarray(img)
+                scale = max(0.35, min(0.6, img.shape[0] / 800))
+                text, y = "not seen: tracked by flow alone", int(6 + 30 * scale)
+                cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
+                cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
             if review is not None and review[1][k]:
                 img = _flag(img, f"review: 3D sources part {100 * review[0][k]:.0f} cm")
             if cam2 is not None:
