@@ -417,3 +417,43 @@ def test_own_masks_and_init_can_use_the_detectors_joints_in_every_frame(small_cl
                           progress=False)
     assert np.isnan(off.energies["keypoints"][2:]).all()  # no E_j after the init
     assert judged == [] and "3D joints for E_d" in off.run["joints3d"]
+
+
+def test_a_long_run_without_the_person_is_held_at_the_last_seen_pose(small_clip, tmp_path, monkeypatch):
+    """Frames 2-3 without the person, a run longer than hold_unseen_frames (1 here): the body
+    is not tracked there by flow alone but held at frame 1's pose and place, run.json says so,
+    and frame 4 (seen again) is tracked."""
+    import flowmocap.vision.detect as detect
+    from flowmocap.cli import main
+    from flowmocap.io.results import read_result
+    from flowmocap.io.sequence import load_sequence
+
+    from test_video import write_video
+
+    seq = load_sequence(small_clip)
+    video = write_video(tmp_path / "walk.mp4", [seq.frame(i) for i in range(len(seq))])
+    fake = GroundTruthDetector(seq, absent={2, 3})
+    monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)
+    monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": fake if augment else Nobody())
+    cfg = tmp_path / "hold.json"
+    cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4,
+                               "hold_unseen_frames": 1}))
+    out = tmp_path / "out"
+    assert main(["track", str(video), "--out", str(out), "--config", str(cfg), "--quiet"]) == 0
+    motion, run = read_result(out)
+    assert run["gaps"] == [{"frames": [2, 3], "why": "no person found: held at the last seen pose"}]
+    held = [e for e in run["events"] if e["event"].startswith("held: the person is not seen")]
+    assert [e["frame"] for e in held] == [2, 3] and held[0]["frames"] == [2, 3]
+    rows = {int(f): k for k, f in enumerate(motion["frame_index"])}
+    for key in ("poses_tracked", "trans_tracked"):
+        x = motion[key]
+        np.testing.assert_array_equal(x[rows[2]], x[rows[1]])
+        np.testing.assert_array_equal(x[rows[3]], x[rows[1]])
+        assert np.abs(x[rows[4]] - x[rows[1]]).max() > 1e-4  # seen again: tracked
+    # at the default (15 frames) the same two frames are tracked by flow alone
+    out2 = tmp_path / "out2"
+    cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
+    assert main(["track", str(video), "--out", str(out2), "--config", str(cfg), "--quiet"]) == 0
+    motion2, run2 = read_result(out2)
+    assert "flow alone" in run2["gaps"][0]["why"] and not any("held" in e["event"] for e in run2["events"])
+    assert np.abs(motion2["poses_tracked"][2] - motion2["poses_tracked"][1]).max() > 1e-4

@@ -448,7 +448,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                            **detections.info.get("person", {"choice": describe_person(choice)})}
         if choice[0] == "point":
             notes["person"]["pixel_in_tracked_frames"] = [round(v, 1) for v in choice[1]]
-        notes["gaps"] = [{"frames": r, "why": "no person found: tracked by flow alone, no silhouette term"}
+        held = cfg.hold_unseen_frames if auto_masks else 0  # longer runs: the body held (_run_sequence)
+        notes["gaps"] = [{"frames": r, "why": "no person found: held at the last seen pose" if 0 < held < r[1] - r[0] + 1
+                          else "no person found: tracked by flow alone, no silhouette term"}
                          for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
     if is_video:
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
@@ -880,10 +882,21 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             return None  # a user's masks may include what the detector took for someone else
         return detections.others(i)
 
+    # the long runs of frames without the person, where the body is held (TrackerConfig.hold_unseen_frames)
+    unseen_runs: dict[int, tuple] = {}
+    if detections is not None and cfg.hold_unseen_frames > 0 and notes.get("masks") == "automatic":
+        for r in frame_runs([i for i in range(a, b) if not detections.found[i]]):
+            if r[1] - r[0] + 1 > cfg.hold_unseen_frames:
+                unseen_runs.update({i: (r[0], r[1]) for i in range(r[0], r[1] + 1)})
+
     def observe(i: int):
         """Mask and observations of frame i (the person-size fallback for a frame without a
-        mask is the tracker's)."""
+        mask is the tracker's); in a long run without the person, only that."""
         mask = seq.mask(i)
+        if i in unseen_runs:
+            data = frame_data(None, None, cfg, float("nan"))
+            data.unseen = unseen_runs[i]
+            return mask, data
         usable = mask if (mask is not None and mask.any()) else None
         data = frame_data(usable, flow_of(i, usable), cfg, float("nan"), detected(i), others(i))
         data.joints3d = detected3d(i)

@@ -104,7 +104,7 @@ _RANGES: dict[str, str] = {
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0, "keypoint_min_confidence": _UNIT,
     "keypoint_confidence_floor": _UNIT,
     "keypoint_hold_sigma": _ABOVE_0, "keypoint_hold_weight": _AT_LEAST_0,
-    "keypoint_hold_frames": _AT_LEAST_0,
+    "keypoint_hold_frames": _AT_LEAST_0, "hold_unseen_frames": _AT_LEAST_0,
     "limb_depth_weight": _AT_LEAST_0, "limb_depth_sigma": _ABOVE_0, "capsule_grid_step": _AT_LEAST_1,
     "detector3d_weight": _AT_LEAST_0, "detector3d_scale": _ABOVE_0, "flip_iterations": _AT_LEAST_0,
     "flip_vote_frames": _AT_LEAST_0, "flip_vote_reach": _AT_LEAST_0,
@@ -193,6 +193,10 @@ class TrackerConfig:
     #                                    not swapped) for this many frames in a row gets ...; 0: off
     keypoint_hold_sigma: float = 80.0  # ... this E_j scale, px, and ...
     keypoint_hold_weight: float = 4.0  # ... its weight times this until it is back (fit.tracker.lost_joints)
+    hold_unseen_frames: int = 15       # in a run of more than this many frames without the person (an
+    #                                    occluder, a cut, out of view: the detector's tracks joined across
+    #                                    it, vision.auto.link_tracks), the body is held at the last seen pose
+    #                                    instead of tracked by flow alone; 0: never held
     detector_swap_check: bool = True   # per frame, a detection that labels the whole body left for right
     #                                    against the prediction is exchanged back, 2D and 3D, for the frame's
     #                                    terms and its re-initialisation check (fit.swap); False: as it comes

@@ -127,6 +127,8 @@ class FrameData:
     joints3d: tuple | None = None  # detected (j3d (24, 3) m in camera axes, conf (24,)) for E_d and E_3d, or None
     depth_ref: tuple | None = None  # (ref_trans (3,) m, unit viewing ray (3,)) for E_z, or None
     keypoint_hold: np.ndarray | None = None  # (24,) bool: joints E_j holds (SequenceTracker.keypoint_hold), or None
+    unseen: tuple | None = None  # (first, last) frame of a run of frames without the person longer than
+    #                              TrackerConfig.hold_unseen_frames that holds this frame, or None
 
 
 def keypoint_observation(j2d, conf, min_confidence: float = 0.5, min_joints: int = 4,

@@ -216,10 +216,26 @@ class SequenceTracker:
         return FrameState(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32))
 
     def step(self, i: int, mask: np.ndarray | None, data: FrameData) -> FrameResult:
-        """Track frame ``i`` from its mask (``(H, W)`` bool or None) and observations."""
+        """Track frame ``i`` from its mask (``(H, W)`` bool or None) and observations.
+
+        A frame in a long run without the person (``data.unseen``) is not optimised: the
+        body is held at the last seen pose (nothing in the frame says where it went, and the
+        flow there is the occluder's or the background's), the Kalman filter restarts from it
+        (no velocity carried across) and the re-initialisation check is not asked; the first
+        frame seen again is tracked from there and re-initialised where it does not fit."""
         t0 = time.perf_counter()
         events = []
         prev = self.prev
+        if data.unseen is not None:
+            state = prev.clone()
+            a, b = data.unseen
+            events.append({"frame": i, "event": "held: the person is not seen", "frames": [int(a), int(b)]})
+            if self.kf is not None:
+                self.kf = new_filter(state.pose.numpy(), state.trans.numpy(), self.cfg)
+            self.lost[:] = 0
+            self.votes[:] = 0
+            self.prev = state
+            return FrameResult(i, state, {}, events, time.perf_counter() - t0)
         pred = self.predict()
         data.anchor = self.anchor.pose if (self.anchor is not None and self.cfg.anchor_weight > 0) else None
         data.depth_ref = None

@@ -224,8 +224,9 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
     review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
-    # frames the person was tracked through without being seen (run.json's gaps): said so
-    unseen = {i for g in scene.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
+    # frames the person was tracked through without being seen (run.json's gaps): said so, and how
+    unseen = {i: "held at the last seen pose" if "held" in str(g.get("why")) else "tracked by flow alone"
+              for g in scene.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
     with VideoWriter(path, scene.motion.fps) as out:
         for k in tqdm(range(scene.num_frames), disable=not progress, unit="frame", desc="overlay video"):
             v = scene.vertices(k)
@@ -233,7 +234,7 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
             if int(scene.motion.frame_index[k]) in unseen:
                 img = np.ascontiguousarray(img)
                 scale = max(0.35, min(0.6, img.shape[0] / 800))
-                text, y = "not seen: tracked by flow alone", int(6 + 30 * scale)
+                text, y = "not seen: " + unseen[int(scene.motion.frame_index[k])], int(6 + 30 * scale)
                 cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
                 cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
             if review is not None and review[1][k]:
@@ -249,7 +250,7 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     """Write one MP4 with every person's fitted body over the input, each in its own colour
     (:data:`~flowmocap.viz.overlay.PEOPLE_RGB` in the scenes' order) and named in a key at
     the top left (grey where that person's result has no such frame; "not seen" where it was
-    tracked through the frame by flow alone, run.json's ``gaps``). A frame that is one of a
+    tracked through the frame by flow alone or held, run.json's ``gaps``). A frame that is one of a
     person's frames to review (:func:`~flowmocap.fit.disagreement.review_frames`) gets a red
     frame and a caption naming whose and their value. Where bodies overlap, the
     one nearer the camera is drawn, at the depths the scenes' motions give: each fit's own,
@@ -295,7 +296,8 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     last = max(int(sc.motion.frame_index.max()) for sc in scenes)
     rows = [{int(i): k for k, i in enumerate(sc.motion.frame_index)} for sc in scenes]
     # frames a person was tracked through without being seen (by flow alone): their name says so
-    unseen = [{i for g in sc.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
+    unseen = [{i: "held" if "held" in str(g.get("why")) else "by flow alone"
+               for g in sc.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
               for sc in scenes]
     # each person's frames to review (the 3D sources part most), by input frame: {frame: metres}
     from flowmocap.fit.disagreement import review_frames
@@ -329,7 +331,7 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
             y = int(6 + 30 * scale)
             for name, col, gaps in zip(names, colours, unseen):
                 ink = tuple(int(255 * c) for c in col) if name in present else (150, 150, 150)
-                text = name + (" (not seen: by flow alone)" if name in present and i in gaps else "")
+                text = name + (f" (not seen: {gaps[i]})" if name in present and i in gaps else "")
                 cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
                 cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
                 y += int(28 * scale) + 4
