@@ -366,3 +366,29 @@ def test_export_of_a_people_folder_puts_everyone_in_the_first_persons_frame(peop
     alone = load_fitted_motion(data.result_dir / "person1", frame="ground")
     assert [f["contact"] for f in files[1]["frames"]] == alone.world.contacts.tolist()
     assert "contact" in files[0]["frames"][0]
+
+
+def test_the_page_says_where_the_person_was_not_seen(result, tmp_path):
+    """run.json's gaps: input frames 4-5 held, frame 7 by flow alone (the result's rows start at
+    input frame 3); meta says so per person and the page's label and data-unseen say so in
+    those frames."""
+    from flowmocap.io.results import read_result, write_run
+
+    d = tmp_path / "result"
+    shutil.copytree(result, d)
+    _, run = read_result(d)
+    write_run(d, {**run, "gaps": [{"frames": [4, 5], "why": "no person found: held at the last seen pose"},
+                                  {"frames": [7, 7], "why": "no person found: tracked by flow alone, no silhouette term"}]})
+    for data, url in _serving(ViewerData(d)):
+        meta = json.loads(_get(url + "/api/meta.json")[2])
+        unseen = meta["people"][0]["unseen"]
+        assert meta["frame_index"] == [3, 4, 5, 6, 7]
+        assert unseen == ["", "held", "held", "", "flow"]
+        if _chromium() is None:
+            pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+        for k, want, words in ((1, "held", "not seen (held at the last seen pose)"),
+                               (4, "flow", "not seen (tracked by flow alone)"), (0, "-", None)):
+            dom = _chromium_run(url + f"/?frame={k}", "--dump-dom")
+            assert 'data-ready="1"' in dom.stdout and "data-error" not in dom.stdout, dom.stderr[-2000:]
+            assert f'data-unseen="{want}"' in dom.stdout
+            assert (words in dom.stdout) if words else "not seen (" not in dom.stdout

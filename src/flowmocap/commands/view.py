@@ -172,7 +172,9 @@ class ViewerData:
         of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
         where not tracked), ``contacts`` (T x 2: left/right foot standing still, 0/1, their
         own), ``feet`` (T x 2 x 3: the lowest point of the left and right foot, metres; None
-        where not tracked), and from their result's ``disagreement``
+        where not tracked), ``unseen`` (T: "held" or "flow" where the person was tracked
+        without being seen, held at the last seen pose or by flow alone, ``run.json``'s
+        ``gaps``; "" elsewhere), and from their result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
         per frame the mean over the scored joints, centimetres; None where there is none or
         the person is not tracked) and ``review`` (T, 0/1:
@@ -211,6 +213,7 @@ class ViewerData:
                            "path": [None if r < 0 else path[r] for r in p["rows"]],
                            "contacts": [[0, 0] if r < 0 else contacts[r] for r in p["rows"]],
                            "feet": [None if r < 0 else feet[r] for r in p["rows"]],
+                           "unseen": self._unseen(pm, self.frame_index),
                            **self._review(pm, p["rows"])})
         marked = [p["review"] for p in people if p["review"] is not None]
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
@@ -222,6 +225,18 @@ class ViewerData:
                 "smoothed": m.smoothed, "has_input": self.seq is not None,
                 "disagreement_cm": people[0]["disagreement_cm"],
                 "review": [int(any(r[k] for r in marked)) for k in range(self.num_frames)] if marked else None}
+
+    @staticmethod
+    def _unseen(motion, frame_index) -> list[str]:
+        """Per page frame, how the person was tracked where they were not seen (``run.json``'s
+        ``gaps``): "held" (at the last seen pose), "flow" (by flow alone), or "" (seen, or not
+        tracked)."""
+        how = {}
+        for g in motion.run.get("gaps") or []:
+            for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1):
+                how[i] = "held" if "held" in str(g.get("why")) else "flow"
+        tracked = {int(i) for i in motion.frame_index}
+        return [how.get(int(i), "") if int(i) in tracked else "" for i in frame_index]
 
     @staticmethod
     def _review(motion, rows: list[int]) -> dict:

@@ -16,7 +16,9 @@
 // a disc under that foot, standing) and, where the result has
 // the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
 // tenth, for anyone) and data-review-people (one 0/1 per person), for tests. The strip under
-// the slider marks those frames in red; the label names whose.
+// the slider marks those frames in red; the label names whose. data-unseen: per person, comma
+// separated, "held" / "flow" where they were tracked without being seen (the label says so), "-"
+// elsewhere; the strip marks those frames in grey.
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -172,15 +174,19 @@ window.addEventListener('resize', () => { layout(); draw(); });
 // the frames to review (the 3D sources part most): red marks on a strip under the slider
 function drawStrip() {
   const strip = $('strip');
-  if (!meta.review) { strip.style.display = 'none'; return; }
+  const unseenAt = (k) => meta.people.some((person) => person.unseen && person.unseen[k]);
+  let anyUnseen = false;
+  for (let k = 0; k < T && !anyUnseen; k++) anyUnseen = unseenAt(k);
+  if (!meta.review && !anyUnseen) { strip.style.display = 'none'; return; }
   const w = Math.max(1, Math.round($('slider').getBoundingClientRect().width));
   strip.width = w;
   const g = strip.getContext('2d');
   g.fillStyle = '#3a404a';
   g.fillRect(0, 0, w, strip.height);
-  g.fillStyle = '#ff5050';
   for (let k = 0; k < T; k++) {
-    if (meta.review[k]) g.fillRect(Math.floor((k / Math.max(T - 1, 1)) * (w - 2)), 0, 2, strip.height);
+    const x = Math.floor((k / Math.max(T - 1, 1)) * (w - 2));
+    if (meta.review && meta.review[k]) { g.fillStyle = '#ff5050'; g.fillRect(x, 0, 2, strip.height); }
+    else if (unseenAt(k)) { g.fillStyle = '#9aa0aa'; g.fillRect(x, 0, 2, strip.height); }
   }
 }
 window.addEventListener('resize', drawStrip);
@@ -219,6 +225,12 @@ async function setFrame(k) {
   const mine = ++token;
   $('slider').value = String(current);
   label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(current / fps).toFixed(2)} s`;
+  // who was not seen in this frame: held at the last seen pose, or tracked by flow alone
+  const unseen = meta.people.map((person) => (person.unseen ? person.unseen[current] : ''));
+  unseen.forEach((how, k) => {
+    if (how) label.textContent += `, ${many ? meta.people[k].name + ' ' : ''}not seen (${how === 'held' ? 'held at the last seen pose' : 'tracked by flow alone'})`;
+  });
+  document.body.dataset.unseen = unseen.map((how) => how || '-').join(',');
   if (meta.review) {
     // each person's: "3D sources part 4.2 cm (review)"; with several people, named
     const parts = meta.people.map((person) => {
