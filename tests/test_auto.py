@@ -253,6 +253,7 @@ def test_track_video_without_any_other_input(small_clip, tmp_path, monkeypatch):
     assert "started at frame 1" in run["frame_range"]
     assert run["gaps"] == [{"frames": [4, 4], "why": "no person found: tracked by flow alone, no silhouette term"}]
     assert run["masks"] == "automatic" and run["init"] == "automatic"
+    assert run["camera_motion"]["moving"] is False and "rotvecs" not in run["camera_motion"]  # a still camera
     assert "default focal length" in run["camera_source"]
     assert len(run["video"]["timestamps"]) == 6 and run["video"]["fps"] == pytest.approx(30, rel=0.02)
     assert any(e.get("frame") == 4 and "empty mask" in e["event"] for e in run["events"])

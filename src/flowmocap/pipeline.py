@@ -488,6 +488,17 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                                                  model=cfg.detector_model)
     if (out / "detections").is_dir():
         write_json(out / "detections" / "source.json", {"input": cache_key})
+    if getattr(seq, "camera", None) is None:  # a video or a folder of frames: the camera may turn
+        from flowmocap.vision.camera_motion import camera_motion
+
+        moved = camera_motion(seq, cam, frames=range(a, b), masks=getattr(seq, "masks", None) is not None,
+                              progress=progress)
+        notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
+        if moved.moving:
+            say(f"the camera turns (a pan or a tilt): up to {notes['camera_motion']['turn_deg_max']:.0f} degrees from "
+                "where it points in the first frame. The poses are tracked in the moving camera's frame and are not "
+                "affected, but the body's path, its foot contacts and the floor of export and view turn with the "
+                "camera; run.json 'camera_motion' holds its rotation per frame.")
     write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None
