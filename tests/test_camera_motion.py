@@ -148,3 +148,96 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     cm = run["camera_motion"]
     assert cm["moving"] and cm["turn_deg_end"] == pytest.approx(5.0, rel=0.1) and len(cm["rotvecs"]) == 6
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
+
+
+def test_a_result_of_a_turning_camera_is_turned_back_into_the_world(tmp_path):
+    """The built-in walk seen by a camera that pans 0.4 degrees a frame after the walker: the fit, in the turning
+    camera's frame, walks a curve. With run.json's camera_motion the ground frame turns each
+    frame back: the same walk, floor and foot contacts as from a still camera, and each frame's
+    camera projects the body onto that frame's pixels."""
+    import json
+
+    from flowmocap.commands.view import ViewerData, gl_camera
+    from flowmocap.export import export_result, load_fitted_motion
+    from flowmocap.io.results import read_result, write_motion, write_run
+    from flowmocap.io.smpl_motion import rotate_motion
+
+    from test_ground import _walk_result
+
+    still = tmp_path / "still"
+    _walk_result(still, 10.0, height=1.5)
+    m = load_fitted_motion(still, frame="world")  # the camera's frame (R = I)
+    turns = np.stack(_pan(m.num_frames, -0.4))  # following the walker
+    poses, trans = rotate_motion(m.poses, m.trans, m.rest_joints()[0], turns)  # as the turning camera saw it
+    arrays, run = read_result(still)
+    turned = tmp_path / "turned"
+    seen = replace_motion(m, poses, trans)
+    j = seen.joints()
+    write_motion(turned, {**arrays, "poses": poses.astype(np.float32), "trans": trans.astype(np.float32),
+                          "joints3d": j.astype(np.float32), "joints2d": m.camera.project(j).astype(np.float32)})
+    rotvecs = Rotation.from_matrix(turns).as_rotvec()
+    write_run(turned, {**run, "camera_motion": {"moving": True, "frames": list(range(m.num_frames)),
+                                                 "rotvecs": rotvecs.tolist()}})
+    a, b = load_fitted_motion(still, frame="ground"), load_fitted_motion(turned, frame="ground")
+    np.testing.assert_allclose(b.joints(), a.joints(), atol=2e-4)  # the same walk in the world
+    assert b.world.plane.method == "contacts" and (b.world.contacts == a.world.contacts).mean() > 0.95
+    for k in (0, 40, m.num_frames - 1):  # each frame's camera puts the body on that frame's pixels
+        np.testing.assert_allclose(b.camera_at(k).project(b.joints()[k]), m.camera.project(j[k]), atol=0.05)
+    np.testing.assert_allclose(b.joints2d, m.camera.project(j), atol=0.05)
+    # told nothing, the ground frame is the turning camera's: the walk bends by 30 degrees
+    write_run(turned, run)
+    c = load_fitted_motion(turned, frame="ground")
+    assert c.turns is None and np.abs(c.joints() - a.joints()).max() > 0.3
+    # the exports and the page carry each frame's camera
+    write_run(turned, {**run, "camera_motion": {"moving": True, "frames": list(range(m.num_frames)),
+                                                 "rotvecs": rotvecs.tolist()}})
+    frames = json.loads(export_result(turned, "json", out=tmp_path / "m.json").read_text())["frames"]
+    np.testing.assert_allclose(frames[40]["camera_R"], b.camera_at(40).R, atol=1e-6)
+    data = ViewerData(turned)
+    meta = data.meta()
+    assert len(meta["gl_cameras"]) == m.num_frames
+    np.testing.assert_allclose(meta["gl_cameras"][0], gl_camera(b.camera)["matrix_world"], atol=1e-6)
+    assert ViewerData(still).meta()["gl_cameras"] is None
+    from test_view import _chromium, _overlay_iou, _serving
+
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    for _, url in _serving(data):  # late in the pan the page draws the body where that frame's camera sees it
+        own, first = _overlay_iou(data, url, 40, tmp_path, [data.motion.camera_at(40), data.motion.camera],
+                                  min_share=0.01)  # a small body: 100 px tall in 320 x 240
+        assert own > 0.85 and first < 0.5, (own, first)
+
+
+def replace_motion(m, poses, trans):
+    from dataclasses import replace
+
+    return replace(m, poses=poses, trans=trans)
+
+
+def test_rotate_motion_turns_each_frame_by_its_own_rotation():
+    """rotate_motion with (T, 3, 3): each frame's joints turned about the origin by its own
+    rotation, exactly; the same rotation for all is the (3, 3) call."""
+    import torch
+
+    from flowmocap.body import load_body_model
+    from flowmocap.io.smpl_motion import rotate_motion
+
+    model = load_body_model("default")
+    rng = np.random.default_rng(2)
+    T = 4
+    poses, trans = rng.normal(0, 0.3, (T, 72)), rng.normal(0, 1.0, (T, 3))
+    betas = torch.zeros(1, 10, dtype=torch.float64)
+
+    def joints(p, t):
+        with torch.no_grad():
+            return model(betas=betas, pose=torch.as_tensor(p), trans=torch.as_tensor(t)).joints.double().numpy()
+
+    with torch.no_grad():
+        J0 = model(betas=betas).rest_joints[0, 0].double().numpy()
+    W = Rotation.from_rotvec(rng.normal(0, 1.0, (T, 3))).as_matrix()
+    p, t = rotate_motion(poses, trans, J0, W)
+    np.testing.assert_allclose(joints(p, t), np.einsum("tij,tnj->tni", W, joints(poses, trans)), atol=1e-6)
+    same = rotate_motion(poses, trans, J0, np.repeat(W[:1], T, 0))
+    one = rotate_motion(poses, trans, J0, W[0])
+    np.testing.assert_allclose(same[0], one[0], atol=1e-12)
+    np.testing.assert_allclose(same[1], one[1], atol=1e-12)

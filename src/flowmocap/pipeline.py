@@ -496,9 +496,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving:
             say(f"the camera turns (a pan or a tilt): up to {notes['camera_motion']['turn_deg_max']:.0f} degrees from "
-                "where it points in the first frame. The poses are tracked in the moving camera's frame and are not "
-                "affected, but the body's path, its foot contacts and the floor of export and view turn with the "
-                "camera; run.json 'camera_motion' holds its rotation per frame.")
+                "where it points in the first frame. The body is tracked in the turning camera's frame; export and "
+                "view turn each frame back into the world (run.json 'camera_motion' holds the camera's rotation per "
+                "frame). A camera carried sideways is not undone.")
     write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None

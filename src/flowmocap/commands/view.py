@@ -165,7 +165,9 @@ class ViewerData:
         """The page's data, per page frame (T of them, :attr:`num_frames`): ``name``, ``fps``,
         ``num_frames``, ``frame_index`` (T: input frame numbers), ``width``, ``height``
         (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground frame),
-        ``camera`` (its ``to_dict``), ``centre`` (mean pelvis of everyone, metres), ``floor``
+        ``camera`` (its ``to_dict``; the first frame's where the camera turned), ``gl_cameras``
+        (None, or where the camera turned during the clip each page frame's camera's
+        ``matrix_world``), ``centre`` (mean pelvis of everyone, metres), ``floor``
         (how the floor was found), ``floor_of`` (the index of the person whose ground frame
         and floor these are), ``people`` (per person: ``name``, ``glb`` (its URL),
         ``colour`` (RGB 0..1, or None: the glb's own), ``rows`` (T: the person's result row
@@ -219,12 +221,30 @@ class ViewerData:
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
+                "gl_cameras": self._turned_cameras(),
                 "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "floor_of": self.owner,
                 "people": people,
                 "contacts": people[0]["contacts"], "feet": people[0]["feet"], "path": people[0]["path"],
                 "smoothed": m.smoothed, "has_input": self.seq is not None,
                 "disagreement_cm": people[0]["disagreement_cm"],
                 "review": [int(any(r[k] for r in marked)) for k in range(self.num_frames)] if marked else None}
+
+    def _turned_cameras(self) -> list | None:
+        """Where the camera turned during the clip (the motion turned back into the world,
+        :mod:`flowmocap.export.motion`): per page frame, that frame's camera as the OpenGL
+        ``matrix_world`` of :func:`gl_camera`; else None (one camera for every frame)."""
+        from dataclasses import replace
+
+        from flowmocap.export.motion import camera_turns
+
+        if self.motion.turns is None:
+            return None
+        cam = self.motion.camera
+        out = []
+        for T in camera_turns(self.motion.run, self.frame_index):
+            turned = replace(cam, R=T @ np.asarray(cam.R, np.float64), t=T @ np.asarray(cam.t, np.float64))
+            out.append(gl_camera(turned)["matrix_world"])
+        return out
 
     @staticmethod
     def _unseen(motion, frame_index) -> list[str]:

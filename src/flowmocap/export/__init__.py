@@ -67,7 +67,9 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels), and where the result
     has them "contact" (left, right foot on the ground) and "disagreement" (24, metres,
     null outside the 13 scored joints: how far the run's 3D sources part,
-    :mod:`flowmocap.fit.disagreement`)}, ...]}``.
+    :mod:`flowmocap.fit.disagreement`) and, where the camera turned during the clip (the
+    motion turned back into the world, :mod:`flowmocap.export.motion`), "camera_R" (3x3) and
+    "camera_t" (3): that frame's camera; the top-level "camera" is then the first frame's}, ...]}``.
     """
     from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
     from flowmocap.body.stature import stature
@@ -92,6 +94,9 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
             **({"contact": [bool(c) for c in contacts[k]]} if contacts is not None else {}),
             **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
                if motion.disagreement is not None else {}),
+            # where the camera turned, this frame's camera (the top-level one is the first frame's)
+            **({"camera_R": r(motion.camera_at(k).R, 9), "camera_t": r(motion.camera_at(k).t, 9)}
+               if motion.turns is not None else {}),
         }
 
     doc = {
@@ -132,6 +137,10 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
         out = motion.model(betas=torch.as_tensor(motion.betas[None], dtype=motion.model.v_template.dtype))
     extras = {"frame": motion.frame, "camera": motion.camera.to_dict(),
               "frame_index": [int(i) for i in motion.frame_index], "smoothed": motion.smoothed}
+    if motion.turns is not None:  # the camera turned: "camera" is the first frame's, turned by these
+        from scipy.spatial.transform import Rotation
+
+        extras["camera_turns_rotvec"] = np.round(Rotation.from_matrix(motion.turns).as_rotvec(), 6).tolist()
     if motion.world is not None:
         extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
     if motion.foot_contacts is not None:

@@ -221,7 +221,7 @@ def scaled_about_camera(motion, scale: float):
     root_cam = (np.asarray(motion.trans, np.float64) + root_old) @ R.T + t  # (T, 3): the posed root, camera
     trans = (scale * root_cam - t) @ R - root_new
     out = replace(motion, betas=new, trans=trans, world=None, contacts=motion.foot_contacts)
-    out.joints2d = out.camera.project(out.joints()).astype(np.float64)
+    out.joints2d = out.project(out.joints())
     return out
 
 

@@ -14,6 +14,14 @@ upside down there, under a floor tilted by the camera's pitch. Export frames
 
 In every frame :attr:`FittedMotion.camera` is the result's camera moved along, so it
 projects the exported body onto the input pixels exactly as the fit did.
+
+Where the camera turned during the clip (a pan or a tilt: ``run.json``'s ``camera_motion``,
+:mod:`flowmocap.vision.camera_motion`), the body was tracked in the turning camera's frame.
+``"ground"`` and ``"up"`` first turn each frame's body back by the camera's turn since the
+first frame, so the path, the foot contacts and the floor are the world's, not the camera's;
+:attr:`FittedMotion.turns` holds those turns, :attr:`FittedMotion.camera` is the first
+frame's camera and :meth:`FittedMotion.camera_at` each frame's, which projects the body onto
+that frame's pixels. ``"world"`` stays the result's own frame (the camera's, turning).
 """
 
 from __future__ import annotations
@@ -27,7 +35,8 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
-__all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES"]
+__all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
+           "camera_turns"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).
@@ -66,6 +75,10 @@ class FittedMotion:
         contacts: ``(T, 2)`` bool, left/right foot standing still on the floor, where the
             motion was moved out of its own ground frame (:func:`motion_in_frame_of`) and so
             has no ``world``; else None (see :attr:`foot_contacts`).
+        turns: ``(T, 3, 3)`` the camera's turn in each frame since the first (``x_t = turns[k]
+            x_0`` for directions in the camera's axes), where the motion was turned back by
+            it (see the module docstring); None where the camera stood still or the frame is
+            ``"world"``.
     """
 
     poses: np.ndarray
@@ -85,10 +98,28 @@ class FittedMotion:
     smoothed: dict | None = None
     disagreement: np.ndarray | None = None
     contacts: np.ndarray | None = None
+    turns: np.ndarray | None = None
 
     def __post_init__(self):
         if self.offset is None:
             self.offset = np.zeros(3)
+
+    def camera_at(self, k: int):
+        """The camera of row ``k`` in the export frame: :attr:`camera`, turned by
+        ``turns[k]`` where the camera turned (a :class:`~flowmocap.geometry.PinholeCamera`)."""
+        if self.turns is None:
+            return self.camera
+        T = np.asarray(self.turns[k], np.float64)
+        return replace(self.camera, R=T @ np.asarray(self.camera.R, np.float64),
+                       t=T @ np.asarray(self.camera.t, np.float64))
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """``(T, N, 2)`` pixels of ``points`` ``(T, N, 3)`` (metres, export frame), each row by
+        its frame's camera (:meth:`camera_at`)."""
+        points = np.asarray(points, np.float64)
+        if self.turns is None:
+            return np.asarray(self.camera.project(points), np.float64)
+        return np.stack([np.asarray(self.camera_at(k).project(points[k]), np.float64) for k in range(len(points))])
 
     @property
     def foot_contacts(self) -> np.ndarray | None:
@@ -275,6 +306,17 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
         raise DataError(f"{result_dir} records no camera (motion.npz 'camera' or run.json 'camera').")
     camera = PinholeCamera.from_dict(cam_dict)
     body = _model_for(run, gender, model)
+    turns = camera_turns(run, index) if frame != "world" else None
+    if turns is not None:  # each frame's body turned back by the camera's turn since the first frame
+        R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+        A = np.einsum("ji,tkj,kl->til", R, turns, R)  # R^T turns_k^T R: the turn back, in the result's world
+        b = np.einsum("ji,tkj,k->ti", R, turns, t) - t @ R  # R^T (turns_k^T t - t)
+        import torch
+
+        with torch.no_grad():
+            J0 = body(betas=torch.as_tensor(betas[None], dtype=torch.float64)).rest_joints[0, 0].numpy()
+        poses, trans = rotate_motion(poses, trans, J0, A)
+        trans = trans + b
     world = None
     offset = np.zeros(3)
     if frame == "ground":
@@ -299,13 +341,34 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
                       joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64),
                       offset=offset, world=world, smoothed=smoothed,
                       disagreement=(np.asarray(motion["disagreement"], np.float64) if "disagreement" in motion
-                                    else None))
+                                    else None), turns=turns)
     if not np.allclose(W, np.eye(3)) or np.any(offset != 0):
         p, t = rotate_motion(poses, trans, fm.rest_joints()[0], W)
         fm.poses, fm.trans = p, t + offset
     if smoothed is not None:
-        fm.joints2d = fm.camera.project(fm.joints()).astype(np.float64)
+        fm.joints2d = fm.project(fm.joints())
     return fm
+
+
+def camera_turns(run: dict, frame_index) -> np.ndarray | None:
+    """``(T, 3, 3)`` the camera's turn since the first frame at each of ``frame_index``
+    (``x_t = turns[k] x_0`` in the camera's axes), from ``run.json``'s ``camera_motion``
+    (:mod:`flowmocap.vision.camera_motion`); None where the camera stood still or the run
+    says nothing. A frame the estimate does not cover takes the nearest one's turn."""
+    from scipy.spatial.transform import Rotation
+
+    cm = run.get("camera_motion") or {}
+    if not cm.get("moving") or not cm.get("rotvecs"):
+        return None
+    frames = np.asarray(cm["frames"], np.int64)
+    rotvecs = np.asarray(cm["rotvecs"], np.float64).reshape(-1, 3)
+    if len(frames) != len(rotvecs) or not len(frames):
+        raise DataError("run.json 'camera_motion' holds a different number of frames and rotations; the result is "
+                        "damaged: track the input again with --force.")
+    idx = np.clip(np.searchsorted(frames, np.asarray(frame_index, np.int64)), 0, len(frames) - 1)
+    prev = np.clip(idx - 1, 0, len(frames) - 1)
+    nearer = np.abs(frames[prev] - frame_index) < np.abs(frames[idx] - frame_index)
+    return Rotation.from_rotvec(rotvecs[np.where(nearer, prev, idx)]).as_matrix()
 
 
 def motion_in_frame_of(motion: FittedMotion, other: FittedMotion) -> FittedMotion:

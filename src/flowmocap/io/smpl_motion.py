@@ -90,7 +90,7 @@ def rotate_motion(poses: np.ndarray, trans: np.ndarray, rest_pelvis: np.ndarray,
         poses: ``(T, 72)`` axis-angle in radians (only the first 3, the root, change).
         trans: ``(T, 3)`` metres.
         rest_pelvis: ``(3,)`` pelvis of the shaped rest pose, metres.
-        rotation: ``(3, 3)`` rotation ``W``.
+        rotation: ``(3, 3)`` rotation ``W``, or ``(T, 3, 3)``: one per frame.
 
     Returns:
         ``poses (T, 72)``, ``trans (T, 3)``, float64.
@@ -103,4 +103,6 @@ def rotate_motion(poses: np.ndarray, trans: np.ndarray, rest_pelvis: np.ndarray,
     J0 = np.asarray(rest_pelvis, np.float64).reshape(3)
     root = Rotation.from_matrix(W @ Rotation.from_rotvec(poses[:, :3]).as_matrix())
     poses[:, :3] = root.as_rotvec()
+    if W.ndim == 3:
+        return poses, np.einsum("tij,tj->ti", W, trans + J0) - J0
     return poses, (trans + J0) @ W.T - J0

@@ -85,7 +85,8 @@ for (const p of meta.people) {
   bodies.push({ body, mixer, rows: p.rows });
 }
 
-// the result's camera: world-to-camera as OpenGL matrices computed by the server
+// the result's camera: world-to-camera as OpenGL matrices computed by the server (where the camera
+// turned during the clip, meta.gl_cameras has each frame's and the 3D view shows the first frame's)
 const videoCam = new THREE.PerspectiveCamera();
 videoCam.matrixAutoUpdate = false;
 videoCam.matrix.fromArray(meta.gl_camera.matrix_world);
@@ -196,6 +197,10 @@ let playing = false;
 let token = 0;
 
 function draw() {
+  if (meta.gl_cameras) {  // the camera turned during the clip: this frame's camera
+    videoCam.matrix.fromArray(meta.gl_cameras[current]);
+    videoCam.updateMatrixWorld(true);
+  }
   const r = $('overlay-box').getBoundingClientRect();
   document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
   const shown = [];

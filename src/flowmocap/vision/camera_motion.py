@@ -3,8 +3,9 @@
 flowmocap tracks the body in the camera's frame and assumes the camera stands still (the
 README's limitations). A camera that pans or tilts does not spoil the poses: the body's
 rendered flow and silhouette are compared with the images in that same moving frame. But
-the body's path, its foot contacts and the floor fitted to them (``flowmocap export``'s
-ground frame) are then in a frame that turns with the camera, and a user should be told.
+the body's path, its foot contacts and the floor fitted to them are then in a frame that
+turns with the camera, until the export frames turn each frame back by the rotations found
+here.
 
 A camera that turns about its centre moves every background point by one homography
 ``H = K R K^-1`` between two frames. :func:`frame_rotation` tracks corners of the
@@ -18,7 +19,8 @@ degrees, and the four calibrated cameras of the real3d recording at most 0.07-0.
 frames): the estimate's drift. :data:`MOVING_DEG` lies between.
 
 Only the camera's turn is found, not a sideways move of it (a camera carried along): that
-shows as a larger ``residual_px``. Nothing here changes the tracking.
+shows as a larger ``residual_px``. Nothing here changes the tracking; the export frames turn
+each frame's body back by it (:mod:`flowmocap.export.motion`).
 """
 
 from __future__ import annotations
