@@ -491,7 +491,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if getattr(seq, "camera", None) is None:  # a video or a folder of frames: the camera may turn
         from flowmocap.vision.camera_motion import camera_motion
 
-        moved = camera_motion(seq, cam, frames=range(a, b), masks=getattr(seq, "masks", None) is not None,
+        # from the input's first frame, whatever the tracked range: the people of one video
+        # (track --person all) are then turned back into one world
+        moved = camera_motion(seq, cam, frames=range(0, b), masks=getattr(seq, "masks", None) is not None,
                               progress=progress)
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving:

@@ -18,10 +18,11 @@ projects the exported body onto the input pixels exactly as the fit did.
 Where the camera turned during the clip (a pan or a tilt: ``run.json``'s ``camera_motion``,
 :mod:`flowmocap.vision.camera_motion`), the body was tracked in the turning camera's frame.
 ``"ground"`` and ``"up"`` first turn each frame's body back by the camera's turn since the
-first frame, so the path, the foot contacts and the floor are the world's, not the camera's;
-:attr:`FittedMotion.turns` holds those turns, :attr:`FittedMotion.camera` is the first
-frame's camera and :meth:`FittedMotion.camera_at` each frame's, which projects the body onto
-that frame's pixels. ``"world"`` stays the result's own frame (the camera's, turning).
+input's first frame (the same for every person of a ``track --person all`` folder), so the
+path, the foot contacts and the floor are the world's, not the camera's:
+:attr:`FittedMotion.turns` holds those turns, :attr:`FittedMotion.camera` is the camera of the
+input's first frame and :meth:`FittedMotion.camera_at` each row's, which projects the body
+onto that frame's pixels. ``"world"`` stays the result's own frame (the camera's, turning).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ class FittedMotion:
         contacts: ``(T, 2)`` bool, left/right foot standing still on the floor, where the
             motion was moved out of its own ground frame (:func:`motion_in_frame_of`) and so
             has no ``world``; else None (see :attr:`foot_contacts`).
-        turns: ``(T, 3, 3)`` the camera's turn in each frame since the first (``x_t = turns[k]
+        turns: ``(T, 3, 3)`` the camera's turn in each row since the input's first frame (``x_t = turns[k]
             x_0`` for directions in the camera's axes), where the motion was turned back by
             it (see the module docstring); None where the camera stood still or the frame is
             ``"world"``.
@@ -351,7 +352,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
 
 
 def camera_turns(run: dict, frame_index) -> np.ndarray | None:
-    """``(T, 3, 3)`` the camera's turn since the first frame at each of ``frame_index``
+    """``(T, 3, 3)`` the camera's turn since the input's first frame at each of ``frame_index``
     (``x_t = turns[k] x_0`` in the camera's axes), from ``run.json``'s ``camera_motion``
     (:mod:`flowmocap.vision.camera_motion`); None where the camera stood still or the run
     says nothing. A frame the estimate does not cover takes the nearest one's turn."""
