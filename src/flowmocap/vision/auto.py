@@ -1258,18 +1258,18 @@ def link_tracks(seq, cands: list[list[Candidate]], tracks: list[list[tuple[int, 
     fps = float((getattr(seq, "meta", None) or {}).get("fps") or 30.0)
     reach = int(round(max_s * fps))
     long = [k for k, t in enumerate(tracks) if len(t) >= min_detections]
-    if len(long) < 2:
+    apart = [(a, b) for a in long for b in long if max_gap < tracks[b][0][0] - tracks[a][-1][0] <= reach]
+    if not apart:
         return [list(t) for t in tracks], []
-    ends = {k: _track_appearance(seq, cands, tracks[k][-LINK_FRAMES:]) for k in long}
-    starts = {k: _track_appearance(seq, cands, tracks[k][:LINK_FRAMES]) for k in long}
+    # the looks only of the tracks that could be joined (each costs LINK_FRAMES frames read)
+    ends = {a: _track_appearance(seq, cands, tracks[a][-LINK_FRAMES:]) for a in {a for a, _ in apart}}
+    starts = {b: _track_appearance(seq, cands, tracks[b][:LINK_FRAMES]) for b in {b for _, b in apart}}
     pairs = []
-    for a in long:
-        for b in long:
-            gap = tracks[b][0][0] - tracks[a][-1][0]
-            if max_gap < gap <= reach and ends[a] is not None and starts[b] is not None:
-                d = appearance_distance(ends[a], starts[b])
-                if d < max_distance:
-                    pairs.append((d, a, b))
+    for a, b in apart:
+        if ends[a] is not None and starts[b] is not None:
+            d = appearance_distance(ends[a], starts[b])
+            if d < max_distance:
+                pairs.append((d, a, b))
     nxt: dict[int, int] = {}
     prev: dict[int, int] = {}
     links = []
