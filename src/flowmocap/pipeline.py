@@ -895,12 +895,13 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
             return None  # a user's masks may include what the detector took for someone else
         return detections.others(i)
 
-    # the long runs of frames without the person, where the body is held (TrackerConfig.hold_unseen_frames)
+    # the long runs of frames without the person, where the body is held (TrackerConfig.hold_unseen_frames;
+    # _track's gaps say which)
     unseen_runs: dict[int, tuple] = {}
-    if detections is not None and cfg.hold_unseen_frames > 0 and notes.get("masks") == "automatic":
-        for r in frame_runs([i for i in range(a, b) if not detections.found[i]]):
-            if r[1] - r[0] + 1 > cfg.hold_unseen_frames:
-                unseen_runs.update({i: (r[0], r[1]) for i in range(r[0], r[1] + 1)})
+    for g in notes.get("gaps") or []:
+        if "held" in str(g.get("why")):
+            r = (int(g["frames"][0]), int(g["frames"][1]))
+            unseen_runs.update({i: r for i in range(r[0], r[1] + 1)})
 
     def observe(i: int):
         """Mask and observations of frame i (the person-size fallback for a frame without a
