@@ -86,7 +86,7 @@ for (const p of meta.people) {
 }
 
 // the result's camera: world-to-camera as OpenGL matrices computed by the server (where the camera
-// turned during the clip, meta.gl_cameras has each frame's and the 3D view shows the first frame's)
+// turned during the clip, meta.gl_cameras has each frame's, and the 3D view's pyramid turns with it)
 const videoCam = new THREE.PerspectiveCamera();
 videoCam.matrixAutoUpdate = false;
 videoCam.matrix.fromArray(meta.gl_camera.matrix_world);
@@ -96,6 +96,8 @@ videoCam.projectionMatrixInverse.copy(videoCam.projectionMatrix).invert();
 videoCam.layers.set(0);
 
 // the camera in the 3D view: a pyramid from its centre to the image corners at 0.6 m
+let cameraPyramid = null;
+const firstCamInverse = videoCam.matrixWorld.clone().invert();
 {
   const c = new THREE.Vector3().setFromMatrixPosition(videoCam.matrixWorld);
   const pts = [];
@@ -109,7 +111,9 @@ videoCam.layers.set(0);
   g.setAttribute('position', new THREE.Float32BufferAttribute(pts, 3));
   const pyramid = new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color: 0xffb040 }));
   pyramid.layers.set(HELPERS);
+  pyramid.matrixAutoUpdate = false;  // where the camera turns, moved with it (draw())
   scene.add(pyramid);
+  cameraPyramid = pyramid;
 }
 
 // each pelvis's path dropped onto the floor (in the person's colour with several), and a
@@ -197,9 +201,11 @@ let playing = false;
 let token = 0;
 
 function draw() {
-  if (meta.gl_cameras) {  // the camera turned during the clip: this frame's camera
+  if (meta.gl_cameras) {  // the camera turned during the clip: this frame's camera, and its pyramid
     videoCam.matrix.fromArray(meta.gl_cameras[current]);
     videoCam.updateMatrixWorld(true);
+    cameraPyramid.matrix.copy(videoCam.matrixWorld).multiply(firstCamInverse);
+    cameraPyramid.matrixWorldNeedsUpdate = true;
   }
   const r = $('overlay-box').getBoundingClientRect();
   document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
