@@ -451,6 +451,11 @@ def test_a_long_run_without_the_person_is_held_at_the_last_seen_pose(small_clip,
         np.testing.assert_array_equal(x[rows[2]], x[rows[1]])
         np.testing.assert_array_equal(x[rows[3]], x[rows[1]])
         assert np.abs(x[rows[4]] - x[rows[1]]).max() > 1e-4  # seen again: tracked
+    # after tracking the held frames are filled in between frames 1 and 4 (before the smoothing)
+    assert run["unseen_inbetween"]["runs"] == [[2, 3]] and run["unseen_inbetween"]["frames"] == 2
+    t = motion["trans_unsmoothed"]
+    np.testing.assert_allclose(t[rows[2]], t[rows[1]] + (t[rows[4]] - t[rows[1]]) / 3, atol=1e-5)
+    np.testing.assert_allclose(t[rows[3]], t[rows[1]] + 2 * (t[rows[4]] - t[rows[1]]) / 3, atol=1e-5)
     # at the default (15 frames) the same two frames are tracked by flow alone
     out2 = tmp_path / "out2"
     cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))

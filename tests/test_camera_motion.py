@@ -107,6 +107,13 @@ def test_frames_without_texture_are_unknown_and_bad_frames_are_refused():
 
     got = camera_motion(Blank(), CAM)
     assert got.unknown == [1, 2, 3] and not got.moving and np.allclose(got.rotations, np.eye(3))
+
+    class Cut(Turning):  # a still camera, frames 3-4 grey (a cut): no turn is made up across it
+        def frame(self, i):
+            return blank + 110 if i in (3, 4) else super().frame(i)
+
+    cut = camera_motion(Cut(_pan(8, 0.0)), CAM)
+    assert cut.unknown == [3, 4, 5] and cut.turn_deg.max() < 0.05
     with pytest.raises(InputError, match="two RGB frames of one size"):
         frame_rotation(blank, blank[:10], K)
 

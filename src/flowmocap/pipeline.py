@@ -448,7 +448,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                            **detections.info.get("person", {"choice": describe_person(choice)})}
         if choice[0] == "point":
             notes["person"]["pixel_in_tracked_frames"] = [round(v, 1) for v in choice[1]]
-        held = cfg.hold_unseen_frames if auto_masks else 0  # longer runs: the body held (_run_sequence)
+        held = cfg.hold_unseen_frames if auto_masks else 0  # longer runs: the body held (_run_sequence), then
+        #                                                     filled in between after tracking (_inbetween)
         notes["gaps"] = [{"frames": r, "why": "no person found: held at the last seen pose" if 0 < held < r[1] - r[0] + 1
                           else "no person found: tracked by flow alone, no silhouette term"}
                          for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
@@ -995,6 +996,8 @@ def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: Trac
     with _torch_threads(cfg.torch_threads):
         if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
             run = _lifter_refit(out, watch, body, cfg, run, say)
+        if _inbetween_pending(out, run):
+            run = _inbetween(out, body, run, say)
         if _stance_pending(out, cfg, run):
             run = _stance_depth(out, cfg, run, say)
         if cfg.pose_smoothing_s > 0:
@@ -1029,7 +1032,33 @@ def _post_pending(out: Path, cfg: TrackerConfig, joints3d: str, run: dict) -> bo
     motion, _ = read_result(out)
     refit = (cfg.lifter_refit_weight > 0 and joints3d != "off" and "poses_tracked" not in motion
              and "lifter_refit" not in run and (out / "detections" / "keypoints.npz").exists())
-    return refit or _stance_pending(out, cfg, run) or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion)
+    return (refit or _inbetween_pending(out, run) or _stance_pending(out, cfg, run)
+            or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion))
+
+
+def _held_runs(run: dict) -> list[tuple[int, int]]:
+    """The runs of frames where the body was held, the person not seen (``run["gaps"]``)."""
+    return [(int(g["frames"][0]), int(g["frames"][1])) for g in run.get("gaps") or [] if "held" in str(g.get("why"))]
+
+
+def _inbetween_pending(out: Path, run: dict) -> bool:
+    """Whether the held runs are still to be filled in between (:func:`_inbetween`): there
+    are some, it is not done, and the pose smoothing (which comes after it) is not either."""
+    if not _held_runs(run) or "unseen_inbetween" in run:
+        return False
+    motion, _ = read_result(out)
+    return "poses_unsmoothed" not in motion
+
+
+def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
+    """The held runs of the finished ``motion.npz`` filled in between the last frame seen
+    before and the first seen after (:func:`~flowmocap.fit.smooth.inbetween_unseen`);
+    ``run.json`` records it under ``unseen_inbetween``. Returns the run info."""
+    from flowmocap.fit.smooth import inbetween_unseen
+
+    return _post_step(out, run, "unseen_inbetween", lambda motion: inbetween_unseen(motion, body, _held_runs(run)),
+                      say, lambda info: f"filled {info['frames']} frames where the person was not seen in between the "
+                                        f"poses before and after ({len(info['runs'])} stretch{'es' if len(info['runs']) != 1 else ''})")
 
 
 def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:

@@ -174,9 +174,10 @@ class ViewerData:
         of each page frame, -1 where not tracked), ``path`` (T x 3: the pelvis, metres, None
         where not tracked), ``contacts`` (T x 2: left/right foot standing still, 0/1, their
         own), ``feet`` (T x 2 x 3: the lowest point of the left and right foot, metres; None
-        where not tracked), ``unseen`` (T: "held" or "flow" where the person was tracked
-        without being seen, held at the last seen pose or by flow alone, ``run.json``'s
-        ``gaps``; "" elsewhere), and from their result's ``disagreement``
+        where not tracked), ``unseen`` (T: "held", "between" or "flow" where the person was
+        tracked without being seen: held at the last seen pose, filled in between the poses
+        before and after, or by flow alone, :func:`flowmocap.io.results.unseen_frames`; ""
+        elsewhere), and from their result's ``disagreement``
         (:mod:`flowmocap.fit.disagreement`; both None without one) ``disagreement_cm`` (T:
         per frame the mean over the scored joints, centimetres; None where there is none or
         the person is not tracked) and ``review`` (T, 0/1:
@@ -248,13 +249,13 @@ class ViewerData:
 
     @staticmethod
     def _unseen(motion, frame_index) -> list[str]:
-        """Per page frame, how the person was tracked where they were not seen (``run.json``'s
-        ``gaps``): "held" (at the last seen pose), "flow" (by flow alone), or "" (seen, or not
-        tracked)."""
-        how = {}
-        for g in motion.run.get("gaps") or []:
-            for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1):
-                how[i] = "held" if "held" in str(g.get("why")) else "flow"
+        """Per page frame, how the person was tracked where they were not seen
+        (:func:`flowmocap.io.results.unseen_frames`): "held" (at the last seen pose), "flow"
+        (by flow alone), "between" (filled in between the poses before and after), or ""
+        (seen, or not tracked)."""
+        from flowmocap.io.results import unseen_frames
+
+        how = unseen_frames(motion.run)
         tracked = {int(i) for i in motion.frame_index}
         return [how.get(int(i), "") if int(i) in tracked else "" for i in frame_index]
 

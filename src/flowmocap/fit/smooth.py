@@ -446,6 +446,61 @@ def pose_smoothed_motion(motion: dict, body, window_s: float = DEFAULT_WINDOW_S,
     return out, info
 
 
+def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64) -> tuple[dict, dict]:
+    """A result's ``motion.npz`` arrays with each run of frames where the person was not seen
+    (and the body held, ``TrackerConfig.hold_unseen_frames``) filled in between the last frame
+    seen before it and the first seen after it: every joint's rotation by spherical linear
+    interpolation, the translation linearly, in time.
+
+    The tracker holds the body at the last seen pose through such a run, and the first frame
+    seen again re-initialises it: the motion freezes, then jumps. An animator keys the same
+    two poses and lets the curve run between them; so does this. The frames stay marked as
+    not seen (``run.json``'s ``gaps``). A run at the start or the end of the motion, without
+    a frame on both sides, is left held.
+
+    Args:
+        motion: ``poses (T, 72)`` radians, ``trans (T, 3)`` metres, ``betas``, ``joints3d``,
+            ``joints2d``, ``camera``, ``frame_index (T,)`` and anything else (kept).
+        body: the :class:`~flowmocap.body.BodyModel` of the fit.
+        gaps: ``[(first, last), ...]`` input frame numbers of the held runs.
+
+    Returns:
+        ``(motion, info)``: the new arrays (``joints3d`` recomputed, ``joints2d``
+        projected), and ``{"runs": [[first, last], ...] (those filled), "frames": n}``.
+    """
+    import json
+
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from flowmocap.geometry.camera import PinholeCamera
+
+    poses = np.array(motion["poses"], np.float64)
+    trans = np.array(motion["trans"], np.float64)
+    index = np.asarray(motion.get("frame_index", np.arange(len(poses))), np.int64)
+    row = {int(f): k for k, f in enumerate(index)}
+    done = []
+    for first, last in gaps:
+        a, b = row.get(int(first) - 1), row.get(int(last) + 1)
+        inside = [row[f] for f in range(int(first), int(last) + 1) if f in row]
+        if a is None or b is None or not inside:
+            continue
+        u = (index[inside] - index[a]) / float(index[b] - index[a])  # (n,) in (0, 1)
+        ends = Rotation.from_rotvec(np.stack([poses[a], poses[b]]).reshape(2, 24, 3).transpose(1, 0, 2).reshape(-1, 3))
+        for j in range(24):
+            poses[inside, 3 * j:3 * j + 3] = Slerp([0.0, 1.0], ends[2 * j:2 * j + 2])(u).as_rotvec()
+        trans[inside] = (1 - u)[:, None] * trans[a] + u[:, None] * trans[b]
+        done.append([int(first), int(last)])
+    out = dict(motion)
+    if done:
+        camera = PinholeCamera.from_dict(json.loads(str(np.asarray(motion["camera"]))))
+        joints, j2d = posed_joints(body, motion["betas"], poses, trans, camera, chunk)
+        out["poses"] = poses.astype(np.asarray(motion["poses"]).dtype)
+        out["trans"] = trans.astype(np.asarray(motion["trans"]).dtype)
+        out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
+        out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
+    return out, {"runs": done, "frames": int(sum(b - a + 1 for a, b in done))}
+
+
 #: the body model's foot joints (SMPL ``left_foot``, ``right_foot``): the stance test's points
 FOOT_JOINTS = (10, 11)
 

@@ -294,6 +294,25 @@ def is_result_folder(out_dir: str | Path) -> bool:
 PEOPLE_MANIFEST = "people.json"
 
 
+#: How the body was filled in where the person was not seen (:func:`unseen_frames`), in words.
+UNSEEN_WORDS = {"flow": "tracked by flow alone", "held": "held at the last seen pose",
+                "between": "filled in between the poses before and after"}
+
+
+def unseen_frames(run: dict) -> dict[int, str]:
+    """``{input frame: how}`` for the frames where the person was not seen (``run.json``'s
+    ``gaps``): ``"flow"`` (tracked by flow alone), ``"held"`` (held at the last seen pose) or
+    ``"between"`` (held, then filled in between the poses before and after, the run's
+    ``unseen_inbetween``); :data:`UNSEEN_WORDS` says each in words."""
+    between = {(int(a), int(b)) for a, b in (run.get("unseen_inbetween") or {}).get("runs", [])}
+    out = {}
+    for g in run.get("gaps") or []:
+        a, b = int(g["frames"][0]), int(g["frames"][1])
+        how = ("between" if (a, b) in between else "held") if "held" in str(g.get("why")) else "flow"
+        out.update({i: how for i in range(a, b + 1)})
+    return out
+
+
 def people_results(root: str | Path) -> list[tuple[str, Path]]:
     """The tracked people of a ``track --person all`` folder: ``[(name, result folder)]`` by
     rank, those with a readable result (a person not yet tracked, or whose run failed

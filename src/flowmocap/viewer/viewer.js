@@ -17,7 +17,7 @@
 // the 3D sources' disagreement, data-review=0/1 (the frame is among the run's most uncertain
 // tenth, for anyone) and data-review-people (one 0/1 per person), for tests. The strip under
 // the slider marks those frames in red; the label names whose. data-unseen: per person, comma
-// separated, "held" / "flow" where they were tracked without being seen (the label says so), "-"
+// separated, "held" / "between" / "flow" where they were tracked without being seen (the label says so), "-"
 // elsewhere; the strip marks those frames in grey.
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
@@ -239,7 +239,9 @@ async function setFrame(k) {
   // who was not seen in this frame: held at the last seen pose, or tracked by flow alone
   const unseen = meta.people.map((person) => (person.unseen ? person.unseen[current] : ''));
   unseen.forEach((how, k) => {
-    if (how) label.textContent += `, ${many ? meta.people[k].name + ' ' : ''}not seen (${how === 'held' ? 'held at the last seen pose' : 'tracked by flow alone'})`;
+    const words = { held: 'held at the last seen pose', between: 'filled in between the poses before and after',
+      flow: 'tracked by flow alone' };
+    if (how) label.textContent += `, ${many ? meta.people[k].name + ' ' : ''}not seen (${words[how] || how})`;
   });
   document.body.dataset.unseen = unseen.map((how) => how || '-').join(',');
   if (meta.review) {

@@ -13,9 +13,9 @@ background (OpenCV's Shi-Tomasi corners and pyramidal Lucas-Kanade, the person's
 left out), fits ``H`` robustly (RANSAC) and takes the rotation nearest ``K^-1 H K``;
 :func:`camera_motion` chains them over the frames. Measured on the project's clips with the
 tracked person's masks left out (docs/experiments.md, "A person seen again, ..."): DAVIS
-dance-twirl turns 0.45 degrees a frame at the median, up to 29.5 degrees from where it
-pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames) at most 0.28
-degrees, and the four calibrated cameras of the real3d recording at most 0.07-0.5 (100
+dance-twirl turns 0.45 degrees a frame at the median, up to 29.4 degrees from where it
+pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames) at most 0.26
+degrees, and the four calibrated cameras of the real3d recording at most 0.07-0.51 (100
 frames): the estimate's drift. :data:`MOVING_DEG` lies between.
 
 Only the camera's turn is found, not a sideways move of it (a camera carried along): that
@@ -36,6 +36,14 @@ __all__ = ["CameraMotion", "frame_rotation", "camera_motion", "MOVING_DEG"]
 #: A camera whose direction lies more than this many degrees from its first frame's in some
 #: frame is said to move (the estimate's drift on the project's still cameras: at most 0.5 degrees).
 MOVING_DEG = 2.0
+
+#: A corner counts when, tracked to the next frame and back, it lands within this many pixels
+#: of where it started (a corner lost, e.g. into a cut to another shot or a grey frame, does not).
+FORWARD_BACK_PX = 1.0
+#: A frame pair's turn is taken only where at least this share of the corners agree with it ...
+MIN_INLIER_SHARE = 0.5
+#: ... and it is at most this many degrees (300 degrees a second at 30 fps: no pan; a cut).
+MAX_STEP_DEG = 10.0
 
 
 @dataclass
@@ -98,7 +106,9 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     Returns:
         ``(R, residual_px)``: ``R`` ``(3, 3)`` with ``x_cur = R x_prev`` for directions in
         the camera axes, and the median distance (pixels) of the tracked background points
-        from where ``R`` puts them; None where too few corners could be tracked.
+        from where ``R`` puts them; None where too few corners could be tracked there and
+        back (:data:`FORWARD_BACK_PX`), too few agree (:data:`MIN_INLIER_SHARE`) or the turn
+        is too large for one frame (:data:`MAX_STEP_DEG`: a cut).
 
     Raises:
         InputError: frames of different sizes or not RGB.
@@ -115,12 +125,13 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     if p0 is None or len(p0) < min_points:
         return None
     p1, status, _ = cv2.calcOpticalFlowPyrLK(g0, g1, p0, None)
-    ok = status[:, 0] == 1
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(g1, g0, p1, None)  # tracked back: a corner lost comes back elsewhere
+    ok = (status[:, 0] == 1) & (status_back[:, 0] == 1) & (np.linalg.norm(back - p0, axis=-1)[:, 0] < FORWARD_BACK_PX)
     a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
     if len(a) < min_points:
         return None
-    H, _ = cv2.findHomography(a, b, cv2.RANSAC, 1.5)
-    if H is None:
+    H, inliers = cv2.findHomography(a, b, cv2.RANSAC, 1.5)
+    if H is None or inliers is None or inliers.sum() < max(min_points, MIN_INLIER_SHARE * len(a)):
         return None
     M = np.linalg.inv(K) @ H @ K
     d = np.linalg.det(M)
@@ -129,6 +140,8 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     U, _, Vt = np.linalg.svd(M / np.cbrt(d))
     R = U @ Vt
     if np.linalg.det(R) < 0:
+        return None
+    if np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))) > MAX_STEP_DEG:
         return None
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))

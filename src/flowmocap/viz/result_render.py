@@ -224,9 +224,10 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
     review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
+    from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
+
     # frames the person was tracked through without being seen (run.json's gaps): said so, and how
-    unseen = {i: "held at the last seen pose" if "held" in str(g.get("why")) else "tracked by flow alone"
-              for g in scene.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
+    unseen = {i: UNSEEN_WORDS[how] for i, how in unseen_frames(scene.run).items()}
     with VideoWriter(path, scene.motion.fps) as out:
         for k in tqdm(range(scene.num_frames), disable=not progress, unit="frame", desc="overlay video"):
             v = scene.vertices(k)
@@ -296,9 +297,9 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     last = max(int(sc.motion.frame_index.max()) for sc in scenes)
     rows = [{int(i): k for k, i in enumerate(sc.motion.frame_index)} for sc in scenes]
     # frames a person was tracked through without being seen (by flow alone): their name says so
-    unseen = [{i: "held" if "held" in str(g.get("why")) else "by flow alone"
-               for g in sc.run.get("gaps") or [] for i in range(int(g["frames"][0]), int(g["frames"][1]) + 1)}
-              for sc in scenes]
+    from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
+
+    unseen = [{i: UNSEEN_WORDS[how] for i, how in unseen_frames(sc.run).items()} for sc in scenes]
     # each person's frames to review (the 3D sources part most), by input frame: {frame: metres}
     from flowmocap.fit.disagreement import review_frames
 

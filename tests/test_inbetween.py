@@ -1,0 +1,56 @@
+"""The frames where the person was not seen, filled in between the poses before and after
+(flowmocap.fit.smooth.inbetween_unseen), in closed form."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from flowmocap.body import load_body_model
+from flowmocap.fit.smooth import inbetween_unseen
+from flowmocap.geometry.camera import PinholeCamera
+from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
+
+
+def test_a_held_run_is_filled_by_slerp_and_a_line_and_one_at_the_end_is_left():
+    model = load_body_model("default")
+    rng = np.random.default_rng(4)
+    T = 8
+    poses = np.repeat(rng.normal(0, 0.4, (1, 72)), T, 0)
+    poses[5:] = rng.normal(0, 0.4, 72)  # held at frame 1's pose in 2-4, another pose from 5
+    poses[:2] = rng.normal(0, 0.4, 72)
+    poses[2:5] = poses[1]
+    trans = np.zeros((T, 3))
+    trans[:2], trans[2:5], trans[5:] = [0, 0, 3], [0, 0, 3], [1.0, 0.5, 4.0]
+    cam = PinholeCamera.from_focal(320, 240, 300.0)
+    motion = {"poses": poses.astype(np.float32), "trans": trans.astype(np.float32), "betas": np.zeros(10, np.float32),
+              "joints3d": np.zeros((T, 24, 3), np.float32), "joints2d": np.zeros((T, 24, 2), np.float32),
+              "camera": np.array(json.dumps(cam.to_dict())), "frame_index": np.arange(10, 10 + T), "fps": np.array(30.0)}
+    out, info = inbetween_unseen(motion, model, [(12, 14), (17, 17)])  # the second: the last frame, no after
+    assert info == {"runs": [[12, 14]], "frames": 3}
+    p = np.asarray(out["poses"], np.float64)
+    for k, u in ((2, 0.25), (3, 0.5), (4, 0.75)):
+        for j in (0, 5, 17):
+            ends = Rotation.from_rotvec(np.stack([poses[1, 3 * j:3 * j + 3], poses[5, 3 * j:3 * j + 3]]))
+            want = Slerp([0, 1], ends)([u])[0]
+            assert (Rotation.from_rotvec(p[k, 3 * j:3 * j + 3]) * want.inv()).magnitude() < 1e-5
+        np.testing.assert_allclose(out["trans"][k], (1 - u) * trans[1] + u * trans[5], atol=1e-6)
+    np.testing.assert_array_equal(out["poses"][[0, 1, 5, 6, 7]], motion["poses"][[0, 1, 5, 6, 7]])
+    # the joints follow the new poses, and project with the camera
+    assert np.abs(out["joints3d"][3]).max() > 0.1
+    np.testing.assert_allclose(out["joints2d"][3], cam.project(np.asarray(out["joints3d"][3], np.float64)), atol=1e-3)
+    # nothing to fill: the same arrays
+    same, none = inbetween_unseen(motion, model, [])
+    assert none == {"runs": [], "frames": 0} and same["poses"] is motion["poses"]
+
+
+def test_unseen_frames_say_how_each_frame_was_filled():
+    run = {"gaps": [{"frames": [3, 4], "why": "no person found: tracked by flow alone, no silhouette term"},
+                    {"frames": [10, 30], "why": "no person found: held at the last seen pose"},
+                    {"frames": [40, 60], "why": "no person found: held at the last seen pose"}],
+           "unseen_inbetween": {"runs": [[10, 30]], "frames": 21}}
+    how = unseen_frames(run)
+    assert how[3] == how[4] == "flow" and how[10] == how[30] == "between" and how[50] == "held" and 5 not in how
+    assert set(UNSEEN_WORDS) == {"flow", "held", "between"} and unseen_frames({}) == {}
