@@ -234,18 +234,12 @@ class ViewerData:
         """Where the camera turned during the clip (the motion turned back into the world,
         :mod:`flowmocap.export.motion`): per page frame, that frame's camera as the OpenGL
         ``matrix_world`` of :func:`gl_camera`; else None (one camera for every frame)."""
-        from dataclasses import replace
-
-        from flowmocap.export.motion import camera_turns
+        from flowmocap.export.motion import camera_turns, turned_camera
 
         if self.motion.turns is None:
             return None
-        cam = self.motion.camera
-        out = []
-        for T in camera_turns(self.motion.run, self.frame_index):
-            turned = replace(cam, R=T @ np.asarray(cam.R, np.float64), t=T @ np.asarray(cam.t, np.float64))
-            out.append(gl_camera(turned)["matrix_world"])
-        return out
+        return [gl_camera(turned_camera(self.motion.camera, T))["matrix_world"]
+                for T in camera_turns(self.motion.run, self.frame_index)]
 
     @staticmethod
     def _unseen(motion, frame_index) -> list[str]:

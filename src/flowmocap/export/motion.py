@@ -37,7 +37,7 @@ from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
-           "camera_turns"]
+           "camera_turns", "turned_camera"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).
@@ -108,11 +108,7 @@ class FittedMotion:
     def camera_at(self, k: int):
         """The camera of row ``k`` in the export frame: :attr:`camera`, turned by
         ``turns[k]`` where the camera turned (a :class:`~flowmocap.geometry.PinholeCamera`)."""
-        if self.turns is None:
-            return self.camera
-        T = np.asarray(self.turns[k], np.float64)
-        return replace(self.camera, R=T @ np.asarray(self.camera.R, np.float64),
-                       t=T @ np.asarray(self.camera.t, np.float64))
+        return self.camera if self.turns is None else turned_camera(self.camera, self.turns[k])
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """``(T, N, 2)`` pixels of ``points`` ``(T, N, 3)`` (metres, export frame), each row by
@@ -349,6 +345,13 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     if smoothed is not None:
         fm.joints2d = fm.project(fm.joints())
     return fm
+
+
+def turned_camera(camera, turn: np.ndarray):
+    """``camera`` (a :class:`~flowmocap.geometry.PinholeCamera`) turned about its centre by
+    ``turn`` ``(3, 3)`` (``x_turned = turn x`` in its axes): ``R' = turn R``, ``t' = turn t``."""
+    T = np.asarray(turn, np.float64)
+    return replace(camera, R=T @ np.asarray(camera.R, np.float64), t=T @ np.asarray(camera.t, np.float64))
 
 
 def camera_turns(run: dict, frame_index) -> np.ndarray | None:

@@ -220,8 +220,6 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     from flowmocap.fit.disagreement import review_frames
 
-    import cv2
-
     cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
     review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
     from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
@@ -235,9 +233,8 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
             if int(scene.motion.frame_index[k]) in unseen:
                 img = np.ascontiguousarray(img)
                 scale = max(0.35, min(0.6, img.shape[0] / 800))
-                text, y = "not seen: " + unseen[int(scene.motion.frame_index[k])], int(6 + 30 * scale)
-                cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
-                cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+                _outlined(img, "not seen: " + unseen[int(scene.motion.frame_index[k])], int(6 + 30 * scale), scale,
+                          (255, 255, 255))
             if review is not None and review[1][k]:
                 img = _flag(img, f"review: 3D sources part {100 * review[0][k]:.0f} cm")
             if cam2 is not None:
@@ -275,7 +272,6 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
     Raises:
         DataError: no scenes, or scenes of differently sized frames or cameras.
     """
-    import cv2
     from tqdm import tqdm
 
     from flowmocap.viz.video import VideoWriter
@@ -332,9 +328,7 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
             y = int(6 + 30 * scale)
             for name, col, gaps in zip(names, colours, unseen):
                 ink = tuple(int(255 * c) for c in col) if name in present else (150, 150, 150)
-                text = name + (f" (not seen: {gaps[i]})" if name in present and i in gaps else "")
-                cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
-                cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
+                _outlined(img, name + (f" (not seen: {gaps[i]})" if name in present and i in gaps else ""), y, scale, ink)
                 y += int(28 * scale) + 4
             out.write(img)
     return Path(path)
@@ -342,6 +336,14 @@ def people_overlay_video(scenes: list[ResultScene], path: str | Path, names: lis
 
 #: RGB of the frame drawn round a video frame to review
 REVIEW_RGB = (230, 40, 40)
+
+
+def _outlined(img: np.ndarray, text: str, y: int, scale: float, ink: tuple) -> None:
+    """``text`` at the left of ``img`` (in place), baseline ``y`` px, in ``ink`` (RGB) outlined black."""
+    import cv2
+
+    cv2.putText(img, text, (7, y + 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
+    cv2.putText(img, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, ink, 1, cv2.LINE_AA)
 
 
 def _flag(img: np.ndarray, text: str) -> np.ndarray:
