@@ -4,7 +4,8 @@ true optical flow.
 
 Public API: :func:`synthesize` (the ``flowmocap synth`` command), :class:`SynthResult`,
 and the scene pieces :func:`place_camera`, :func:`render_background`,
-:class:`ClothingPattern`.
+:class:`ClothingPattern`. :class:`flowmocap.synth.carried.CarriedCamera` gives the frames of a
+camera carried over a textured floor, with the truth (for the camera's motion).
 """
 
 from flowmocap.synth.scene import ClothingPattern, place_camera, render_background

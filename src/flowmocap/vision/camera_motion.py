@@ -18,9 +18,22 @@ pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames) 
 degrees, and the four calibrated cameras of the real3d recording at most 0.07-0.51 (100
 frames): the estimate's drift. :data:`MOVING_DEG` lies between.
 
-Only the camera's turn is found, not a sideways move of it (a camera carried along): that
-shows as a larger ``residual_px``. Nothing here changes the tracking; the export frames turn
-each frame's body back by it (:mod:`flowmocap.export.motion`).
+A camera that also moves (carried along, on a dolly or a vehicle) moves the points of the
+floor by the homography a plane induces, ``H = K (R + tau n^T) K^-1``, where ``n`` is the
+floor's normal in the earlier frame's camera axes (pointing down, to the floor) and ``tau``
+the camera's move in units of its height above the floor. :func:`floor_motion` tracks
+corners of the floor near the person's feet, takes the floor's normal from the frame pairs
+that show a move (OpenCV's homography decomposition, the solution nearest the camera's down),
+then fits each pair's turn and move with that normal and chains them: the camera's path in
+units of its height above the floor in the first frame. That height, in metres, is not in the
+images; the export frames take it from the fitted body's feet on the floor
+(:mod:`flowmocap.export.motion`), so the path comes out in metres and the body is moved back
+by it. A camera whose centre stays within :data:`SIDEWAYS_SHARE` of its height of where it
+started is taken not to move (only its turn, if any, is kept): the still cameras of the
+project's clips stay within that (``docs/experiments.md``, "A camera carried along").
+
+Nothing here changes the tracking; the export frames turn (and move) each frame's body back by
+it (:mod:`flowmocap.export.motion`).
 """
 
 from __future__ import annotations
@@ -31,7 +44,8 @@ import numpy as np
 
 from flowmocap.errors import InputError
 
-__all__ = ["CameraMotion", "frame_rotation", "camera_motion", "MOVING_DEG"]
+__all__ = ["CameraMotion", "frame_rotation", "camera_motion", "floor_motion", "floor_region", "MOVING_DEG",
+           "SIDEWAYS_SHARE"]
 
 #: A camera whose direction lies more than this many degrees from its first frame's in some
 #: frame is said to move (the estimate's drift on the project's still cameras: at most 0.5 degrees).
@@ -44,6 +58,21 @@ FORWARD_BACK_PX = 1.0
 MIN_INLIER_SHARE = 0.5
 #: ... and it is at most this many degrees (300 degrees a second at 30 fps: no pan; a cut).
 MAX_STEP_DEG = 10.0
+
+#: A camera is said to move sideways where its centre lies further than this share of its
+#: height above the floor from where it was in the first frame (15 cm for a camera held 1.5 m up).
+SIDEWAYS_SHARE = 0.1
+#: Frame pairs whose floor shows a move of at least this share of the camera's height tell the
+#: floor's normal (a pair that only turns leaves it open).
+NORMAL_MIN_MOVE = 0.01
+#: A move is believed only where, over the pairs the floor's normal is searched with, it
+#: leaves at most this share of the floor corners' cost that a turn alone leaves.
+MOVE_EVIDENCE = 0.7
+#: Floor corners are taken from the image rows below the person's lowest pixel less this share
+#: of their height (the floor about their feet), or without a person from the lowest
+#: :data:`FLOOR_ROWS_NO_PERSON` of the image.
+FEET_MARGIN = 0.1
+FLOOR_ROWS_NO_PERSON = 0.4
 
 
 @dataclass
@@ -61,6 +90,21 @@ class CameraMotion:
             also moves sideways, or the background moves).
         unknown: frames whose rotation could not be fitted (too few background corners);
             the previous frame's rotation is kept there.
+        shifts: ``(T, 3)`` where the camera moved sideways (:attr:`moving_sideways`), each
+            frame's move in its own axes in units of the camera's height above the floor in the
+            first frame ``h``: ``x_t = F_t x_0 + h shifts_t`` for a point's camera coordinates
+            (the first row zero), ``F_t`` the floor's turns ``floor_rotations``
+            (:func:`floor_motion`; the whole background's ``rotations`` are bent by the move).
+            None where the camera did not move sideways or the floor could not tell.
+        floor_rotations: ``(T, 3, 3)`` the turns that go with ``shifts``, or None.
+        floor_normal: ``(3,)`` the floor's unit normal in the first frame's camera axes,
+            pointing down (to the floor), where the floor showed a move; else None.
+        sideways: the largest distance of the camera's centre from where it was in the first
+            frame, in units of ``h`` (NaN where the floor could not tell).
+        floor_unknown: frames whose floor motion could not be fitted (held from the frame before).
+        move_share: where some frame pair's floor showed a move, the share of the cost a turn
+            alone leaves on the floor's corners that the move leaves (:data:`MOVE_EVIDENCE`);
+            NaN where none did.
     """
 
     frames: np.ndarray
@@ -68,29 +112,93 @@ class CameraMotion:
     turn_deg: np.ndarray
     residual_px: float
     unknown: list
+    shifts: np.ndarray | None = None
+    floor_rotations: np.ndarray | None = None
+    floor_normal: np.ndarray | None = None
+    sideways: float = float("nan")
+    floor_unknown: list | None = None
+    move_share: float = float("nan")
 
     @property
-    def moving(self) -> bool:
+    def turning(self) -> bool:
         """Whether the camera turned by more than :data:`MOVING_DEG` at some frame."""
         return bool(len(self.turn_deg) and np.nanmax(self.turn_deg) > MOVING_DEG)
 
+    @property
+    def moving_sideways(self) -> bool:
+        """Whether the camera's centre moved by more than :data:`SIDEWAYS_SHARE` of its height
+        above the floor (``shifts`` then holds the move)."""
+        return self.shifts is not None
+
+    @property
+    def moving(self) -> bool:
+        """Whether the camera turned (:attr:`turning`) or moved sideways (:attr:`moving_sideways`)."""
+        return self.turning or self.moving_sideways
+
+    def centres(self) -> np.ndarray | None:
+        """``(T, 3)`` the camera's centre in each frame in the first frame's camera axes, in
+        units of its height above the floor there (``-F_t^T shifts_t``); None without a move."""
+        if self.shifts is None:
+            return None
+        return -np.einsum("tji,tj->ti", self.floor_rotations, self.shifts)
+
     def to_dict(self, rotations: bool = False) -> dict:
         """A JSON summary: ``moving``, ``turn_deg_max``, ``turn_deg_end``, ``residual_px``,
-        ``unknown_frames``; with ``rotations``, also ``rotvecs`` (T x 3 radians, the first
-        frame's camera axes) and ``frames``."""
+        ``unknown_frames``, ``sideways_max`` (units of the camera's height above the floor, or
+        None), ``move_share`` (or None) and ``moving_sideways``; with ``rotations``, also
+        ``rotvecs`` (T x 3 radians, the first frame's camera axes) and ``frames``, and where
+        the camera moved sideways ``shifts`` (T x 3), ``floor_rotvecs`` (T x 3),
+        ``floor_normal`` (3) and ``floor_unknown_frames``."""
         from scipy.spatial.transform import Rotation
 
         doc = {"moving": self.moving, "turn_deg_max": round(float(np.nanmax(self.turn_deg, initial=0.0)), 2),
                "turn_deg_end": round(float(self.turn_deg[-1]) if len(self.turn_deg) else 0.0, 2),
-               "residual_px": round(float(self.residual_px), 2), "unknown_frames": len(self.unknown)}
+               "residual_px": round(float(self.residual_px), 2), "unknown_frames": len(self.unknown),
+               "sideways_max": None if not np.isfinite(self.sideways) else round(float(self.sideways), 3),
+               "move_share": None if not np.isfinite(self.move_share) else round(float(self.move_share), 3),
+               "moving_sideways": self.moving_sideways}
         if rotations:
             doc["frames"] = [int(f) for f in self.frames]
             doc["rotvecs"] = np.round(Rotation.from_matrix(self.rotations).as_rotvec(), 6).tolist()
+            if self.shifts is not None:
+                doc["shifts"] = np.round(self.shifts, 6).tolist()
+                doc["floor_rotvecs"] = np.round(Rotation.from_matrix(self.floor_rotations).as_rotvec(), 6).tolist()
+                doc["floor_normal"] = np.round(self.floor_normal, 6).tolist()
+                doc["floor_unknown_frames"] = len(self.floor_unknown or [])
         return doc
 
 
 def _intrinsics(camera) -> np.ndarray:
     return np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+
+
+def _homography(prev: np.ndarray, cur: np.ndarray, exclude: np.ndarray | None, max_corners: int, min_points: int,
+                who: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Corners of ``prev`` outside ``exclude`` tracked into ``cur`` and back, and the
+    homography most of them agree with: ``(a, b, H, agree)``, ``a``/``b`` ``(N, 2)`` the
+    tracked corners' pixels in each frame and ``agree`` ``(N,)`` bool those that agree with
+    ``H``; None where too few are tracked or agree."""
+    import cv2
+
+    prev, cur = np.asarray(prev), np.asarray(cur)
+    if prev.shape != cur.shape or prev.ndim != 3 or prev.shape[2] < 3:
+        raise InputError(f"{who} needs two RGB frames of one size; got {prev.shape} and {cur.shape}.")
+    g0 = cv2.cvtColor(np.ascontiguousarray(prev[..., :3]), cv2.COLOR_RGB2GRAY)
+    g1 = cv2.cvtColor(np.ascontiguousarray(cur[..., :3]), cv2.COLOR_RGB2GRAY)
+    allowed = None if exclude is None else np.where(np.asarray(exclude, bool), 0, 255).astype(np.uint8)
+    p0 = cv2.goodFeaturesToTrack(g0, max_corners, 0.01, 8, mask=allowed)
+    if p0 is None or len(p0) < min_points:
+        return None
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(g0, g1, p0, None)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(g1, g0, p1, None)  # tracked back: a corner lost comes back elsewhere
+    ok = (status[:, 0] == 1) & (status_back[:, 0] == 1) & (np.linalg.norm(back - p0, axis=-1)[:, 0] < FORWARD_BACK_PX)
+    a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
+    if len(a) < min_points:
+        return None
+    H, inliers = cv2.findHomography(a, b, cv2.RANSAC, 1.5)
+    if H is None or inliers is None or inliers.sum() < max(min_points, MIN_INLIER_SHARE * len(a)):
+        return None
+    return a, b, H, inliers[:, 0].astype(bool)
 
 
 def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np.ndarray | None = None,
@@ -113,26 +221,10 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     Raises:
         InputError: frames of different sizes or not RGB.
     """
-    import cv2
-
-    prev, cur = np.asarray(prev), np.asarray(cur)
-    if prev.shape != cur.shape or prev.ndim != 3 or prev.shape[2] < 3:
-        raise InputError(f"frame_rotation needs two RGB frames of one size; got {prev.shape} and {cur.shape}.")
-    g0 = cv2.cvtColor(np.ascontiguousarray(prev[..., :3]), cv2.COLOR_RGB2GRAY)
-    g1 = cv2.cvtColor(np.ascontiguousarray(cur[..., :3]), cv2.COLOR_RGB2GRAY)
-    allowed = None if exclude is None else np.where(np.asarray(exclude, bool), 0, 255).astype(np.uint8)
-    p0 = cv2.goodFeaturesToTrack(g0, max_corners, 0.01, 8, mask=allowed)
-    if p0 is None or len(p0) < min_points:
+    got = _homography(prev, cur, exclude, max_corners, min_points, "frame_rotation")
+    if got is None:
         return None
-    p1, status, _ = cv2.calcOpticalFlowPyrLK(g0, g1, p0, None)
-    back, status_back, _ = cv2.calcOpticalFlowPyrLK(g1, g0, p1, None)  # tracked back: a corner lost comes back elsewhere
-    ok = (status[:, 0] == 1) & (status_back[:, 0] == 1) & (np.linalg.norm(back - p0, axis=-1)[:, 0] < FORWARD_BACK_PX)
-    a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
-    if len(a) < min_points:
-        return None
-    H, inliers = cv2.findHomography(a, b, cv2.RANSAC, 1.5)
-    if H is None or inliers is None or inliers.sum() < max(min_points, MIN_INLIER_SHARE * len(a)):
-        return None
+    a, b, H, _ = got
     M = np.linalg.inv(K) @ H @ K
     d = np.linalg.det(M)
     if not np.isfinite(d) or abs(d) < 1e-12:
@@ -143,23 +235,205 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
         return None
     if np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))) > MAX_STEP_DEG:
         return None
+    import cv2
+
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))
 
 
+def floor_region(shape: tuple, mask: np.ndarray | None = None) -> np.ndarray:
+    """``(H, W)`` bool: the pixels floor corners are taken from: the rows below the person's
+    lowest pixel less :data:`FEET_MARGIN` of their height (the floor about their feet), or the
+    lowest :data:`FLOOR_ROWS_NO_PERSON` of the image where ``mask`` (``(H, W)`` bool, the
+    person) is None or empty. The person's own pixels are left out by the caller."""
+    H, W = shape[:2]
+    start = (1.0 - FLOOR_ROWS_NO_PERSON) * H
+    if mask is not None and np.asarray(mask).any():
+        rows = np.flatnonzero(np.asarray(mask, bool).any(1))
+        start = rows[-1] - FEET_MARGIN * (rows[-1] - rows[0])
+    return np.broadcast_to(np.arange(H)[:, None] >= start, (H, W)).copy()
+
+
+def _rays(K: np.ndarray, px: np.ndarray) -> np.ndarray:
+    return np.c_[px, np.ones(len(px))] @ np.linalg.inv(K).T
+
+
+def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The floor's normal in the first frame's camera axes, from the pairs that show a move
+    (:data:`NORMAL_MIN_MOVE`; None where none does): the normal with which the pairs' turns
+    and moves (:func:`_fit_pair`) leave the floor's corners nearest where they are seen (the
+    sum of squared distances cut at 3 px, over the :data:`NORMAL_PAIRS` pairs from the first
+    that moves, their turns chained), searched on a grid of tilts about the camera's down and
+    then refined (Nelder-Mead). Returns the normal and the share of the turn-alone cost that
+    the move leaves (near 1: the floor shows no move).
+
+    One pair alone tells the normal poorly: over a frame a small move sideways looks much
+    like a small turn, and only the floor's near corners moving more than its far ones tell
+    them apart. The decomposition of each pair's homography (OpenCV) was 10-15 degrees off
+    on synthetic dolly shots where this search is within a degree or two; it is used only to
+    tell which pairs show a move."""
+    from scipy.optimize import minimize
+    from scipy.spatial.transform import Rotation
+
+    moving = _moving_pairs(pairs, chain, K)
+    if not moving:
+        return None
+    window = range(moving[0], min(len(pairs), moving[0] + NORMAL_PAIRS))  # from the first pair that moves
+
+    def normal(angles):  # in the axes of the window's first frame
+        return Rotation.from_euler("xz", angles).as_matrix() @ np.array([0.0, 1.0, 0.0])
+
+    def cost(angles, move=True):
+        n, R_k, total = normal(angles), np.eye(3), 0.0
+        for k in window:
+            if pairs[k] is None:
+                continue
+            a, b, _ = pairs[k]
+            got = _fit_pair(a, b, K, R_k @ n, chain[k + 1] @ chain[k].T, move)
+            if got is None:
+                total += 9.0 * len(a)
+                continue
+            total += float(np.sum(np.minimum(got[3], 3.0) ** 2)) + 9.0 * (len(a) - len(got[3]))  # off the floor: cut
+            R_k = got[0] @ R_k  # the floor's own turn (the background's is bent by the move)
+        return total
+
+    lo, hi = np.radians([-20.0, -30.0]), np.radians([60.0, 30.0])  # the tilts searched: a camera upright-ish
+    grid = [(np.radians(x), np.radians(z)) for x in range(-20, 61, 10) for z in range(-30, 31, 10)]
+    start = min(grid, key=cost)
+    bounded = lambda x: cost(x) if np.all((x >= lo) & (x <= hi)) else np.inf  # noqa: E731
+    best = minimize(bounded, np.asarray(start), method="Nelder-Mead",
+                    options={"xatol": np.radians(0.2), "fatol": 1e-3, "initial_simplex":
+                             np.asarray(start) + np.radians([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]])})
+    # the evidence for a move: the floor's corners with the move against with the turn alone
+    turn_only = cost(best.x, move=False)
+    share = best.fun / turn_only if turn_only > 0 else 1.0
+    # into the first frame's axes, through the background's turn up to the window (no move there)
+    return chain[window[0]].T @ normal(best.x), float(share)
+
+
+#: Frame pairs the floor's normal is searched with, at most (from the first that moves).
+NORMAL_PAIRS = 40
+
+
+def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
+    """The pairs whose floor homography, decomposed (OpenCV), shows a move of at least
+    :data:`NORMAL_MIN_MOVE` of the camera's height in its solution with the floor in front of
+    the corners and the normal nearest the camera's down."""
+    import cv2
+
+    out = []
+    down = np.array([0.0, 1.0, 0.0])
+    for k, pair in enumerate(pairs):
+        if pair is None:
+            continue
+        a, _, H = pair
+        n_sol, _, ts, ns = cv2.decomposeHomographyMat(H, K)
+        rays = _rays(K, a)
+        best = None
+        for t, n in zip(ts, ns):
+            n, t = n[:, 0], t[:, 0]
+            if np.median(rays @ n) <= 0:  # the corners would lie behind the plane
+                continue
+            n0 = chain[k].T @ n  # into the first frame's axes
+            if best is None or n0 @ down > best[0] @ down:
+                best = (n0, float(np.linalg.norm(t)))
+        if best is not None and best[1] >= NORMAL_MIN_MOVE and best[0] @ down > 0:
+            out.append(k)
+    return out
+
+
+def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np.ndarray, move: bool = True):
+    """The turn ``R`` and move ``tau`` (units of the camera's height above the floor in the
+    earlier frame) that carry the floor corners ``a`` onto ``b`` through
+    ``K (R + tau n^T) K^-1``, the median distance (px) they leave and each corner's distance;
+    robust least squares from ``R0`` and no move; None with fewer than 8 corners on the floor.
+    ``move=False`` fits the turn alone (``tau`` zero)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    rays = _rays(K, a)
+    on = rays @ n > 1e-6  # corners whose ray meets the floor
+    rays, b = rays[on], b[on]
+    if len(rays) < 8:
+        return None
+
+    def residual(x):
+        M = Rotation.from_rotvec(x[:3]).as_matrix() + (np.outer(x[3:], n) if move else 0.0)
+        p = rays @ M.T @ K.T
+        return (p[:, :2] / p[:, 2:3] - b).ravel()
+
+    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), 0.0, 0.0, 0.0] if move else Rotation.from_matrix(R0).as_rotvec()
+    fit = least_squares(residual, x0, loss="soft_l1", f_scale=1.0, x_scale=0.01)
+    r = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
+    tau = fit.x[3:] if move else np.zeros(3)
+    return Rotation.from_rotvec(fit.x[:3]).as_matrix(), tau, float(np.median(r)), r
+
+
+def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | None:
+    """The camera's turn and move over a clip, from the floor corners of each frame pair.
+
+    Args:
+        pairs: per frame pair ``(k, k+1)``, ``(a, b, H)``: the floor corners ``(N, 2)`` pixels
+            in frame ``k`` and ``k+1`` that agree with the homography ``H`` between them, or None.
+        K: ``(3, 3)`` the intrinsics, pixels.
+        rotations: ``(T, 3, 3)`` the turn of each frame since the first, from the whole
+            background (:func:`frame_rotation`): the start of each pair's fit and the frame
+            each pair's normal is turned back through.
+
+    Returns:
+        None where no pair shows a move; ``{"share": s}`` where the move leaves more than
+        :data:`MOVE_EVIDENCE` of the cost a turn alone leaves on the floor's corners (``s``,
+        the move not believed); else also ``rotations`` ``(T, 3, 3)``, ``shifts`` ``(T, 3)``
+        (``x_t = R_t x_0 + h shifts_t``, ``h`` the camera's height above the floor in the first
+        frame), ``normal`` ``(3,)`` (first frame's axes, pointing down), ``residual_px``
+        (median over pairs) and ``unknown`` (frames whose pair could not be fitted; held: no
+        turn or move from the frame before).
+    """
+    got = _plane_normal(pairs, rotations, K)
+    if got is None:
+        return None
+    n0, share = got
+    if share > MOVE_EVIDENCE:
+        return {"share": share}
+    Rs, ts = [np.eye(3)], [np.zeros(3)]
+    residuals, unknown = [], []
+    for k, pair in enumerate(pairs):
+        R_k, t_k = Rs[-1], ts[-1]
+        n_k = R_k @ n0
+        h_k = 1.0 + n_k @ t_k  # the camera's height over the floor, in units of the first frame's
+        got = None
+        if pair is not None and h_k > 0.05:
+            got = _fit_pair(pair[0], pair[1], K, n_k, rotations[k + 1] @ rotations[k].T)
+        if got is None:
+            unknown.append(k + 1)
+            Rs.append(R_k)
+            ts.append(t_k)
+            continue
+        R, tau, res, _ = got
+        residuals.append(res)
+        Rs.append(R @ R_k)
+        ts.append(R @ t_k + tau * h_k)
+    return {"share": share, "rotations": np.asarray(Rs), "shifts": np.asarray(ts), "normal": n0,
+            "residual_px": float(np.median(residuals)) if residuals else float("nan"), "unknown": unknown}
+
+
 def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, dilate_px: int = 15,
-                  progress: bool = False) -> CameraMotion:
-    """:func:`frame_rotation` chained over ``frames`` of ``seq``.
+                  progress: bool = False, sideways: bool = True) -> CameraMotion:
+    """:func:`frame_rotation` chained over ``frames`` of ``seq``, and where the floor shows the
+    camera moving sideways, :func:`floor_motion`.
 
     Args:
         seq: ``seq.frame(i)`` ``(H, W, 3)`` uint8 RGB, and with ``masks`` ``seq.mask(i)``
-            (the person's pixels, or None) left out, grown by ``dilate_px``.
+            (the person's pixels, or None) left out, grown by ``dilate_px``; the floor's corners
+            are taken about the person's feet (:func:`floor_region`).
         camera: the tracked camera (its intrinsics, pixels of ``seq``'s frames).
         frames: the frames (default all).
         progress: show a progress bar.
+        sideways: look for a sideways move too (the floor's corners).
 
     Returns:
-        :class:`CameraMotion` (the first frame's rotation the identity).
+        :class:`CameraMotion` (the first frame's rotation the identity; ``shifts`` where the
+        camera moved more than :data:`SIDEWAYS_SHARE` of its height above the floor).
     """
     import cv2
     from tqdm import tqdm
@@ -167,12 +441,12 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
     frames = range(len(seq)) if frames is None else frames
     K = _intrinsics(camera)
     Rs = [np.eye(3)]
-    residuals, unknown = [], []
+    residuals, unknown, pairs = [], [], []
     kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
     prev = seq.frame(frames[0]).copy() if len(frames) else None
     for i in tqdm(frames[1:], disable=not progress, unit="frame", desc="camera motion"):
         cur = seq.frame(i).copy()
-        exclude = None
+        exclude, m = None, None
         if masks:
             m = seq.mask(i - 1) if hasattr(seq, "mask") else None
             if m is not None and np.asarray(m).any():
@@ -184,8 +458,26 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
         else:
             Rs.append(got[0] @ Rs[-1])
             residuals.append(got[1])
+        if sideways:
+            region = floor_region(prev.shape, m if masks else None)
+            if exclude is not None:
+                region &= ~exclude
+            floor = _homography(prev, cur, ~region, 400, 20, "camera_motion")
+            pairs.append(None if floor is None else (floor[0][floor[3]], floor[1][floor[3]], floor[2]))
         prev = cur
     R = np.asarray(Rs, np.float64)
+    fl = floor_motion(pairs, K, R) if sideways and len(pairs) else None
+    shifts = normal = floor_R = None
+    far = float("nan")
+    floor_unknown = None
+    share = float("nan") if fl is None else fl["share"]
+    if fl is not None and "shifts" in fl:
+        centres = -np.einsum("tji,tj->ti", fl["rotations"], fl["shifts"])
+        far = float(np.linalg.norm(centres, axis=1).max())
+        if far > SIDEWAYS_SHARE:
+            floor_R, shifts, normal, floor_unknown = fl["rotations"], fl["shifts"], fl["normal"], fl["unknown"]
     turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
     return CameraMotion(np.asarray(list(frames), np.int64), R, turn,
-                        float(np.median(residuals)) if residuals else float("nan"), unknown)
+                        float(np.median(residuals)) if residuals else float("nan"), unknown,
+                        shifts=shifts, floor_rotations=floor_R, floor_normal=normal, sideways=far,
+                        floor_unknown=floor_unknown, move_share=share)
