@@ -497,11 +497,18 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         moved = camera_motion(seq, cam, frames=range(0, b), masks=getattr(seq, "masks", None) is not None,
                               progress=progress)
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
-        if moved.moving:
+        if moved.moving_sideways:
+            say(f"the floor about the person's feet shows the camera moving: its centre goes up to {moved.sideways:.1f} "
+                "times its height above the floor from where it is in the first frame (and the background turns up to "
+                f"{notes['camera_motion']['turn_deg_max']:.0f} degrees). The body is tracked in the moving camera's "
+                "frame; after tracking, the move is checked against the fitted body, and where the two agree, export "
+                "and view move each frame back into the world, scaled by the camera's height that the fitted feet "
+                "give (run.json 'camera_motion' holds the camera's turn and move per frame).")
+        elif moved.moving:
             say(f"the camera turns (a pan or a tilt): up to {notes['camera_motion']['turn_deg_max']:.0f} degrees from "
                 "where it points in the first frame. The body is tracked in the turning camera's frame; export and "
                 "view turn each frame back into the world (run.json 'camera_motion' holds the camera's rotation per "
-                "frame). A camera carried sideways is not undone.")
+                "frame).")
     write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None
@@ -510,6 +517,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
                {"fingerprint": fingerprint, **notes}, keep_flow, seen)
     run = _post_steps(out, watch, body, cfg, run, joints3d, say)
+    _camera_move_verdict(out, run, say)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
     say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
@@ -1003,6 +1011,24 @@ def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: Trac
         if cfg.pose_smoothing_s > 0:
             run = _smooth_poses(out, body, cfg, run, say)
     return _record_body(out, body, cfg, run, say)
+
+
+def _camera_move_verdict(out: Path, run: dict, say) -> None:
+    """Where the floor showed the camera moving (``run.json``'s ``camera_motion``), say whether
+    the export frames undo the move: the floor must agree with the fitted body's upright
+    direction, and the feet give the camera's height (:mod:`flowmocap.export.motion`)."""
+    if not (run.get("camera_motion") or {}).get("moving_sideways") or not has_result(out):
+        return
+    from flowmocap.export.motion import load_fitted_motion
+
+    m = load_fitted_motion(out, frame="up")
+    if m.shifts is None:
+        say(f"the camera's move is not undone: {m.camera_move_refused}.")
+        return
+    centres = -np.einsum("tji,tj->ti", m.turns, m.shifts)
+    say(f"export and view undo the camera's move: it stands {m.camera_height_m:.2f} m above the floor (from the "
+        f"fitted feet) and its centre goes up to {np.linalg.norm(centres - centres[0], axis=1).max():.2f} m from "
+        "where it is in the first tracked frame.")
 
 
 def _record_body(out: Path, body: BodyModel, cfg: TrackerConfig, run: dict, say) -> dict:

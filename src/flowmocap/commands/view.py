@@ -234,12 +234,15 @@ class ViewerData:
         """Where the camera turned during the clip (the motion turned back into the world,
         :mod:`flowmocap.export.motion`): per page frame, that frame's camera as the OpenGL
         ``matrix_world`` of :func:`gl_camera`; else None (one camera for every frame)."""
-        from flowmocap.export.motion import camera_turns, turned_camera
+        from flowmocap.export.motion import camera_shifts, camera_turns, turned_camera
 
-        if self.motion.turns is None:
+        m = self.motion
+        if m.turns is None:
             return None
-        return [gl_camera(turned_camera(self.motion.camera, T))["matrix_world"]
-                for T in camera_turns(self.motion.run, self.frame_index)]
+        turns = camera_turns(m.run, self.frame_index, floor=m.shifts is not None)
+        shifts = (camera_shifts(m.run, self.frame_index) * m.camera_height_m if m.shifts is not None
+                  else [None] * len(turns))
+        return [gl_camera(turned_camera(m.camera, T, s))["matrix_world"] for T, s in zip(turns, shifts)]
 
     @staticmethod
     def _unseen(motion, frame_index) -> list[str]:

@@ -141,6 +141,9 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
         from scipy.spatial.transform import Rotation
 
         extras["camera_turns_rotvec"] = np.round(Rotation.from_matrix(motion.turns).as_rotvec(), 6).tolist()
+        if motion.shifts is not None:  # and moved: each frame's camera is "camera" turned, then moved by these (m)
+            extras["camera_shifts_m"] = np.round(motion.shifts, 6).tolist()
+            extras["camera_height_m"] = round(float(motion.camera_height_m), 4)
     if motion.world is not None:
         extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
     if motion.foot_contacts is not None:

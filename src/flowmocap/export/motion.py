@@ -23,6 +23,12 @@ path, the foot contacts and the floor are the world's, not the camera's:
 :attr:`FittedMotion.turns` holds those turns, :attr:`FittedMotion.camera` is the camera of the
 input's first frame and :meth:`FittedMotion.camera_at` each row's, which projects the body
 onto that frame's pixels. ``"world"`` stays the result's own frame (the camera's, turning).
+
+Where the camera also moved (carried along: ``camera_motion``'s ``shifts``, found from the
+floor in units of the camera's height above it), that height in metres is taken from the fitted
+body's feet (:func:`camera_height_from_feet`) and each frame's body is moved back by the
+camera's move too (:attr:`FittedMotion.shifts`, :attr:`FittedMotion.camera_height_m`), so a
+person followed by a moving camera walks their path in the world instead of on the spot.
 """
 
 from __future__ import annotations
@@ -37,7 +43,8 @@ from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
-           "camera_turns", "turned_camera"]
+           "camera_turns", "camera_shifts", "camera_height_from_feet", "camera_move_refused", "turned_camera",
+           "FLOOR_BODY_MAX_DEG"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).
@@ -80,6 +87,15 @@ class FittedMotion:
             x_0`` for directions in the camera's axes), where the motion was turned back by
             it (see the module docstring); None where the camera stood still or the frame is
             ``"world"``.
+        shifts: ``(T, 3)`` metres, the camera's move in each row since the input's first
+            frame, in that row's camera axes (a point's camera coordinates ``x_t = turns[k]
+            x_0 + shifts[k]``), where the motion was moved back by it; None where the camera
+            did not move sideways or the frame is ``"world"``.
+        camera_height_m: the camera's height above the floor in the input's first frame (metres,
+            from the fitted feet: :func:`camera_height_from_feet`) that scales ``shifts``; None
+            without them.
+        camera_move_refused: where ``run.json`` holds a move of the camera that was not
+            undone, why (:func:`camera_move_refused`); else None.
     """
 
     poses: np.ndarray
@@ -100,6 +116,9 @@ class FittedMotion:
     disagreement: np.ndarray | None = None
     contacts: np.ndarray | None = None
     turns: np.ndarray | None = None
+    shifts: np.ndarray | None = None
+    camera_height_m: float | None = None
+    camera_move_refused: str | None = None
 
     def __post_init__(self):
         if self.offset is None:
@@ -107,8 +126,11 @@ class FittedMotion:
 
     def camera_at(self, k: int):
         """The camera of row ``k`` in the export frame: :attr:`camera`, turned by
-        ``turns[k]`` where the camera turned (a :class:`~flowmocap.geometry.PinholeCamera`)."""
-        return self.camera if self.turns is None else turned_camera(self.camera, self.turns[k])
+        ``turns[k]`` (and moved by ``shifts[k]``) where the camera turned or moved (a
+        :class:`~flowmocap.geometry.PinholeCamera`)."""
+        if self.turns is None:
+            return self.camera
+        return turned_camera(self.camera, self.turns[k], None if self.shifts is None else self.shifts[k])
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """``(T, N, 2)`` pixels of ``points`` ``(T, N, 3)`` (metres, export frame), each row by
@@ -304,10 +326,22 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     camera = PinholeCamera.from_dict(cam_dict)
     body = _model_for(run, gender, model)
     turns = camera_turns(run, index) if frame != "world" else None
-    if turns is not None:  # each frame's body turned back by the camera's turn since the first frame
+    shifts = height = refused = None
+    if turns is not None:  # each frame's body turned (and moved) back by the camera's since the first frame
         R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+        unit = camera_shifts(run, index)
+        if unit is not None:  # the floor's turns go with its moves
+            normal = np.asarray((run.get("camera_motion") or {})["floor_normal"], np.float64)
+            floor_turns = camera_turns(run, index, floor=True)
+            refused = camera_move_refused(body, poses, trans, betas, camera, floor_turns, normal)
+            if refused is None:
+                height = camera_height_from_feet(body, poses, trans, betas, camera, floor_turns, unit, normal)
+                refused = None if height is not None else "the fitted feet are nowhere below the camera"
+            if refused is None:
+                shifts, turns = unit * height, floor_turns
+        moved = t[None] if shifts is None else t[None] - shifts
         A = np.einsum("ji,tkj,kl->til", R, turns, R)  # R^T turns_k^T R: the turn back, in the result's world
-        b = np.einsum("ji,tkj,k->ti", R, turns, t) - t @ R  # R^T (turns_k^T t - t)
+        b = np.einsum("ji,tkj,tk->ti", R, turns, moved) - t @ R  # R^T (turns_k^T (t - shifts_k) - t)
         import torch
 
         with torch.no_grad():
@@ -338,7 +372,8 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
                       joints2d=np.asarray(motion.get("joints2d", np.full((T, 24, 2), np.nan)), np.float64),
                       offset=offset, world=world, smoothed=smoothed,
                       disagreement=(np.asarray(motion["disagreement"], np.float64) if "disagreement" in motion
-                                    else None), turns=turns)
+                                    else None), turns=turns, shifts=shifts, camera_height_m=height,
+                      camera_move_refused=refused)
     if not np.allclose(W, np.eye(3)) or np.any(offset != 0):
         p, t = rotate_motion(poses, trans, fm.rest_joints()[0], W)
         fm.poses, fm.trans = p, t + offset
@@ -347,32 +382,144 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     return fm
 
 
-def turned_camera(camera, turn: np.ndarray):
+def turned_camera(camera, turn: np.ndarray, shift: np.ndarray | None = None):
     """``camera`` (a :class:`~flowmocap.geometry.PinholeCamera`) turned about its centre by
-    ``turn`` ``(3, 3)`` (``x_turned = turn x`` in its axes): ``R' = turn R``, ``t' = turn t``."""
+    ``turn`` ``(3, 3)`` and then moved so that a point's camera coordinates become ``turn x +
+    shift`` (``shift`` ``(3,)`` metres in the turned camera's axes, or None for no move):
+    ``R' = turn R``, ``t' = turn t + shift``."""
     T = np.asarray(turn, np.float64)
-    return replace(camera, R=T @ np.asarray(camera.R, np.float64), t=T @ np.asarray(camera.t, np.float64))
+    t = T @ np.asarray(camera.t, np.float64)
+    if shift is not None:
+        t = t + np.asarray(shift, np.float64)
+    return replace(camera, R=T @ np.asarray(camera.R, np.float64), t=t)
 
 
-def camera_turns(run: dict, frame_index) -> np.ndarray | None:
+def _nearest_rows(frames: np.ndarray, frame_index) -> np.ndarray:
+    frame_index = np.asarray(frame_index, np.int64)
+    idx = np.clip(np.searchsorted(frames, frame_index), 0, len(frames) - 1)
+    prev = np.clip(idx - 1, 0, len(frames) - 1)
+    nearer = np.abs(frames[prev] - frame_index) < np.abs(frames[idx] - frame_index)
+    return np.where(nearer, prev, idx)
+
+
+def camera_shifts(run: dict, frame_index) -> np.ndarray | None:
+    """``(T, 3)`` the camera's move since the input's first frame at each of ``frame_index``,
+    in that frame's camera axes and in units of the camera's height above the floor in the
+    first frame, from ``run.json``'s ``camera_motion`` ``shifts``
+    (:mod:`flowmocap.vision.camera_motion`); None where the camera did not move sideways. A frame
+    the estimate does not cover takes the nearest one's."""
+    cm = run.get("camera_motion") or {}
+    if not cm.get("moving") or not cm.get("shifts"):
+        return None
+    frames = np.asarray(cm["frames"], np.int64)
+    shifts = np.asarray(cm["shifts"], np.float64).reshape(-1, 3)
+    if (len(frames) != len(shifts) or not len(frames) or len(cm.get("floor_normal") or []) != 3
+            or len(cm.get("floor_rotvecs") or []) != len(frames)):
+        raise DataError("run.json 'camera_motion' holds a different number of frames and moves, or no floor "
+                        "normal or turns with them; the result is damaged: track the input again with --force.")
+    return shifts[_nearest_rows(frames, frame_index)]
+
+
+#: The camera's move found from the floor is undone only where the floor's normal lies within
+#: this many degrees of the body's upright direction (the median over the frames of the
+#: pelvis-to-neck direction, turned back by the camera's turn): a floor the images made up
+#: disagrees with the person standing on it.
+FLOOR_BODY_MAX_DEG = 25.0
+
+
+def camera_move_refused(body, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, camera, turns: np.ndarray,
+                        normal: np.ndarray) -> str | None:
+    """Why a camera move found from the floor should not be undone, or None where it may: the
+    floor's normal more than :data:`FLOOR_BODY_MAX_DEG` from the body's upright direction.
+
+    Args:
+        body: the body model (float64).
+        poses, trans, betas: ``(T, 72)``, ``(T, 3)``, ``(10,)`` the result's own parameters.
+        camera: the result's camera (``x_cam = R x + t``).
+        turns: ``(T, 3, 3)`` the camera's turn per row (:func:`camera_turns`).
+        normal: ``(3,)`` the floor's unit normal in the first frame's camera axes, pointing down.
+    """
+    import torch
+
+    with torch.no_grad():
+        f64 = torch.float64
+        j = body(betas=torch.as_tensor(betas[None], dtype=f64), pose=torch.as_tensor(poses, dtype=f64),
+                 trans=torch.as_tensor(trans, dtype=f64)).joints.numpy()
+    R = np.asarray(camera.R, np.float64)
+    spine = (j[:, 12] - j[:, 0]) @ R.T  # pelvis to neck, camera axes of each frame
+    spine = np.einsum("tji,tj->ti", turns, spine)  # turned back into the first frame's axes
+    spine /= np.linalg.norm(spine, axis=1, keepdims=True)
+    up = np.median(spine, axis=0)
+    up /= np.linalg.norm(up)
+    angle = float(np.degrees(np.arccos(np.clip(-up @ np.asarray(normal, np.float64), -1.0, 1.0))))
+    if angle > FLOOR_BODY_MAX_DEG:
+        return (f"the floor found in the images lies {angle:.0f} degrees from the body's upright direction "
+                f"(more than {FLOOR_BODY_MAX_DEG:.0f}): its move is not trusted, only the camera's turn is undone")
+    return None
+
+
+def camera_height_from_feet(body, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, camera,
+                            turns: np.ndarray, unit_shifts: np.ndarray, normal: np.ndarray,
+                            chunk: int = 256) -> float | None:
+    """The camera's height above the floor in the input's first frame, metres, from the
+    fitted body's feet: in each frame the lowest foot vertex's distance from the camera along
+    the floor's normal there (``turns[k] normal``), over the camera's height then in units of
+    the first frame's (``1 + n_k . unit_shifts[k]``); the median over the frames (a walk or a
+    stand has a foot on the floor in nearly every frame).
+
+    Args:
+        body: the body model (float64).
+        poses, trans, betas: ``(T, 72)``, ``(T, 3)``, ``(10,)`` the result's own parameters
+            (its world frame).
+        camera: the result's camera (``x_cam = R x + t``).
+        turns, unit_shifts: ``(T, 3, 3)``, ``(T, 3)`` (:func:`camera_turns`, :func:`camera_shifts`).
+        normal: ``(3,)`` the floor's unit normal in the first frame's camera axes, pointing down.
+
+    Returns:
+        metres, or None where the feet are nowhere below the camera.
+    """
+    import torch
+
+    from flowmocap.export.world import foot_vertex_sets
+
+    feet = np.concatenate(foot_vertex_sets(body.weights.cpu().numpy()))
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    n = np.einsum("tij,j->ti", turns, np.asarray(normal, np.float64))
+    scale = 1.0 + np.einsum("ti,ti->t", n, unit_shifts)
+    per = []
+    b = torch.as_tensor(betas[None], dtype=torch.float64)
+    with torch.no_grad():
+        shaped = body.shaped(b)
+        for s in range(0, len(poses), chunk):
+            v = body(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=torch.float64),
+                     trans=torch.as_tensor(trans[s:s + chunk], dtype=torch.float64), shaped=shaped).vertices.numpy()
+            cam = v[:, feet] @ R.T + t
+            per.append(np.einsum("tvi,ti->tv", cam, n[s:s + chunk]).max(1) / scale[s:s + chunk])
+    h = np.concatenate(per)
+    h = h[np.isfinite(h) & (scale > 0.05)]
+    if not len(h) or np.median(h) <= 0:
+        return None
+    return float(np.median(h))
+
+
+def camera_turns(run: dict, frame_index, floor: bool = False) -> np.ndarray | None:
     """``(T, 3, 3)`` the camera's turn since the input's first frame at each of ``frame_index``
     (``x_t = turns[k] x_0`` in the camera's axes), from ``run.json``'s ``camera_motion``
-    (:mod:`flowmocap.vision.camera_motion`); None where the camera stood still or the run
-    says nothing. A frame the estimate does not cover takes the nearest one's turn."""
+    (:mod:`flowmocap.vision.camera_motion`): the whole background's, or with ``floor`` the
+    floor's (those that go with the camera's move, ``shifts``); None where the camera stood
+    still or the run says nothing. A frame the estimate does not cover takes the nearest one's."""
     from scipy.spatial.transform import Rotation
 
     cm = run.get("camera_motion") or {}
-    if not cm.get("moving") or not cm.get("rotvecs"):
+    key = "floor_rotvecs" if floor else "rotvecs"
+    if not cm.get("moving") or not cm.get(key):
         return None
     frames = np.asarray(cm["frames"], np.int64)
-    rotvecs = np.asarray(cm["rotvecs"], np.float64).reshape(-1, 3)
+    rotvecs = np.asarray(cm[key], np.float64).reshape(-1, 3)
     if len(frames) != len(rotvecs) or not len(frames):
         raise DataError("run.json 'camera_motion' holds a different number of frames and rotations; the result is "
                         "damaged: track the input again with --force.")
-    idx = np.clip(np.searchsorted(frames, np.asarray(frame_index, np.int64)), 0, len(frames) - 1)
-    prev = np.clip(idx - 1, 0, len(frames) - 1)
-    nearer = np.abs(frames[prev] - frame_index) < np.abs(frames[idx] - frame_index)
-    return Rotation.from_rotvec(rotvecs[np.where(nearer, prev, idx)]).as_matrix()
+    return Rotation.from_rotvec(rotvecs[_nearest_rows(frames, frame_index)]).as_matrix()
 
 
 def motion_in_frame_of(motion: FittedMotion, other: FittedMotion) -> FittedMotion:
