@@ -118,9 +118,10 @@ def test_frames_without_texture_are_unknown_and_bad_frames_are_refused():
         frame_rotation(blank, blank[:10], K)
 
 
-def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
-    """flowmocap track on a video whose camera turns: run.json's camera_motion holds the
-    rotation per frame and the run says what turns with the camera."""
+def _track_over(scene, tmp_path, monkeypatch) -> dict:
+    """``flowmocap track`` on the built-in walker (6 frames) pasted over ``scene``'s frames
+    (a body that does not move with the camera: enough for the camera's estimate), with a
+    detector that gives the truth; returns run.json."""
     import json
 
     import flowmocap.vision.auto as auto
@@ -136,14 +137,13 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     d = tmp_path / "seq"
     synthesize("builtin:walk", d, fps=30, frames=6, size="320x240", seed=1, azimuth=80.0, distance=3.0, flow=False)
     seq = load_sequence(d)
-    scene = Turning(_pan(6, 1.0))
     frames = []
-    for i in range(6):  # the walker over the turning scene (a body that turns with the camera: enough here)
+    for i in range(6):
         img, body = scene.frame(i), seq.frame(i)
         m = seq.mask(i)
         img[m] = body[m]
         frames.append(img)
-    video = write_video(tmp_path / "pan.mp4", frames)
+    video = write_video(tmp_path / "moving.mp4", frames)
     fake = GroundTruthDetector(seq, absent=set())
     monkeypatch.setattr(auto, "DETECT_IN_CHILD", False)
     monkeypatch.setattr(detect, "MediaPipePoseDetector", lambda augment=True, model="full": fake if augment else Nobody())
@@ -151,10 +151,34 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
     out = tmp_path / "out"
     assert main(["track", str(video), "--out", str(out), "--config", str(cfg), "--focal", str(F)]) == 0
-    _, run = read_result(out)
-    cm = run["camera_motion"]
+    return read_result(out)[1]
+
+
+def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
+    """flowmocap track on a video whose camera turns: run.json's camera_motion holds the
+    rotation per frame and the run says what turns with the camera."""
+    cm = _track_over(Turning(_pan(6, 1.0)), tmp_path, monkeypatch)["camera_motion"]
     assert cm["moving"] and cm["turn_deg_end"] == pytest.approx(5.0, rel=0.1) and len(cm["rotvecs"]) == 6
+    assert not cm["moving_sideways"] and "shifts" not in cm
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
+
+
+def test_a_run_on_a_carried_camera_says_so(tmp_path, monkeypatch, capsys):
+    """flowmocap track on a video whose camera is carried sideways over a floor (6 cm a
+    frame, 1.5 m up): run.json's camera_motion holds its move per frame, in units of its
+    height, and the floor's normal, and the run says the camera moves and that the export
+    frames undo it."""
+    scene = Carried(6, (0.06, 0, 0))
+    cm = _track_over(scene, tmp_path, monkeypatch)["camera_motion"]
+    centre, normal = scene.truth(5)
+    assert cm["moving"] and cm["moving_sideways"] and len(cm["shifts"]) == 6
+    # five frame pairs of an encoded video and only the floor below the walker's knees: within 15 %
+    assert cm["sideways_max"] == pytest.approx(np.linalg.norm(centre), rel=0.15)
+    assert _angle_deg(cm["floor_normal"], normal) < 3.0
+    said = capsys.readouterr().out
+    assert "shows the camera moving: its centre goes up to 0.2 times its height above the floor" in said
+    # the walker pasted in stands upright within 25 degrees of the floor found: the move is undone
+    assert "export and view undo the camera's move: it stands" in said
 
 
 def test_a_result_of_a_turning_camera_is_turned_back_into_the_world(tmp_path):
@@ -248,3 +272,139 @@ def test_rotate_motion_turns_each_frame_by_its_own_rotation():
     one = rotate_motion(poses, trans, J0, W[0])
     np.testing.assert_allclose(same[0], one[0], atol=1e-12)
     np.testing.assert_allclose(same[1], one[1], atol=1e-12)
+
+
+# --- a camera that moves: the floor's corners ---------------------------------------------
+
+def Carried(n, velocity, yaw=0.0):
+    """A camera 1.5 m above a textured floor, pitched down 15 degrees, moving ``velocity`` m a
+    frame and turning ``yaw`` degrees a frame (:class:`flowmocap.synth.carried.CarriedCamera`)."""
+    from flowmocap.synth.carried import CarriedCamera
+
+    return CarriedCamera(n, velocity, yaw, K=K, size=(W, H))
+
+
+def _angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+@pytest.mark.parametrize("velocity, yaw", [((0.05, 0, 0), 0.0), ((0.03, 0, 0.03), -0.4)])
+def test_a_camera_carried_over_a_floor_is_found_to_move_by_that(velocity, yaw):
+    """A dolly sideways, and one diagonal while it turns: the floor's normal within 2 degrees,
+    the camera's path within 5 % of its length (in units of its height above the floor), the
+    turn within 0.3 degrees."""
+    scene = Carried(20, velocity, yaw)
+    got = camera_motion(scene, CAM)
+    centre, normal = scene.truth(19)
+    assert got.moving and got.moving_sideways and not got.floor_unknown
+    assert _angle_deg(got.floor_normal, normal) < 2.0
+    assert np.linalg.norm(got.centres()[-1] - centre) < 0.05 * np.linalg.norm(centre)
+    np.testing.assert_allclose(got.centres()[0], 0.0, atol=1e-12)
+    turned = np.degrees(np.linalg.norm(Rotation.from_matrix(got.floor_rotations[-1]).as_rotvec()))
+    assert turned == pytest.approx(abs(yaw) * 19, abs=0.5)  # the floor's turn (the whole background's is bent)
+    assert got.sideways == pytest.approx(np.linalg.norm(centre), rel=0.05)
+    doc = got.to_dict(rotations=True)
+    assert doc["moving_sideways"] and len(doc["shifts"]) == len(doc["floor_rotvecs"]) == 20
+    assert 0.0 <= doc["move_share"] < 0.1  # the move explains the floor's corners far better than a turn alone
+    assert len(doc["floor_normal"]) == 3
+
+
+def test_a_camera_that_only_turns_over_a_floor_does_not_move():
+    """Over the same floor, a camera that pans and one that stands still: no move is made up
+    (the floor's corners are no better explained with one), and the turn is the background's."""
+    pan = camera_motion(Carried(15, (0, 0, 0), 0.5), CAM)
+    assert pan.turning and not pan.moving_sideways and pan.shifts is None
+    assert not pan.move_share <= 0.7  # NaN (no pair shows a move) or a move that explains little
+    assert pan.turn_deg[-1] == pytest.approx(7.0, rel=0.05)
+    still = camera_motion(Carried(10, (0, 0, 0)), CAM)
+    assert not still.moving and not still.moving_sideways
+    assert not camera_motion(Carried(10, (0.05, 0, 0)), CAM, sideways=False).moving_sideways
+
+
+def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
+    """The built-in walk seen by a camera carried along beside the walker (1.4 m up, 1.2 m a
+    second sideways, turning 0.2 degrees a frame): in the carried camera's frame the walker
+    walks nearly on the spot. With run.json's camera_motion (the move in units of the camera's
+    height, the floor's normal) the ground frame finds the camera's height from the feet, moves
+    each frame back and gives the still camera's walk; each frame's camera projects the body
+    onto that frame's pixels, and the exports and the page carry it."""
+    import json
+
+    from flowmocap.commands.view import ViewerData
+    from flowmocap.export import export_result, load_fitted_motion
+    from flowmocap.io.results import read_result, write_motion, write_run
+    from flowmocap.io.smpl_motion import rotate_motion
+
+    from test_ground import _walk_result
+
+    still = tmp_path / "still"
+    R, _, _, _ = _walk_result(still, 10.0, height=1.4)
+    m = load_fitted_motion(still, frame="world")  # the camera's frame (R = I)
+    T = m.num_frames
+    turns = np.stack(_pan(T, 0.2))
+    world_move = np.outer(np.arange(T), [0.04, 0.0, 0.0])  # the camera's centre, the walk's world axes
+    shifts = -np.einsum("tij,jk,tk->ti", turns, R, world_move)  # x_t = turns_t x_0 + shifts_t
+    poses, trans = rotate_motion(m.poses, m.trans, m.rest_joints()[0], turns)
+    trans = trans + shifts
+    seen = replace_motion(m, poses, trans)
+    j = seen.joints()
+    assert np.ptp(j[:, 0, 0]) < 0.5 * np.ptp(m.joints()[:, 0, 0])  # the carried camera keeps the walker in view
+    arrays, run = read_result(still)
+    carried = tmp_path / "carried"
+    write_motion(carried, {**arrays, "poses": poses.astype(np.float32), "trans": trans.astype(np.float32),
+                           "joints3d": j.astype(np.float32), "joints2d": m.camera.project(j).astype(np.float32)})
+    rotvecs = Rotation.from_matrix(turns).as_rotvec().tolist()
+    cm = {"moving": True, "frames": list(range(T)), "rotvecs": np.zeros((T, 3)).tolist(), "floor_rotvecs": rotvecs,
+          "shifts": (shifts / 1.4).tolist(), "floor_normal": (R @ [0, -1.0, 0]).tolist(), "moving_sideways": True}
+    write_run(carried, {**run, "camera_motion": cm})
+    a, b = load_fitted_motion(still, frame="ground"), load_fitted_motion(carried, frame="ground")
+    assert b.camera_height_m == pytest.approx(1.4, abs=0.01)
+    np.testing.assert_allclose(b.joints(), a.joints(), atol=0.02)  # the same walk in the world
+    assert b.world.plane.method == "contacts" and (b.world.contacts == a.world.contacts).mean() > 0.9
+    for k in (0, 40, T - 1):  # each frame's camera puts the body on that frame's pixels
+        np.testing.assert_allclose(b.camera_at(k).project(b.joints()[k]), m.camera.project(j[k]), atol=0.05)
+    assert b.camera_move_refused is None
+    # told only the turn, the walker stays near the spot
+    write_run(carried, {**run, "camera_motion": {**cm, "rotvecs": rotvecs, "shifts": None}})
+    c = load_fitted_motion(carried, frame="ground")
+    assert c.shifts is None and np.abs(c.joints() - a.joints()).max() > 1.0
+    # a floor the images made up, 40 degrees from the walker's upright: its move is refused and
+    # the background's turn (here none) is all that is undone
+    tilted = Rotation.from_rotvec([np.radians(40), 0, 0]).as_matrix() @ R @ [0, -1.0, 0]
+    write_run(carried, {**run, "camera_motion": {**cm, "floor_normal": tilted.tolist()}})
+    d = load_fitted_motion(carried, frame="ground")
+    assert d.shifts is None and d.camera_height_m is None
+    assert "from the body's upright direction" in d.camera_move_refused
+    np.testing.assert_allclose(d.turns, np.eye(3)[None].repeat(T, 0), atol=1e-12)
+    write_run(carried, {**run, "camera_motion": cm})
+    frames = json.loads(export_result(carried, "json", out=tmp_path / "m.json").read_text())["frames"]
+    np.testing.assert_allclose(frames[40]["camera_t"], b.camera_at(40).t, atol=1e-6)
+    from flowmocap.export.gltf_skin import read_skinned_glb
+
+    extras = read_skinned_glb(export_result(carried, "glb", out=tmp_path / "m.glb"))[0].scenes[0].extras
+    np.testing.assert_allclose(extras["camera_shifts_m"], b.shifts, atol=1e-6)
+    assert extras["camera_height_m"] == pytest.approx(b.camera_height_m, abs=1e-4)
+    gl = ViewerData(carried).meta()["gl_cameras"]
+    centre = lambda g: np.asarray(g).reshape(4, 4).T[:3, 3]  # noqa: E731 -- column-major eye-to-world
+    assert len(gl) == T and np.linalg.norm(centre(gl[-1]) - centre(gl[0])) == pytest.approx(
+        0.04 * (T - 1), rel=0.02)  # the page's camera moves with the camera
+    broken = {**cm, "shifts": cm["shifts"][:-1]}
+    write_run(carried, {**run, "camera_motion": broken})
+    from flowmocap.errors import DataError
+
+    with pytest.raises(DataError, match="different number of frames and moves, or no floor normal or turns"):
+        load_fitted_motion(carried, frame="ground")
+
+
+def test_the_floor_is_looked_for_about_the_persons_feet():
+    """floor_region: the rows below the person's lowest pixel less a tenth of their height, or
+    without a person the lowest 40 % of the image."""
+    from flowmocap.vision.camera_motion import floor_region
+
+    mask = np.zeros((H, W), bool)
+    mask[50:151, 100:140] = True  # rows 50-150: 100 px tall
+    region = floor_region((H, W, 3), mask)
+    assert region.shape == (H, W) and region[140:].all() and not region[:140].any()
+    bare = floor_region((H, W, 3), None)
+    assert bare[144:].all() and not bare[:144].any()
+    np.testing.assert_array_equal(floor_region((H, W), np.zeros((H, W), bool)), bare)
