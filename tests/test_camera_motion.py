@@ -172,9 +172,9 @@ def test_a_run_on_a_carried_camera_says_so(tmp_path, monkeypatch, capsys):
     cm = _track_over(scene, tmp_path, monkeypatch)["camera_motion"]
     centre, normal = scene.truth(5)
     assert cm["moving"] and cm["moving_sideways"] and len(cm["shifts"]) == 6
-    # five frame pairs of an encoded video and only the floor below the walker's knees: within 15 %
+    # five frame pairs of an encoded video and only the floor below the walker's knees: within 15 % and 5 degrees
     assert cm["sideways_max"] == pytest.approx(np.linalg.norm(centre), rel=0.15)
-    assert _angle_deg(cm["floor_normal"], normal) < 3.0
+    assert _angle_deg(cm["floor_normal"], normal) < 5.0
     said = capsys.readouterr().out
     assert "shows the camera moving: its centre goes up to 0.2 times its height above the floor" in said
     # the walker pasted in stands upright within 25 degrees of the floor found: the move is undone

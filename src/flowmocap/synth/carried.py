@@ -55,7 +55,7 @@ class CarriedCamera:
         default = np.array([[300.0, 0, size[0] / 2], [0, 300.0, size[1] / 2], [0, 0, 1.0]])
         self.K = default if K is None else np.asarray(K, np.float64)
         self.height = float(height)
-        self.base = Rotation.from_euler("x", np.radians(pitch_deg)).as_matrix() @ np.diag([1.0, -1.0, 1.0])
+        self.base = Rotation.from_euler("x", np.radians(pitch_deg)).as_matrix() @ np.diag([-1.0, -1.0, 1.0])
         self.tex = floor_texture()
 
     def __len__(self) -> int:
