@@ -490,6 +490,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if (out / "detections").is_dir():
         write_json(out / "detections" / "source.json", {"input": cache_key})
     if getattr(seq, "camera", None) is None:  # a video or a folder of frames: the camera may turn
+        from scipy.spatial.transform import Rotation
+
         from flowmocap.vision.camera_motion import camera_motion
 
         # from the input's first frame, whatever the tracked range: the people of one video
@@ -498,9 +500,10 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                               progress=progress)
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving_sideways:
+            turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()
             say(f"the floor about the person's feet shows the camera moving: its centre goes up to {moved.sideways:.1f} "
-                "times its height above the floor from where it is in the first frame (and the background turns up to "
-                f"{notes['camera_motion']['turn_deg_max']:.0f} degrees). The body is tracked in the moving camera's "
+                "times its height above the floor from where it is in the first frame, and it turns up to "
+                f"{turned:.0f} degrees. The body is tracked in the moving camera's "
                 "frame; after tracking, the move is checked against the fitted body, and where the two agree, export "
                 "and view move each frame back into the world, scaled by the camera's height that the fitted feet "
                 "give (run.json 'camera_motion' holds the camera's turn and move per frame).")
