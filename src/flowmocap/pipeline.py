@@ -1081,13 +1081,22 @@ def _inbetween_pending(out: Path, run: dict) -> bool:
 
 def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
     """The held runs of the finished ``motion.npz`` filled in between the last frame seen
-    before and the first seen after (:func:`~flowmocap.fit.smooth.inbetween_unseen`);
-    ``run.json`` records it under ``unseen_inbetween``. Returns the run info."""
+    before and the first seen after, or a walk's cycle carried through them
+    (:func:`~flowmocap.fit.smooth.inbetween_unseen`); ``run.json`` records it under
+    ``unseen_inbetween``. Returns the run info."""
     from flowmocap.fit.smooth import inbetween_unseen
 
+    def describe(info: dict) -> str:
+        n = len(info["runs"])
+        said = (f"filled {info['frames']} frames where the person was not seen in between the poses before and after "
+                f"({n} stretch{'es' if n != 1 else ''})")
+        if info.get("cycles"):
+            said += (f"; through {len(info['cycles'])} of them the walk's cycle seen before was carried on (a gait "
+                     f"period of {info['cycles'][0][2]} frames)")
+        return said
+
     return _post_step(out, run, "unseen_inbetween", lambda motion: inbetween_unseen(motion, body, _held_runs(run)),
-                      say, lambda info: f"filled {info['frames']} frames where the person was not seen in between the "
-                                        f"poses before and after ({len(info['runs'])} stretch{'es' if len(info['runs']) != 1 else ''})")
+                      say, describe)
 
 
 def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:
