@@ -1,5 +1,6 @@
 """The frames where the person was not seen, filled in between the poses before and after
-(flowmocap.fit.smooth.inbetween_unseen), in closed form."""
+(flowmocap.fit.smooth.inbetween_unseen), in closed form, and a gait's cycle carried through
+them (flowmocap.fit.smooth.motion_period)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from flowmocap.body import load_body_model
-from flowmocap.fit.smooth import inbetween_unseen
+from flowmocap.fit.smooth import inbetween_unseen, motion_period
 from flowmocap.geometry.camera import PinholeCamera
 from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
 
@@ -29,7 +30,7 @@ def test_a_held_run_is_filled_by_slerp_and_a_line_and_one_at_the_end_is_left():
               "joints3d": np.zeros((T, 24, 3), np.float32), "joints2d": np.zeros((T, 24, 2), np.float32),
               "camera": np.array(json.dumps(cam.to_dict())), "frame_index": np.arange(10, 10 + T), "fps": np.array(30.0)}
     out, info = inbetween_unseen(motion, model, [(12, 14), (17, 17)])  # the second: the last frame, no after
-    assert info == {"runs": [[12, 14]], "frames": 3}
+    assert info == {"runs": [[12, 14]], "frames": 3, "cycles": []}
     p = np.asarray(out["poses"], np.float64)
     for k, u in ((2, 0.25), (3, 0.5), (4, 0.75)):
         for j in (0, 5, 17):
@@ -43,7 +44,7 @@ def test_a_held_run_is_filled_by_slerp_and_a_line_and_one_at_the_end_is_left():
     np.testing.assert_allclose(out["joints2d"][3], cam.project(np.asarray(out["joints3d"][3], np.float64)), atol=1e-3)
     # nothing to fill: the same arrays
     same, none = inbetween_unseen(motion, model, [])
-    assert none == {"runs": [], "frames": 0} and same["poses"] is motion["poses"]
+    assert none == {"runs": [], "frames": 0, "cycles": []} and same["poses"] is motion["poses"]
 
 
 def test_unseen_frames_say_how_each_frame_was_filled():
@@ -54,3 +55,60 @@ def test_unseen_frames_say_how_each_frame_was_filled():
     how = unseen_frames(run)
     assert how[3] == how[4] == "flow" and how[10] == how[30] == "between" and how[50] == "held" and 5 not in how
     assert set(UNSEEN_WORDS) == {"flow", "held", "between"} and unseen_frames({}) == {}
+
+
+def _walk_motion(model, T=150, fps=30.0):
+    import torch
+
+    from flowmocap.io.builtin_walk import builtin_walk
+
+    walk = builtin_walk(model, fps=fps, frames=T)
+    cam = PinholeCamera.from_focal(320, 240, 300.0)
+    with torch.no_grad():
+        joints = model(pose=torch.as_tensor(walk.poses, dtype=torch.float32),
+                       trans=torch.as_tensor(walk.trans, dtype=torch.float32)).joints.double().numpy()
+    motion = {"poses": walk.poses.astype(np.float32), "trans": walk.trans.astype(np.float32),
+              "betas": np.zeros(10, np.float32), "joints3d": np.zeros((T, 24, 3), np.float32),
+              "joints2d": np.zeros((T, 24, 2), np.float32), "camera": np.array(json.dumps(cam.to_dict())),
+              "frame_index": np.arange(T), "fps": np.array(fps)}
+    return walk, motion, joints
+
+
+def test_a_gaits_period_is_found_and_a_motion_that_does_not_alternate_is_not_a_gait():
+    model = load_body_model("default")
+    walk, _, _ = _walk_motion(model)
+    period_frames = walk.info["period_s"] * 30.0  # the walk's own gait cycle
+    lag, r = motion_period(walk.poses[:90], 30.0)
+    assert abs(lag - period_frames) <= 1 and r > 0.9
+    # the same legs moving together (a two-footed hop): repeats, does not alternate
+    hop = walk.poses[:90].copy()
+    hop[:, 6:9], hop[:, 15:18] = hop[:, 3:6], hop[:, 12:15]  # right hip and knee = the left's
+    assert motion_period(hop, 30.0, min_correlation=0.5) is None
+    # a pose held still, and too few frames for a period
+    assert motion_period(np.repeat(walk.poses[:1], 90, 0), 30.0) is None
+    assert motion_period(walk.poses[:15], 30.0) is None
+
+
+def test_a_walk_unseen_for_a_second_is_carried_through_by_its_cycle():
+    """The built-in walk, frames 80-109 held at frame 79: carried on by its cycle the filled
+    frames are the walk's own within 5 mm (the plain in-between misses them by centimetres), the
+    seams do not jump, and the run says which period it carried."""
+    model = load_body_model("default")
+    _, motion, truth = _walk_motion(model)
+    held = dict(motion)
+    poses, trans = np.array(motion["poses"]), np.array(motion["trans"])
+    poses[80:110], trans[80:110] = poses[79], trans[79]
+    held["poses"], held["trans"] = poses, trans
+    cycled, info = inbetween_unseen(held, model, [(80, 109)])
+    plain, plain_info = inbetween_unseen(held, model, [(80, 109)], cycles=False)
+    assert info["runs"] == plain_info["runs"] == [[80, 109]] and plain_info["cycles"] == []
+    assert len(info["cycles"]) == 1 and info["cycles"][0][:2] == [80, 109]
+
+    def local_cm(j):
+        j, t = np.asarray(j[80:110], np.float64), truth[80:110]
+        return np.linalg.norm((j - j[:, :1]) - (t - t[:, :1]), axis=-1).mean() * 100
+
+    assert local_cm(cycled["joints3d"]) < 0.5 < 3.0 < local_cm(plain["joints3d"])
+    step = np.linalg.norm(np.diff(np.asarray(cycled["joints3d"], np.float64)[75:115], axis=0), axis=-1).max(1)
+    assert step.max() < 1.5 * np.linalg.norm(np.diff(truth[75:115], axis=0), axis=-1).max()
+    np.testing.assert_array_equal(cycled["poses"][:80], held["poses"][:80])
