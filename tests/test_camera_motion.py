@@ -394,6 +394,16 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
 
     with pytest.raises(DataError, match="different number of frames and moves, or no floor normal or turns"):
         load_fitted_motion(carried, frame="ground")
+    from test_view import _chromium, _overlay_iou, _serving
+
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    write_run(carried, {**run, "camera_motion": cm})
+    data = ViewerData(carried)
+    for _, url in _serving(data):  # late in the move the page draws the body where that frame's camera sees it
+        own, first = _overlay_iou(data, url, 60, tmp_path, [data.motion.camera_at(60), data.motion.camera],
+                                  min_share=0.01)
+        assert own > 0.85 and first < 0.5, (own, first)
 
 
 def test_the_floor_is_looked_for_about_the_persons_feet():
