@@ -441,10 +441,13 @@ def camera_move_refused(body, poses: np.ndarray, trans: np.ndarray, betas: np.nd
     """
     import torch
 
+    f64, chunk = torch.float64, 1024
+    b = torch.as_tensor(betas[None], dtype=f64)
     with torch.no_grad():
-        f64 = torch.float64
-        j = body(betas=torch.as_tensor(betas[None], dtype=f64), pose=torch.as_tensor(poses, dtype=f64),
-                 trans=torch.as_tensor(trans, dtype=f64)).joints.numpy()
+        shaped = body.shaped(b)
+        j = np.concatenate([body(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=f64),
+                                 trans=torch.as_tensor(trans[s:s + chunk], dtype=f64), shaped=shaped,
+                                 with_vertices=False).joints.numpy() for s in range(0, len(poses), chunk)])
     R = np.asarray(camera.R, np.float64)
     spine = (j[:, 12] - j[:, 0]) @ R.T  # pelvis to neck, camera axes of each frame
     spine = np.einsum("tji,tj->ti", turns, spine)  # turned back into the first frame's axes

@@ -22,10 +22,11 @@ A camera that also moves (carried along, on a dolly or a vehicle) moves the poin
 floor by the homography a plane induces, ``H = K (R + tau n^T) K^-1``, where ``n`` is the
 floor's normal in the earlier frame's camera axes (pointing down, to the floor) and ``tau``
 the camera's move in units of its height above the floor. :func:`floor_motion` tracks
-corners of the floor near the person's feet, takes the floor's normal from the frame pairs
-that show a move (OpenCV's homography decomposition, the solution nearest the camera's down),
-then fits each pair's turn and move with that normal and chains them: the camera's path in
-units of its height above the floor in the first frame. That height, in metres, is not in the
+corners of the floor near the person's feet, searches the floor's normal with which the frame
+pairs that show a move are explained best (their turns and moves fitted and chained), believes
+the move only where it explains the floor's corners clearly better than a turn alone, then
+fits each pair's turn and move with that normal and chains them: the camera's path in units of
+its height above the floor in the first frame. That height, in metres, is not in the
 images; the export frames take it from the fitted body's feet on the floor
 (:mod:`flowmocap.export.motion`), so the path comes out in metres and the body is moved back
 by it. A camera whose centre stays within :data:`SIDEWAYS_SHARE` of its height of where it
@@ -173,7 +174,7 @@ def _intrinsics(camera) -> np.ndarray:
 
 
 def _homography(prev: np.ndarray, cur: np.ndarray, exclude: np.ndarray | None, max_corners: int, min_points: int,
-                who: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                who: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Corners of ``prev`` outside ``exclude`` tracked into ``cur`` and back, and the
     homography most of them agree with: ``(a, b, H, agree)``, ``a``/``b`` ``(N, 2)`` the
     tracked corners' pixels in each frame and ``agree`` ``(N,)`` bool those that agree with
@@ -221,6 +222,8 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     Raises:
         InputError: frames of different sizes or not RGB.
     """
+    import cv2
+
     got = _homography(prev, cur, exclude, max_corners, min_points, "frame_rotation")
     if got is None:
         return None
@@ -235,8 +238,6 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
         return None
     if np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))) > MAX_STEP_DEG:
         return None
-    import cv2
-
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))
 
@@ -327,7 +328,7 @@ def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
         if pair is None:
             continue
         a, _, H = pair
-        n_sol, _, ts, ns = cv2.decomposeHomographyMat(H, K)
+        _, _, ts, ns = cv2.decomposeHomographyMat(H, K)
         rays = _rays(K, a)
         best = None
         for t, n in zip(ts, ns):
