@@ -276,33 +276,37 @@ def test_rotate_motion_turns_each_frame_by_its_own_rotation():
 
 # --- a camera that moves: the floor's corners ---------------------------------------------
 
-def Carried(n, velocity, yaw=0.0):
-    """A camera 1.5 m above a textured floor, pitched down 15 degrees, moving ``velocity`` m a
-    frame and turning ``yaw`` degrees a frame (:class:`flowmocap.synth.carried.CarriedCamera`)."""
+def Carried(n, velocity, yaw=0.0, pitch=15.0):
+    """A camera 1.5 m above a textured floor, pitched down ``pitch`` degrees, moving ``velocity``
+    m a frame and turning ``yaw`` degrees a frame (:class:`flowmocap.synth.carried.CarriedCamera`)."""
     from flowmocap.synth.carried import CarriedCamera
 
-    return CarriedCamera(n, velocity, yaw, K=K, size=(W, H))
+    return CarriedCamera(n, velocity, yaw, K=K, size=(W, H), pitch_deg=pitch)
 
 
 def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
 
 
-@pytest.mark.parametrize("velocity, yaw", [((0.05, 0, 0), 0.0), ((0.03, 0, 0.03), -0.4)])
-def test_a_camera_carried_over_a_floor_is_found_to_move_by_that(velocity, yaw):
-    """A dolly sideways, and one diagonal while it turns: the floor's normal within 2 degrees,
-    the camera's path within 5 % of its length (in units of its height above the floor), the
-    turn within 0.3 degrees."""
-    scene = Carried(20, velocity, yaw)
+@pytest.mark.parametrize("velocity, yaw, pitch, path_share, turn_deg", [
+    ((0.05, 0, 0), 0.0, 15.0, 0.05, 0.5), ((0.03, 0, 0.03), -0.4, 15.0, 0.05, 0.5),
+    ((0.05, 0, 0), 0.0, 30.0, 0.08, 1.5)])
+def test_a_camera_carried_over_a_floor_is_found_to_move_by_that(velocity, yaw, pitch, path_share, turn_deg):
+    """A dolly sideways, one diagonal while it turns, and a dolly looking down 30 degrees (the
+    near floor too smooth for the background's corners: weaker ones are taken): the floor's
+    normal within 2 degrees, the camera's path within 5 % of its length (in units of its height
+    above the floor) and the floor's turn within 0.5 degrees; looking down 8 % and 1.5 degrees
+    (measured over these 20 frames: 6 % and 0.95 degrees)."""
+    scene = Carried(20, velocity, yaw, pitch)
     got = camera_motion(scene, CAM)
     centre, normal = scene.truth(19)
     assert got.moving and got.moving_sideways and not got.floor_unknown
     assert _angle_deg(got.floor_normal, normal) < 2.0
-    assert np.linalg.norm(got.centres()[-1] - centre) < 0.05 * np.linalg.norm(centre)
+    assert np.linalg.norm(got.centres()[-1] - centre) < path_share * np.linalg.norm(centre)
     np.testing.assert_allclose(got.centres()[0], 0.0, atol=1e-12)
     turned = np.degrees(np.linalg.norm(Rotation.from_matrix(got.floor_rotations[-1]).as_rotvec()))
-    assert turned == pytest.approx(abs(yaw) * 19, abs=0.5)  # the floor's turn (the whole background's is bent)
-    assert got.sideways == pytest.approx(np.linalg.norm(centre), rel=0.05)
+    assert turned == pytest.approx(abs(yaw) * 19, abs=turn_deg)  # the floor's turn (the whole background's is bent)
+    assert got.sideways == pytest.approx(np.linalg.norm(centre), rel=path_share)
     doc = got.to_dict(rotations=True)
     assert doc["moving_sideways"] and len(doc["shifts"]) == len(doc["floor_rotvecs"]) == 20
     assert 0.0 <= doc["move_share"] < 0.1  # the move explains the floor's corners far better than a turn alone
