@@ -87,6 +87,10 @@ def test_a_still_camera_is_still_and_a_person_in_front_is_left_out():
     # a textured person crossing 4 px a frame: with their mask left out, still still
     walking = camera_motion(Turning(_pan(15, 0.0), person=True), CAM)
     assert not walking.moving and walking.turn_deg.max() < 0.2
+    # the "person" not left out, over 40 frames: each frame's turn is found against a keyframe,
+    # so the corners that move with them do not bend it frame after frame (no drift)
+    unmasked = camera_motion(Turning(_pan(40, 0.0), person=True), CAM, masks=False, sideways=False)
+    assert not unmasked.moving and unmasked.turn_deg.max() < 0.25  # a quarter of the frame moves
     # and a tilt with the person in front is found
     tilt = camera_motion(Turning(_pan(15, 0.4, axis=(1, 0, 0)), person=True), CAM)
     assert tilt.moving == (0.4 * 14 > MOVING_DEG) and tilt.turn_deg[-1] == pytest.approx(5.6, abs=0.3)
@@ -113,7 +117,7 @@ def test_frames_without_texture_are_unknown_and_bad_frames_are_refused():
             return blank + 110 if i in (3, 4) else super().frame(i)
 
     cut = camera_motion(Cut(_pan(8, 0.0)), CAM)
-    assert cut.unknown == [3, 4, 5] and cut.turn_deg.max() < 0.05
+    assert cut.unknown == [3, 4] and cut.turn_deg.max() < 0.05  # frame 5 is matched with the keyframe before the cut
     with pytest.raises(InputError, match="two RGB frames of one size"):
         frame_rotation(blank, blank[:10], K)
 

@@ -11,12 +11,15 @@ A camera that turns about its centre moves every background point by one homogra
 ``H = K R K^-1`` between two frames. :func:`frame_rotation` tracks corners of the
 background (OpenCV's Shi-Tomasi corners and pyramidal Lucas-Kanade, the person's pixels
 left out), fits ``H`` robustly (RANSAC) and takes the rotation nearest ``K^-1 H K``;
-:func:`camera_motion` chains them over the frames. Measured on the project's clips with the
-tracked person's masks left out (docs/experiments.md, "A person seen again, ..."): DAVIS
-dance-twirl turns 0.45 degrees a frame at the median, up to 29.4 degrees from where it
-pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames) at most 0.26
-degrees, and the four calibrated cameras of the real3d recording at most 0.07-0.51 (100
-frames): the estimate's drift. :data:`MOVING_DEG` lies between.
+:func:`camera_motion` finds each frame's turn against a keyframe, which moves on as the
+camera turns away from it (:data:`KEYFRAME_MAX_PX`): turns chained frame by frame drifted.
+Measured on the project's clips with the tracked person's masks left out
+(docs/experiments.md, "A camera carried along"): DAVIS dance-twirl turns up to 29.2 degrees
+from where it pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames)
+at most 0.08 degrees, and the four calibrated cameras of the real3d recording at most
+0.01-0.05 (100 frames, either person's masks; chained, up to 2.24 with the second person's,
+the first walking through the background): the estimate's drift. :data:`MOVING_DEG` lies
+between.
 
 A camera that also moves (carried along, on a dolly or a vehicle) moves the points of the
 floor by the homography a plane induces, ``H = K (R + tau n^T) K^-1``, where ``n`` is the
@@ -59,6 +62,11 @@ FORWARD_BACK_PX = 1.0
 MIN_INLIER_SHARE = 0.5
 #: ... and it is at most this many degrees (300 degrees a second at 30 fps: no pan; a cut).
 MAX_STEP_DEG = 10.0
+#: Each frame's turn is found against a keyframe, not chained from the frame before (which
+#: drifts: 2.0-2.2 degrees over 100 frames of a still real3d camera with the other person
+#: walking through the background); the keyframe moves on where the turn from it moves the
+#: image's centre more than this many pixels, or where the frame cannot be matched with it.
+KEYFRAME_MAX_PX = 40.0
 
 #: A camera is said to move sideways where its centre lies further than this share of its
 #: height above the floor from where it was in the first frame (15 cm for a camera held 1.5 m up).
@@ -248,6 +256,13 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
         return None
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))
+
+
+def _turn_px(R: np.ndarray, K: np.ndarray) -> float:
+    """How far the turn ``R`` moves the image's centre, pixels."""
+    c = np.array([K[0, 2], K[1, 2], 1.0])
+    p = K @ R @ np.linalg.inv(K) @ c
+    return float(np.linalg.norm(p[:2] / p[2] - c[:2]))
 
 
 def floor_region(shape: tuple, mask: np.ndarray | None = None) -> np.ndarray:
@@ -452,21 +467,36 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
     Rs = [np.eye(3)]
     residuals, unknown, pairs = [], [], []
     kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
+
+    def person(i):  # the person's mask of frame i and the pixels left out around it
+        m = seq.mask(i) if masks and hasattr(seq, "mask") else None
+        if m is None or not np.asarray(m).any():
+            return None, None
+        return m, cv2.dilate(np.asarray(m, np.uint8), kernel) > 0
+
     prev = seq.frame(frames[0]).copy() if len(frames) else None
-    for i in tqdm(frames[1:], disable=not progress, unit="frame", desc="camera motion"):
+    m, exclude = person(frames[0]) if len(frames) else (None, None)
+    key = (prev, exclude, np.eye(3), 0)  # the keyframe: image, pixels left out, turn, its row
+    for row, i in enumerate(tqdm(frames[1:], disable=not progress, unit="frame", desc="camera motion"), start=1):
         cur = seq.frame(i).copy()
-        exclude, m = None, None
-        if masks:
-            m = seq.mask(i - 1) if hasattr(seq, "mask") else None
-            if m is not None and np.asarray(m).any():
-                exclude = cv2.dilate(np.asarray(m, np.uint8), kernel) > 0
-        got = frame_rotation(prev, cur, K, exclude)
-        if got is None:
-            unknown.append(int(i))
-            Rs.append(Rs[-1])
-        else:
-            Rs.append(got[0] @ Rs[-1])
+        # against the keyframe first: a turn chained frame by frame drifts (a person walking
+        # through the background bends each step a little), one from the keyframe does not
+        got = frame_rotation(key[0], cur, K, key[1])
+        new_m, new_exclude = person(i)
+        if got is not None:
+            Rs.append(got[0] @ key[2])
             residuals.append(got[1])
+            if _turn_px(got[0], K) > KEYFRAME_MAX_PX:
+                key = (cur, new_exclude, Rs[-1], row)
+        else:
+            got = frame_rotation(prev, cur, K, exclude) if key[3] != row - 1 else None
+            if got is None:  # a cut, a blank frame: held (the keyframe stays)
+                unknown.append(int(i))
+                Rs.append(Rs[-1])
+            else:
+                Rs.append(got[0] @ Rs[-1])
+                residuals.append(got[1])
+                key = (cur, new_exclude, Rs[-1], row)
         if sideways:
             region = floor_region(prev.shape, m if masks else None)
             if exclude is not None:
@@ -475,7 +505,7 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
             if floor is None:  # a smooth floor: weaker corners
                 floor = _homography(prev, cur, ~region, 400, 20, "camera_motion", FLOOR_CORNER_QUALITY, 6)
             pairs.append(None if floor is None else (floor[0][floor[3]], floor[1][floor[3]], floor[2]))
-        prev = cur
+        prev, m, exclude = cur, new_m, new_exclude
     R = np.asarray(Rs, np.float64)
     fl = floor_motion(pairs, K, R) if sideways and len(pairs) else None
     shifts = normal = floor_R = None
