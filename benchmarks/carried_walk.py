@@ -41,13 +41,12 @@ HEIGHT, PITCH_DEG, DISTANCE, FOCAL_FACTOR = 1.5, 10.0, 4.0, 0.9
 
 def render(out: Path, frames: int, follow: float, size: tuple[int, int], seed: int = 0) -> dict:
     """Write ``out/frames/*.png`` and return the truth: ``joints`` (T, 24, 3) world metres,
-    ``feet`` lowest foot vertices (T, 2, 3), ``cameras`` (the per-frame centres)."""
+    ``centres`` (T, 3) the camera's centre per frame, and the ``focal`` length (px)."""
     import cv2
     import torch
     from scipy.spatial.transform import Rotation
 
     from flowmocap.body import load_body_model
-    from flowmocap.export.world import foot_vertex_sets
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.io.builtin_walk import builtin_walk
     from flowmocap.render import prepare_faces, shade
@@ -78,9 +77,7 @@ def render(out: Path, frames: int, follow: float, size: tuple[int, int], seed: i
                       pattern=clothing, background=background, light_dir=tuple(R @ WORLD_LIGHT), supersample=2)
         cv2.imwrite(str(out / "frames" / f"{i:06d}.png"), np.ascontiguousarray(image[..., ::-1]))
         centres.append(C)
-    feet = foot_vertex_sets(body.weights.cpu().numpy())
-    low = np.stack([verts[:, idx][np.arange(frames), np.argmin(verts[:, idx, 1], 1)] for idx in feet], 1)
-    return {"joints": joints, "feet": low, "centres": np.asarray(centres), "focal": f}
+    return {"joints": joints, "centres": np.asarray(centres), "focal": f}
 
 
 def _rigid_about_vertical(a: np.ndarray, b: np.ndarray) -> np.ndarray:

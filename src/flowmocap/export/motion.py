@@ -439,15 +439,9 @@ def camera_move_refused(body, poses: np.ndarray, trans: np.ndarray, betas: np.nd
         turns: ``(T, 3, 3)`` the camera's turn per row (:func:`camera_turns`).
         normal: ``(3,)`` the floor's unit normal in the first frame's camera axes, pointing down.
     """
-    import torch
+    from flowmocap.fit.smooth import posed_joints
 
-    f64, chunk = torch.float64, 1024
-    b = torch.as_tensor(betas[None], dtype=f64)
-    with torch.no_grad():
-        shaped = body.shaped(b)
-        j = np.concatenate([body(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=f64),
-                                 trans=torch.as_tensor(trans[s:s + chunk], dtype=f64), shaped=shaped,
-                                 with_vertices=False).joints.numpy() for s in range(0, len(poses), chunk)])
+    j = posed_joints(body, betas, poses, trans, camera, chunk=1024)[0]
     R = np.asarray(camera.R, np.float64)
     spine = (j[:, 12] - j[:, 0]) @ R.T  # pelvis to neck, camera axes of each frame
     spine = np.einsum("tji,tj->ti", turns, spine)  # turned back into the first frame's axes
