@@ -11,8 +11,10 @@ tracked real clips.
    or folders of frames, with ``detections/masks``): the camera's motion found again from the
    input and the result's masks, the share of the turn-alone cost the move leaves on the
    floor's corners, and what the export frames make of it with the result's body (undone, or
-   refused and why: ``flowmocap.export.motion.camera_move_refused``). The result folders are
-   not changed (the export is read from a copy).
+   refused and why: ``flowmocap.export.motion.camera_move_refused``). Everyone else the
+   detector saw is left out as ``flowmocap track`` does (``detections/people``); where the
+   result stores them, the same is also found with only the tracked person left out (the
+   "others in" columns). The result folders are not changed (the export is read from a copy).
 
 Usage::
 
@@ -76,6 +78,7 @@ def tracked(result: Path) -> dict:
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.io.sequence import load_sequence
     from flowmocap.io.video import load_video
+    from flowmocap.vision.auto import load_detections
     from flowmocap.vision.camera_motion import camera_motion
 
     run = json.loads((result / "run.json").read_text())
@@ -85,11 +88,17 @@ def tracked(result: Path) -> dict:
     seq = load_sequence(src, max_side=side) if src.is_dir() else load_video(src, max_side=side)
     masks = sorted((result / "detections" / "masks").glob("*.png"))
     seq.masks = masks if len(masks) == len(seq) else None
+    det = load_detections(result)
+    people = det.people if det is not None and det.people_dir is not None else None
     t0 = time.perf_counter()
-    got = camera_motion(seq, cam, masks=seq.masks is not None)
+    got = camera_motion(seq, cam, masks=seq.masks is not None, others=people)
     seconds = time.perf_counter() - t0
     row = {"result": str(result), "frames": len(seq), "ms_per_frame": 1000 * seconds / max(len(seq), 1),
-           **got.to_dict(), "export": "unchanged"}
+           **got.to_dict(), "export": "unchanged",
+           "frames_with_others": None if people is None else sum(people(i) is not None for i in range(len(seq)))}
+    if people is not None:
+        alone = camera_motion(seq, cam, masks=seq.masks is not None).to_dict()
+        row["others_in"] = {k: alone[k] for k in ("turn_deg_max", "move_share", "moving_sideways", "sideways_max")}
     if got.floor_normal is not None:
         row["floor_normal"] = np.round(got.floor_normal, 3).tolist()
     if got.moving_sideways:
@@ -128,12 +137,22 @@ def main(argv=None) -> int:
                      f"{_fmt(r.get('floor_turn_deg'))} ({r['true_turn_deg']:.2f}) | {r['background_turn_deg']:.2f} | "
                      f"{_fmt(r['move_share'], '{:.3f}')} | {r['seconds']:.1f} |")
     if real:
-        lines += ["", "## Tracked results", "", "| result | frames | background's turn deg | move's cost / turn's alone "
-                  "| said to move (h) | floor normal | export | ms a frame |", "|---|---:|---:|---:|---|---|---|---:|"]
+        lines += ["", "## Tracked results", "", "Everyone else the detector saw left out (frames with others); "
+                  "\"others in\": only the tracked person left out.", "",
+                  "| result | frames (with others) | background's turn deg (others in) | move's cost / turn's alone "
+                  "(others in) | said to move (h) (others in) | floor normal | export | ms a frame |",
+                  "|---|---:|---:|---:|---|---|---|---:|"]
+
+        def moved(r):
+            return f"yes ({r['sideways_max']:.2f})" if r["moving_sideways"] else "no"
+
         for r in real:
-            moved = f"yes ({r['sideways_max']:.2f})" if r["moving_sideways"] else "no"
-            lines.append(f"| {r['result']} | {r['frames']} | {r['turn_deg_max']:.2f} | {_fmt(r['move_share'], '{:.3f}')} | "
-                         f"{moved} | {r.get('floor_normal', '')} | {r['export']} | {r['ms_per_frame']:.0f} |")
+            o = r.get("others_in")
+            lines.append(f"| {r['result']} | {r['frames']} ({_fmt(r['frames_with_others'], '{}')}) | "
+                         f"{r['turn_deg_max']:.2f} ({_fmt(o and o['turn_deg_max'])}) | "
+                         f"{_fmt(r['move_share'], '{:.3f}')} ({_fmt(o and o['move_share'], '{:.3f}')}) | "
+                         f"{moved(r)} ({moved(o) if o else ''}) | {r.get('floor_normal', '')} | {r['export']} | "
+                         f"{r['ms_per_frame']:.0f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     out = Path(args.out)

@@ -160,8 +160,20 @@ def _track_over(scene, tmp_path, monkeypatch) -> dict:
 
 def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     """flowmocap track on a video whose camera turns: run.json's camera_motion holds the
-    rotation per frame and the run says what turns with the camera."""
+    rotation per frame and the run says what turns with the camera. Everyone the detector
+    saw besides the person is handed to the camera's motion to be left out."""
+    from flowmocap.vision import camera_motion as module
+
+    seen = {}
+
+    def recording(*args, **kwargs):
+        seen.update(kwargs)
+        return camera_motion(*args, **kwargs)
+
+    monkeypatch.setattr(module, "camera_motion", recording)
     cm = _track_over(Turning(_pan(6, 1.0)), tmp_path, monkeypatch)["camera_motion"]
+    assert seen["others"].__self__.people_dir == tmp_path / "out" / "detections" / "people"
+    assert seen["others"].__func__.__name__ == "people" and seen["others"](3) is None  # one person in view
     assert cm["moving"] and cm["turn_deg_end"] == pytest.approx(5.0, rel=0.1) and len(cm["rotvecs"]) == 6
     assert not cm["moving_sideways"] and "shifts" not in cm
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
@@ -317,6 +329,27 @@ def test_a_camera_carried_over_a_floor_is_found_to_move_by_that(velocity, yaw, p
     assert len(doc["floor_normal"]) == 3
 
 
+def test_a_floor_that_does_not_move_shows_no_move_whatever_its_homography():
+    """A still floor's homography is fitted to noise and can decompose into any move (one
+    pair of a still real3d camera, its corners 0.004 px apart, did). A pair is taken to show a
+    move only where its corners move by at least MOVE_MIN_PX (median); the same homography
+    with corners that do move is taken."""
+    from flowmocap.vision.camera_motion import MOVE_MIN_PX, _moving_pairs
+
+    n = np.array([0.0, np.cos(np.radians(15)), np.sin(np.radians(15))])  # down to the floor, pitched 15 degrees
+    turn = Rotation.from_euler("y", 0.5, degrees=True).as_matrix()
+    Hm = K @ (turn + np.outer([0.05, 0, 0.02], n)) @ np.linalg.inv(K)  # a move of 5 % sideways, 2 % forward
+    rng = np.random.default_rng(0)
+    a = np.c_[rng.uniform(0, W, 50), rng.uniform(150, H, 50)]
+    moved = np.c_[a, np.ones(len(a))] @ Hm.T
+    moved = moved[:, :2] / moved[:, 2:]
+    chain = np.eye(3)[None]
+    assert _moving_pairs([(a, moved, Hm)], chain, K) == [0]
+    still = a + rng.normal(0, 0.003, a.shape)
+    assert np.median(np.linalg.norm(still - a, axis=1)) < MOVE_MIN_PX
+    assert _moving_pairs([(a, still, Hm)], chain, K) == []
+
+
 def test_a_camera_that_only_turns_over_a_floor_does_not_move():
     """Over the same floor, a camera that pans and one that stands still: no move is made up
     (the floor's corners are no better explained with one), and the turn is the background's."""
@@ -327,6 +360,52 @@ def test_a_camera_that_only_turns_over_a_floor_does_not_move():
     still = camera_motion(Carried(10, (0, 0, 0)), CAM)
     assert not still.moving and not still.moving_sideways
     assert not camera_motion(Carried(10, (0.05, 0, 0)), CAM, sideways=False).moving_sideways
+
+
+class PasserBy:
+    """A still camera over the floor while someone walks past it near the camera: a textured
+    block 100 x 90 px at the bottom of the frame moving right 5 px a frame, not the tracked
+    person (no ``masks``), with their pixels as the detector stores them (``people``)."""
+
+    masks = camera = None
+
+    def __init__(self, frames: int):
+        import cv2
+
+        from flowmocap.synth.carried import floor_texture
+
+        self.scene, self.n = Carried(frames, (0, 0, 0)), frames
+        self.tex = cv2.GaussianBlur(floor_texture(seed=3, size=150)[:90, :100], (0, 0), 0.5)
+
+    def __len__(self):
+        return self.n
+
+    def _box(self, i):
+        return 20 + 5 * i, H - 95, min(W, 120 + 5 * i), H - 5
+
+    def frame(self, i):
+        img = self.scene.frame(i).copy()
+        x0, y0, x1, y1 = self._box(i)
+        img[y0:y1, x0:x1] = self.tex[:, :x1 - x0]
+        return img
+
+    def people(self, i):
+        m = np.zeros((H, W), bool)
+        x0, y0, x1, y1 = self._box(i)
+        m[y0:y1, x0:x1] = True
+        return m
+
+
+def test_someone_walking_past_is_left_out_of_the_cameras_motion():
+    """Someone else crossing the floor below the camera moves like the floor would under a
+    camera carried the other way: taken for background, the still camera is found to turn
+    (over 2 degrees) and move. With everyone else's pixels left out (the detector's
+    ``people``), it stands still."""
+    scene = PasserBy(30)
+    fooled = camera_motion(scene, CAM, masks=False)
+    assert fooled.moving and fooled.moving_sideways
+    still = camera_motion(scene, CAM, masks=False, others=scene.people)
+    assert not still.moving and not still.moving_sideways and still.turn_deg.max() < 0.1
 
 
 def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):

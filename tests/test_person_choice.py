@@ -4,6 +4,7 @@ through ``flowmocap.track`` and ``flowmocap track --person``."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -340,13 +341,27 @@ def test_the_other_peoples_pixels_are_stored_with_the_detections(tmp_path):
     """detect_sequence stores, per frame, where people nearer the camera than the kept one
     are seen (their bodies outside the kept person's mask; nearer: their feet lower in the
     image), and a rerun reads them back; someone further away, or a video of one person,
-    stores none."""
+    stores none. Everyone else, nearer or further, is stored apart (``people``: not
+    background, for the camera's motion)."""
     from flowmocap.vision.auto import load_detections, others_region
 
     scene = two_people()  # the big person's feet at row 126, the small one's at 60: the big one is nearer
     behind = detect_sequence(scene, tmp_path / "big", ColourDetector(scene), searcher=ColourDetector(scene),
                              progress=False)
     assert behind.info["frames_with_others"] == 0 and behind.others(3) is None
+    # the small person behind hides nothing, but is not background either
+    assert behind.info["frames_with_people"] == 12
+    for i in (0, 7):
+        people = behind.people(i)
+        ys, xs = np.nonzero(people)
+        x0, y0, x1, y1 = scene.boxes[1][i]  # the small person's box
+        assert len(xs) > 100 and xs.min() >= x0 - 5 and xs.max() < x1 + 5 and ys.min() >= y0 - 5 and ys.max() < y1 + 5
+        assert not (people & behind.mask(i)).any()
+    np.testing.assert_array_equal(load_detections(tmp_path / "big").people(7), behind.people(7))
+    # detections stored before the people were: none known (the camera's motion as before)
+    info = tmp_path / "big" / "detections" / "detections.json"
+    info.write_text(json.dumps({k: v for k, v in json.loads(info.read_text()).items() if k != "people_stored"}))
+    assert load_detections(tmp_path / "big").people(7) is None
     track = detect_sequence(scene, tmp_path / "two", ColourDetector(scene), searcher=ColourDetector(scene),
                             progress=False, person=1)
     assert track.info["frames_with_others"] == 12
@@ -356,11 +371,13 @@ def test_the_other_peoples_pixels_are_stored_with_the_detections(tmp_path):
         x0, y0, x1, y1 = scene.boxes[0][i]  # the big person's box; their body, grown a little
         assert len(xs) > 500 and xs.min() >= x0 - 5 and xs.max() < x1 + 5 and ys.min() >= y0 - 5 and ys.max() < y1 + 5
         assert not (other & track.mask(i)).any()
+        np.testing.assert_array_equal(track.people(i), other)  # the one other person is nearer
     again = load_detections(tmp_path / "two")
     np.testing.assert_array_equal(again.others(7), track.others(7))
     one = People([two_people().boxes[0]])
     alone = detect_sequence(one, tmp_path / "one", ColourDetector(one), searcher=ColourDetector(one), progress=False)
     assert alone.info["frames_with_others"] == 0 and all(alone.others(i) is None for i in range(12))
+    assert alone.info["frames_with_people"] == 0 and all(alone.people(i) is None for i in range(12))
     # the kept person's own detection is not someone else
     own = two_people()
     det = ColourDetector(own).detect(own.frame(0))

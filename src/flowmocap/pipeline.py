@@ -496,8 +496,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
 
         # from the input's first frame, whatever the tracked range: the people of one video
         # (track --person all) are then turned back into one world
+        # everyone else left out too: someone walking past is not background
         moved = camera_motion(seq, cam, frames=range(0, b), masks=getattr(seq, "masks", None) is not None,
-                              progress=progress)
+                              progress=progress, others=getattr(detections, "people", None))
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving_sideways:
             turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()

@@ -12,6 +12,9 @@ frame, keeps one person, cleans the masks and writes::
                                           the bodies of the people whose feet are lower in the
                                           image, outside the kept person's mask; only frames
                                           with some, none for a video of one person
+    OUT/detections/people/000000.png ...  where anyone other than the kept person is seen, nearer
+                                          or further (0 / 255; only frames with some): not
+                                          background, so the camera's motion leaves them out
 
 A rerun (or ``--resume``) with the same detector and frames reuses them. :func:`auto_init`
 turns one frame's keypoints into an ``init.json`` dict (the schema of
@@ -94,6 +97,8 @@ class PersonTrack:
             None for detections stored without them.
         others_dir: the folder of the other people's regions (:meth:`others`), or None
             (detections stored before it, or made without a search for other people).
+        people_dir: the folder of every other person's region (:meth:`people`), or None
+            (detections stored before it).
     """
 
     keypoints: np.ndarray
@@ -103,6 +108,7 @@ class PersonTrack:
     info: dict = field(default_factory=dict)
     world: np.ndarray | None = None
     others_dir: Path | None = None
+    people_dir: Path | None = None
 
     def __len__(self) -> int:
         return len(self.found)
@@ -120,9 +126,21 @@ class PersonTrack:
         None where nobody is. They may hide the kept person there, so the silhouette term
         treats these pixels as unknown (:func:`~flowmocap.fit.energies.silhouette_target`);
         someone further away hides nothing and stays background."""
-        if self.others_dir is None or i < 0 or i >= len(self):
+        return self._region(self.others_dir, i)
+
+    def people(self, i: int) -> np.ndarray | None:
+        """``(H, W)`` bool: the pixels of frame ``i`` where anyone other than the kept person
+        is seen, nearer the camera or further (:func:`others_region` of all the frame's
+        people), or None where nobody is or the detections were stored without them. Not
+        background: the camera's motion (:func:`~flowmocap.vision.camera_motion.camera_motion`)
+        leaves them out, or someone walking past would look like the camera turning or
+        moving."""
+        return self._region(self.people_dir, i)
+
+    def _region(self, folder: Path | None, i: int) -> np.ndarray | None:
+        if folder is None or i < 0 or i >= len(self):
             return None
-        p = Path(self.others_dir) / f"{i:06d}.png"
+        p = Path(folder) / f"{i:06d}.png"
         if not p.exists():
             return None
         import cv2
@@ -177,6 +195,10 @@ def _mask_dir(out_dir: Path) -> Path:
 
 def _others_dir(out_dir: Path) -> Path:
     return Path(out_dir) / "detections" / "others"
+
+
+def _people_dir(out_dir: Path) -> Path:
+    return Path(out_dir) / "detections" / "people"
 
 
 #: A candidate counts as someone else in a frame (:func:`others_region`) when less than
@@ -237,7 +259,8 @@ def load_detections(out_dir: str | Path, detector_name: str | None = None, num_f
         return None
     others = _others_dir(out_dir)
     return PersonTrack(arrays["keypoints"], arrays["confidence"], arrays["found"].astype(bool), paths, info,
-                       arrays.get("world"), others if info.get("others_stored") else None)
+                       arrays.get("world"), others if info.get("others_stored") else None,
+                       _people_dir(out_dir) if info.get("people_stored") else None)
 
 
 def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = None, progress: bool = True,
@@ -668,17 +691,23 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
     mdir.mkdir(parents=True, exist_ok=True)
     empty = np.zeros((H, W), np.uint8)
     paths = []
-    odir = _others_dir(out_dir)
-    if odir.exists():  # from an earlier pass
-        for old in odir.glob("*.png"):
-            old.unlink()
-    odir.mkdir(parents=True, exist_ok=True)
-    with_others = 0
+    odir, pdir = _others_dir(out_dir), _people_dir(out_dir)
+    for folder in (odir, pdir):
+        if folder.exists():  # from an earlier pass
+            for old in folder.glob("*.png"):
+                old.unlink()
+        folder.mkdir(parents=True, exist_ok=True)
+    with_others = with_people = 0
     for i in range(T):
         p = mdir / f"{i:06d}.png"
         own = None if masks[i] is None else _mask_array(masks[i])
         _write_png(p, empty if own is None else own.astype(np.uint8) * 255)
         paths.append(p)
+        if len(cands[i]) > 0:  # everyone else, nearer or further: not background
+            region = others_region(cands[i], np.zeros((H, W), bool) if own is None else own)
+            if region.any():
+                _write_png(pdir / f"{i:06d}.png", region.astype(np.uint8) * 255)
+                with_people += 1
         if own is not None and len(cands[i]) > 0:
             # only people nearer the camera may hide the kept one: standing on the same floor
             # below the camera, the nearer has their feet lower in the image (track_scores)
@@ -694,6 +723,8 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
         "ignored_people": ignored,
         "others_stored": True,
         "frames_with_others": with_others,
+        "people_stored": True,
+        "frames_with_people": with_people,
         "person": {"choice": describe_person(choice),
                    "rank": rank.index(main) if tracks else None,
                    "people": people,
@@ -718,7 +749,7 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
                             "check that a whole person is visible, or give --init init.json and --masks FOLDER.")
     return PersonTrack(kp.astype(np.float32), conf.astype(np.float32), found, paths, info, world.astype(np.float32),
-                       odir)
+                       odir, pdir)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

@@ -74,6 +74,10 @@ SIDEWAYS_SHARE = 0.1
 #: Frame pairs whose floor shows a move of at least this share of the camera's height tell the
 #: floor's normal (a pair that only turns leaves it open).
 NORMAL_MIN_MOVE = 0.01
+#: ... and whose floor corners move by at least this many pixels (median): the homography of a
+#: still floor is noise, and noise decomposes into any move (one pair of a still real3d camera,
+#: its corners 0.004 px apart, showed a move and brought the move's cost share to 0.668).
+MOVE_MIN_PX = 0.5
 #: A move is believed only where, over the pairs the floor's normal is searched with, it
 #: leaves at most this share of the floor corners' cost that a turn alone leaves.
 MOVE_EVIDENCE = 0.7
@@ -340,9 +344,10 @@ NORMAL_PAIRS = 40
 
 
 def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
-    """The pairs whose floor homography, decomposed (OpenCV), shows a move of at least
-    :data:`NORMAL_MIN_MOVE` of the camera's height in its solution with the floor in front of
-    the corners and the normal nearest the camera's down."""
+    """The pairs whose floor corners move by at least :data:`MOVE_MIN_PX` and whose floor
+    homography, decomposed (OpenCV), shows a move of at least :data:`NORMAL_MIN_MOVE` of the
+    camera's height in its solution with the floor in front of the corners and the normal
+    nearest the camera's down."""
     import cv2
 
     out = []
@@ -350,7 +355,9 @@ def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
     for k, pair in enumerate(pairs):
         if pair is None:
             continue
-        a, _, H = pair
+        a, b, H = pair
+        if np.median(np.linalg.norm(b - a, axis=1)) < MOVE_MIN_PX:
+            continue
         _, _, ts, ns = cv2.decomposeHomographyMat(H, K)
         rays = _rays(K, a)
         best = None
@@ -442,7 +449,7 @@ def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | No
 
 
 def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, dilate_px: int = 15,
-                  progress: bool = False, sideways: bool = True) -> CameraMotion:
+                  progress: bool = False, sideways: bool = True, others=None) -> CameraMotion:
     """:func:`frame_rotation` chained over ``frames`` of ``seq``, and where the floor shows the
     camera moving sideways, :func:`floor_motion`.
 
@@ -454,6 +461,10 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
         frames: the frames (default all).
         progress: show a progress bar.
         sideways: look for a sideways move too (the floor's corners).
+        others: ``others(i)``: ``(H, W)`` bool, where anyone else is seen in frame ``i``, or
+            None (:meth:`~flowmocap.vision.auto.PersonTrack.people`); left out like the
+            person, grown by ``dilate_px``. Someone walking past moves over the background
+            and the floor like a camera would.
 
     Returns:
         :class:`CameraMotion` (the first frame's rotation the identity; ``shifts`` where the
@@ -468,11 +479,15 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
     residuals, unknown, pairs = [], [], []
     kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
 
-    def person(i):  # the person's mask of frame i and the pixels left out around it
+    def person(i):  # the person's mask of frame i and the pixels left out around it (everyone's)
         m = seq.mask(i) if masks and hasattr(seq, "mask") else None
-        if m is None or not np.asarray(m).any():
-            return None, None
-        return m, cv2.dilate(np.asarray(m, np.uint8), kernel) > 0
+        if m is not None and not np.asarray(m).any():
+            m = None
+        left = None if m is None else np.asarray(m, bool)
+        other = others(i) if others is not None else None
+        if other is not None and np.asarray(other).any():
+            left = np.asarray(other, bool) if left is None else left | np.asarray(other, bool)
+        return m, None if left is None else cv2.dilate(left.astype(np.uint8), kernel) > 0
 
     prev = seq.frame(frames[0]).copy() if len(frames) else None
     m, exclude = person(frames[0]) if len(frames) else (None, None)
