@@ -12,12 +12,14 @@ the 24 joints from the truth, root-relative (cm), over the cut frames. Motions:
   reference there.
 
 The cut starts at the middle of the motion, or later so that 2.2 s are seen before it, or
-earlier so that it ends 5 frames before the end; motions too short are skipped.
+earlier so that it ends 5 frames before the end (``late``); or 0.5 s into the motion
+(``early``: too little before it for a gait's period, so a cycle can only come from the frames
+after it); motions too short are skipped.
 
 Usage::
 
-    python benchmarks/inbetween.py [--gaps 0.7 1.5] [--noise 0 5] [--results DIR ...]
-        [--out benchmarks/results/inbetween]
+    python benchmarks/inbetween.py [--gaps 0.7 1.5] [--noise 0 5] [--where late early]
+        [--results DIR ...] [--out benchmarks/results/inbetween]
 
 Prints a table and writes ``OUT.md`` / ``OUT.json``; about a minute.
 """
@@ -34,16 +36,17 @@ import numpy as np
 FPS = 30.0
 
 
-def cut_and_fill(body, poses: np.ndarray, trans: np.ndarray, fps: float, gap_s: float) -> dict | None:
+def cut_and_fill(body, poses: np.ndarray, trans: np.ndarray, fps: float, gap_s: float,
+                 where: str = "late") -> dict | None:
     import torch
 
     from flowmocap.fit.smooth import inbetween_unseen
     from flowmocap.geometry.camera import PinholeCamera
 
     T, n = len(poses), int(round(gap_s * fps))
-    first = min(max(T // 2, int(2.2 * fps)), T - n - 5)
+    first = min(max(T // 2, int(2.2 * fps)), T - n - 5) if where == "late" else int(0.5 * fps)
     last = first + n - 1
-    if first < int(1.5 * fps) or n < 1:
+    if (where == "late" and first < int(1.5 * fps)) or n < 1 or last + 5 >= T:
         return None
 
     def joints(p, t):
@@ -61,12 +64,13 @@ def cut_and_fill(body, poses: np.ndarray, trans: np.ndarray, fps: float, gap_s: 
     def error(j):
         return float(np.linalg.norm((j - j[:, :1]) - (truth - truth[:, :1]), axis=-1).mean() * 100)
 
-    row = {"frames": [first, last], "held_cm": error(joints(held, tr)[first:last + 1])}
+    row = {"where": where, "frames": [first, last], "held_cm": error(joints(held, tr)[first:last + 1])}
     for name, cycles in (("inbetween_cm", False), ("cycle_cm", True)):
         got, info = inbetween_unseen(motion, body, [(first, last)], fps=fps, cycles=cycles)
         row[name] = error(got["joints3d"][first:last + 1])
         if cycles:
             row["period_frames"] = info["cycles"][0][2] if info["cycles"] else None
+            row["cycle_seen"] = info["cycles"][0][3] if info["cycles"] else None
     return row
 
 
@@ -92,6 +96,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gaps", type=float, nargs="+", default=[0.7, 1.5])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 5.0])
+    ap.add_argument("--where", nargs="+", choices=["late", "early"], default=["late", "early"])
     ap.add_argument("--results", nargs="*", default=[])
     ap.add_argument("--out", default="benchmarks/results/inbetween")
     args = ap.parse_args(argv)
@@ -105,32 +110,40 @@ def main(argv=None) -> int:
     else:
         print(f"{PRIOR_DATA} is missing: the built-in walk only", file=sys.stderr)
     rows = []
-    for noise in args.noise:
-        for gap in args.gaps:
-            for name, kind, m in motions:
-                r = cut_and_fill(body, _noisy(np.asarray(m.poses, np.float64), noise),
-                                 np.asarray(m.trans, np.float64), FPS, gap)
-                if r is not None:
-                    rows.append({"motion": name, "kind": kind, "noise_deg": noise, "gap_s": gap, **r})
+    for where in args.where:
+        for noise in args.noise:
+            for gap in args.gaps:
+                for name, kind, m in motions:
+                    r = cut_and_fill(body, _noisy(np.asarray(m.poses, np.float64), noise),
+                                     np.asarray(m.trans, np.float64), FPS, gap, where)
+                    if r is not None:
+                        rows.append({"motion": name, "kind": kind, "noise_deg": noise, "gap_s": gap, **r})
     for res in args.results:
         data = np.load(Path(res) / "motion.npz")
         fps = float(data["fps"]) if "fps" in data else FPS
-        for gap in args.gaps:
-            r = cut_and_fill(body, np.asarray(data["poses"], np.float64), np.asarray(data["trans"], np.float64), fps, gap)
-            if r is not None:
-                rows.append({"motion": str(res), "kind": "tracked", "noise_deg": None, "gap_s": gap, **r})
-    lines = ["| motion | kind | noise deg | gap s | held cm | in-between cm | cycle carried cm | period (frames) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+        for where in args.where:
+            for gap in args.gaps:
+                r = cut_and_fill(body, np.asarray(data["poses"], np.float64), np.asarray(data["trans"], np.float64),
+                                 fps, gap, where)
+                if r is not None:
+                    rows.append({"motion": str(res), "kind": "tracked", "noise_deg": None, "gap_s": gap, **r})
+    lines = ["| motion | kind | cut | noise deg | gap s | held cm | in-between cm | cycle carried cm | period (frames), "
+             "seen |", "|---|---|---|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         noise = "" if r["noise_deg"] is None else f"{r['noise_deg']:g}"
-        lines.append(f"| {r['motion']} | {r['kind']} | {noise} | {r['gap_s']:g} | {r['held_cm']:.1f} | "
-                     f"{r['inbetween_cm']:.1f} | {r['cycle_cm']:.1f} | {r['period_frames'] or ''} |")
-    cyc = [r for r in rows if r["period_frames"]]
-    other = [r for r in rows if not r["period_frames"]]
-    summary = (f"\nThe cycle carried through {len(cyc)} of {len(rows)} cuts: there the in-between's mean "
-               f"{np.mean([r['inbetween_cm'] for r in cyc]) if cyc else float('nan'):.1f} cm, the cycle's "
-               f"{np.mean([r['cycle_cm'] for r in cyc]) if cyc else float('nan'):.1f}; in the other "
-               f"{len(other)} the two are the same.\n")
+        seen = f"{r['period_frames']}, {r['cycle_seen']}" if r["period_frames"] else ""
+        lines.append(f"| {r['motion']} | {r['kind']} | {r['where']} | {noise} | {r['gap_s']:g} | {r['held_cm']:.1f} | "
+                     f"{r['inbetween_cm']:.1f} | {r['cycle_cm']:.1f} | {seen} |")
+    summary = ""
+    for where in args.where:
+        mine = [r for r in rows if r["where"] == where]
+        cyc = [r for r in mine if r["period_frames"]]
+        other = [r for r in mine if not r["period_frames"]]
+        summary += (f"\n{where.capitalize()} cuts: the cycle carried through {len(cyc)} of {len(mine)} "
+                    f"({sum(r['cycle_seen'] == 'after' for r in cyc)} seen after the cut): there the in-between's mean "
+                    f"{np.mean([r['inbetween_cm'] for r in cyc]) if cyc else float('nan'):.1f} cm, the cycle's "
+                    f"{np.mean([r['cycle_cm'] for r in cyc]) if cyc else float('nan'):.1f}; in the other "
+                    f"{len(other)} the two are the same.\n")
     text = "\n".join(lines) + "\n" + summary
     print(text)
     out = Path(args.out)

@@ -1092,8 +1092,9 @@ def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
         said = (f"filled {info['frames']} frames where the person was not seen in between the poses before and after "
                 f"({n} stretch{'es' if n != 1 else ''})")
         if info.get("cycles"):
-            said += (f"; through {len(info['cycles'])} of them the walk's cycle seen before was carried on (a gait "
-                     f"period of {info['cycles'][0][2]} frames)")
+            sides = {c[3] if len(c) > 3 else "before" for c in info["cycles"]}
+            said += (f"; through {len(info['cycles'])} of them the walk's cycle seen {' or '.join(sorted(sides))} was "
+                     f"carried on (a gait period of {info['cycles'][0][2]} frames)")
         return said
 
     return _post_step(out, run, "unseen_inbetween", lambda motion: inbetween_unseen(motion, body, _held_runs(run)),

@@ -524,7 +524,10 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
     - where the seen frames before the run repeat (a walk, a run: :func:`motion_period`), the
       motion's cycle carried on through the run (each frame takes the pose one or more periods
       before it), eased into both ends: the rotation by which the cycle misses the pose seen
-      at each end is blended in, fully at that end and not at the other;
+      at each end is blended in, fully at that end and not at the other; where those before
+      do not (too few of them: a run early in the clip), but those after it do, the cycle
+      seen after carried back through the run the same way (each frame takes the pose one or
+      more periods after it);
     - else every joint's rotation by spherical linear interpolation between the two ends.
 
     The tracker holds the body at the last seen pose through such a run, and the first frame
@@ -544,7 +547,8 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
     Returns:
         ``(motion, info)``: the new arrays (``joints3d`` recomputed, ``joints2d``
         projected), and ``{"runs": [[first, last], ...] (those filled), "frames": n,
-        "cycles": [[first, last, period_frames], ...] (the runs the cycle was carried through)}``.
+        "cycles": [[first, last, period_frames, "before" | "after"], ...] (the runs the cycle
+        was carried through, and the side of the run it was seen on)}``.
     """
     import json
 
@@ -565,27 +569,37 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
         if a is None or b is None or not inside:
             continue
         u = (index[inside] - index[a]) / float(index[b] - index[a])  # (n,) in (0, 1)
-        period = None
+        period = side = None
         if cycles:
-            seen = []  # the seen frames just before the run, consecutive
-            f = int(first) - 1
-            while f in row and f not in unseen and len(seen) < int(round(CYCLE_WINDOW_S * fps)):
-                seen.append(row[f])
-                f -= 1
-            period = motion_period(poses[seen[::-1]], fps) if len(seen) > 2 else None
+            window = int(round(CYCLE_WINDOW_S * fps))
+            for side, f, step in (("before", int(first) - 1, -1), ("after", int(last) + 1, 1)):
+                seen = []  # the seen frames next to the run, consecutive, the nearest first
+                while f in row and f not in unseen and len(seen) < window:
+                    seen.append(row[f])
+                    f += step
+                # in time towards the run (after it: time reversed), so the run's side is the last
+                period = motion_period(poses[seen[::-1]], fps) if len(seen) > 2 else None
+                if period is not None:
+                    break
         if period is not None:
             lag = period[0]
-            frames = np.r_[index[inside], index[b]]
-            source = [row[int(g - lag * int(np.ceil((g - (int(first) - 1)) / lag)))] for g in frames]
-            carried = poses[source].reshape(-1, 24, 3)  # the cycle through the run and at b
-            start = Rotation.from_rotvec(poses[a].reshape(24, 3)) * Rotation.from_rotvec(
-                poses[row[int(first) - 1 - lag]].reshape(24, 3)).inv()  # how the cycle misses the pose at a
-            end = Rotation.from_rotvec(poses[b].reshape(24, 3)) * Rotation.from_rotvec(carried[-1]).inv()
-            d0, d1 = start.as_rotvec(), end.as_rotvec()  # (24, 3)
+            ends = np.r_[index[a], index[b]]
+            if side == "before":  # each frame takes the pose whole periods before it, seen before the run
+                source = [row[int(g - lag * int(np.ceil((g - (int(first) - 1)) / lag)))] for g in index[inside]]
+                at = (row[int(first) - 1 - lag], row[int(ends[1] - lag * int(np.ceil((ends[1] - first + 1) / lag)))])
+            else:  # ... whole periods after it, seen after the run
+                source = [row[int(g + lag * int(np.ceil((int(last) + 1 - g) / lag)))] for g in index[inside]]
+                at = (row[int(ends[0] + lag * int(np.ceil((last + 1 - ends[0]) / lag)))], row[int(last) + 1 + lag])
+            carried = poses[source].reshape(-1, 24, 3)  # the cycle through the run
+            # how the cycle misses the pose seen at each end
+            d0 = (Rotation.from_rotvec(poses[a].reshape(24, 3)) * Rotation.from_rotvec(
+                poses[at[0]].reshape(24, 3)).inv()).as_rotvec()  # (24, 3)
+            d1 = (Rotation.from_rotvec(poses[b].reshape(24, 3)) * Rotation.from_rotvec(
+                poses[at[1]].reshape(24, 3)).inv()).as_rotvec()
             for k, (r, w) in enumerate(zip(inside, u)):
                 fix = Rotation.from_rotvec((1 - w) * d0 + w * d1)
                 poses[r] = (fix * Rotation.from_rotvec(carried[k])).as_rotvec().reshape(-1)
-            cycled.append([int(first), int(last), int(lag)])
+            cycled.append([int(first), int(last), int(lag), side])
         else:
             ends = Rotation.from_rotvec(np.stack([poses[a], poses[b]]).reshape(2, 24, 3).transpose(1, 0, 2)
                                         .reshape(-1, 3))
