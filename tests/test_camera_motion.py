@@ -451,6 +451,17 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
     for k in (0, 40, T - 1):  # each frame's camera puts the body on that frame's pixels
         np.testing.assert_allclose(b.camera_at(k).project(b.joints()[k]), m.camera.project(j[k]), atol=0.05)
     assert b.camera_move_refused is None
+    # stood on another person's floor (export_people): scaled about the camera, the whole world
+    # scales, the camera's path with it, and each frame's camera still sees the body where it did
+    from flowmocap.export.floor import scaled_about_camera
+
+    big = scaled_about_camera(b, 1.25)
+    np.testing.assert_allclose(big.shifts, 1.25 * b.shifts, rtol=1e-12)
+    assert big.camera_height_m == pytest.approx(1.25 * b.camera_height_m)
+    for k in (0, 40, T - 1):
+        np.testing.assert_allclose(big.camera_at(k).project(big.joints()[k, :1]),
+                                   b.camera_at(k).project(b.joints()[k, :1]), atol=1e-3)  # the root, exactly
+        np.testing.assert_allclose(big.joints2d[k], b.camera_at(k).project(b.joints()[k]), atol=3.0)
     # told only the turn, the walker stays near the spot
     write_run(carried, {**run, "camera_motion": {**cm, "rotvecs": rotvecs, "shifts": None}})
     c = load_fitted_motion(carried, frame="ground")

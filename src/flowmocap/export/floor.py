@@ -204,7 +204,10 @@ def scaled_about_camera(motion, scale: float):
     Returns:
         A new :class:`FittedMotion` in the same frame: ``betas``, ``trans`` and ``joints2d``
         (re-projected) changed, ``world`` None (its floor moved with it), ``contacts`` its
-        foot contacts (:attr:`~flowmocap.export.motion.FittedMotion.foot_contacts`).
+        foot contacts (:attr:`~flowmocap.export.motion.FittedMotion.foot_contacts`). Where the
+        camera moved (``shifts``), its path and ``camera_height_m`` are scaled too: the whole
+        world scales about the first frame's camera centre, so each frame's camera still sees
+        the body where it did.
     """
     import torch
 
@@ -220,7 +223,11 @@ def scaled_about_camera(motion, scale: float):
     R, t = np.asarray(motion.camera.R, np.float64), np.asarray(motion.camera.t, np.float64)
     root_cam = (np.asarray(motion.trans, np.float64) + root_old) @ R.T + t  # (T, 3): the posed root, camera
     trans = (scale * root_cam - t) @ R - root_new
-    out = replace(motion, betas=new, trans=trans, world=None, contacts=motion.foot_contacts)
+    moved = motion.shifts is not None  # the camera's path scales with the world (x_k = turns_k (x_0 + shifts_k))
+    out = replace(motion, betas=new, trans=trans, world=None, contacts=motion.foot_contacts,
+                  shifts=scale * np.asarray(motion.shifts, np.float64) if moved else None,
+                  camera_height_m=(scale * motion.camera_height_m if moved and motion.camera_height_m is not None
+                                   else motion.camera_height_m))
     out.joints2d = out.project(out.joints())
     return out
 
