@@ -1092,7 +1092,7 @@ def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
         said = (f"filled {info['frames']} frames where the person was not seen in between the poses before and after "
                 f"({n} stretch{'es' if n != 1 else ''})")
         if info.get("cycles"):
-            sides = {c[3] if len(c) > 3 else "before" for c in info["cycles"]}
+            sides = {c[3] for c in info["cycles"]}
             said += (f"; through {len(info['cycles'])} of them the walk's cycle seen {' or '.join(sorted(sides))} was "
                      f"carried on (a gait period of {info['cycles'][0][2]} frames)")
         return said

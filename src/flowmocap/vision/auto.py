@@ -206,13 +206,14 @@ def _people_dir(out_dir: Path) -> Path:
 OTHER_MAX_INSIDE = 0.5
 
 
-def others_region(cands: list, mask: np.ndarray) -> np.ndarray:
+def others_region(cands: list, mask: np.ndarray, bodies: list | None = None) -> np.ndarray:
     """The pixels of one frame where people other than the kept one are seen.
 
     Args:
         cands: the frame's :class:`Candidate` s (:func:`find_people`), the kept person's
             own among them or not.
         mask: ``(H, W)`` bool, the kept person's mask.
+        bodies: the candidates' :func:`_body_region` s where already drawn (else drawn here).
 
     Returns:
         ``(H, W)`` bool: the union of the bodies (:func:`_body_region`) of the candidates
@@ -221,8 +222,8 @@ def others_region(cands: list, mask: np.ndarray) -> np.ndarray:
     """
     m = np.asarray(mask, bool)
     out = np.zeros(m.shape, bool)
-    for c in cands:
-        body = _body_region(c, m.shape)
+    for k, c in enumerate(cands):
+        body = _body_region(c, m.shape) if bodies is None else bodies[k]
         n = int(body.sum())
         if n and (body & m).sum() < OTHER_MAX_INSIDE * n:
             out |= body
@@ -703,16 +704,17 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
         own = None if masks[i] is None else _mask_array(masks[i])
         _write_png(p, empty if own is None else own.astype(np.uint8) * 255)
         paths.append(p)
-        if len(cands[i]) > 0:  # everyone else, nearer or further: not background
-            region = others_region(cands[i], np.zeros((H, W), bool) if own is None else own)
+        bodies = [_body_region(c, (H, W)) for c in cands[i]]  # drawn once for both regions
+        if bodies:  # everyone else, nearer or further: not background
+            region = others_region(cands[i], np.zeros((H, W), bool) if own is None else own, bodies)
             if region.any():
                 _write_png(pdir / f"{i:06d}.png", region.astype(np.uint8) * 255)
                 with_people += 1
         if own is not None and len(cands[i]) > 0:
             # only people nearer the camera may hide the kept one: standing on the same floor
             # below the camera, the nearer has their feet lower in the image (track_scores)
-            front = [c for c in cands[i] if boxes[i] is not None and c.box[3] > boxes[i][3]]
-            region = others_region(front, own)
+            front = [k for k, c in enumerate(cands[i]) if boxes[i] is not None and c.box[3] > boxes[i][3]]
+            region = others_region([cands[i][k] for k in front], own, [bodies[k] for k in front])
             if region.any():
                 _write_png(odir / f"{i:06d}.png", region.astype(np.uint8) * 255)
                 with_others += 1
