@@ -408,23 +408,18 @@ def test_someone_walking_past_is_left_out_of_the_cameras_motion():
     assert not still.moving and not still.moving_sideways and still.turn_deg.max() < 0.1
 
 
-def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
-    """The built-in walk seen by a camera carried along beside the walker (1.4 m up, 1.2 m a
-    second sideways, turning 0.2 degrees a frame): in the carried camera's frame the walker
-    walks nearly on the spot. With run.json's camera_motion (the move in units of the camera's
-    height, the floor's normal) the ground frame finds the camera's height from the feet, moves
-    each frame back and gives the still camera's walk; each frame's camera projects the body
-    onto that frame's pixels, and the exports and the page carry it."""
-    import json
-
-    from flowmocap.commands.view import ViewerData
-    from flowmocap.export import export_result, load_fitted_motion
+def _carried_walk(still, carried):
+    """The built-in walk written to ``still`` and, as seen by a camera carried along beside
+    the walker (1.4 m up, 1.2 m a second sideways, turning 0.2 degrees a frame), to
+    ``carried`` with the camera's motion in run.json. Returns ``(R, m, j, run, cm)``: the walk's
+    world rotation, the still motion (camera frame), the carried camera's joints, the still
+    run.json and the carried one's ``camera_motion``."""
+    from flowmocap.export import load_fitted_motion
     from flowmocap.io.results import read_result, write_motion, write_run
     from flowmocap.io.smpl_motion import rotate_motion
 
     from test_ground import _walk_result
 
-    still = tmp_path / "still"
     R, _, _, _ = _walk_result(still, 10.0, height=1.4)
     m = load_fitted_motion(still, frame="world")  # the camera's frame (R = I)
     T = m.num_frames
@@ -437,13 +432,37 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
     j = seen.joints()
     assert np.ptp(j[:, 0, 0]) < 0.5 * np.ptp(m.joints()[:, 0, 0])  # the carried camera keeps the walker in view
     arrays, run = read_result(still)
-    carried = tmp_path / "carried"
     write_motion(carried, {**arrays, "poses": poses.astype(np.float32), "trans": trans.astype(np.float32),
                            "joints3d": j.astype(np.float32), "joints2d": m.camera.project(j).astype(np.float32)})
     rotvecs = Rotation.from_matrix(turns).as_rotvec().tolist()
     cm = {"moving": True, "frames": list(range(T)), "rotvecs": np.zeros((T, 3)).tolist(), "floor_rotvecs": rotvecs,
           "shifts": (shifts / 1.4).tolist(), "floor_normal": (R @ [0, -1.0, 0]).tolist(), "moving_sideways": True}
     write_run(carried, {**run, "camera_motion": cm})
+    return R, m, j, run, cm
+
+
+def _tilted(R, deg=40.0):
+    """A floor normal the images made up: ``deg`` from the walk's (world rotation ``R``) down."""
+    return (Rotation.from_rotvec([np.radians(deg), 0, 0]).as_matrix() @ R @ [0, -1.0, 0]).tolist()
+
+
+def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
+    """The built-in walk seen by a camera carried along beside the walker (1.4 m up, 1.2 m a
+    second sideways, turning 0.2 degrees a frame): in the carried camera's frame the walker
+    walks nearly on the spot. With run.json's camera_motion (the move in units of the camera's
+    height, the floor's normal) the ground frame finds the camera's height from the feet, moves
+    each frame back and gives the still camera's walk; each frame's camera projects the body
+    onto that frame's pixels, and the exports and the page carry it."""
+    import json
+
+    from flowmocap.commands.view import ViewerData
+    from flowmocap.export import export_result, load_fitted_motion
+    from flowmocap.io.results import write_run
+
+    still, carried = tmp_path / "still", tmp_path / "carried"
+    R, m, j, run, cm = _carried_walk(still, carried)
+    T = m.num_frames
+    rotvecs = cm["floor_rotvecs"]
     a, b = load_fitted_motion(still, frame="ground"), load_fitted_motion(carried, frame="ground")
     assert b.camera_height_m == pytest.approx(1.4, abs=0.01)
     np.testing.assert_allclose(b.joints(), a.joints(), atol=0.02)  # the same walk in the world
@@ -468,8 +487,7 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
     assert c.shifts is None and np.abs(c.joints() - a.joints()).max() > 1.0
     # a floor the images made up, 40 degrees from the walker's upright: its move is refused and
     # the background's turn (here none) is all that is undone
-    tilted = Rotation.from_rotvec([np.radians(40), 0, 0]).as_matrix() @ R @ [0, -1.0, 0]
-    write_run(carried, {**run, "camera_motion": {**cm, "floor_normal": tilted.tolist()}})
+    write_run(carried, {**run, "camera_motion": {**cm, "floor_normal": _tilted(R)}})
     d = load_fitted_motion(carried, frame="ground")
     assert d.shifts is None and d.camera_height_m is None
     assert "from the body's upright direction" in d.camera_move_refused
@@ -502,6 +520,68 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
         own, first = _overlay_iou(data, url, 60, tmp_path, [data.motion.camera_at(60), data.motion.camera],
                                   min_share=0.01)
         assert own > 0.85 and first < 0.5, (own, first)
+
+
+def test_the_people_of_a_carried_camera_have_its_move_undone_alike(tmp_path):
+    """Two people of one carried camera (here the same walk twice, so each should come out where
+    the other does), each run with its own floor: person1's floor disagrees with its upright
+    body, so alone its move would be refused while person0's is undone. In the people folder
+    the camera's move is undone for both as for the person whose floor is shared, in the
+    floor's fits, the page and the exports; not for a person tracked past the frames that
+    person's run found the move in; where that person's own floor disagrees, it is undone for
+    nobody. Exported in the owner's "world" frame (nothing turned back), no person
+    is turned back either."""
+    import json
+    import shutil
+
+    from flowmocap.commands.view import ViewerData
+    from flowmocap.export import export_people, load_fitted_motion
+    from flowmocap.export.floor import people_floor
+    from flowmocap.io.results import write_run
+
+    root = tmp_path / "people"
+    R, m, j, run, cm = _carried_walk(tmp_path / "still", root / "person0")
+    shutil.copytree(root / "person0", root / "person1")
+    (root / "people.json").write_text(json.dumps({"input": "missing", "people": {
+        "person0": {"rank": 0, "tracked": True}, "person1": {"rank": 1, "tracked": True}}}))
+    write_run(root / "person1", {**run, "camera_motion": {**cm, "floor_normal": _tilted(R)}})
+    alone = load_fitted_motion(root / "person1", frame="ground")
+    assert alone.shifts is None and "upright" in alone.camera_move_refused  # alone: refused
+    first = load_fitted_motion(root / "person0", frame="ground")
+    fits = people_floor([root / "person0", root / "person1"])
+    assert fits[0].camera_move is None and fits[1].scale == pytest.approx(1.0, abs=0.01)
+    assert fits[1].camera_move.startswith("undone as for the person whose floor is shared")
+    assert "camera's move undone" in fits[1].describe("person1", "person0")
+    data = ViewerData(root)
+    both = [p["motion"] for p in data.people]
+    assert both[1].shifts is not None
+    np.testing.assert_allclose(both[1].joints(), first.joints(), atol=0.02)  # the same walk, one world
+    assert np.abs(alone.joints() - first.joints()).max() > 1.0  # as it was alone: left on the spot
+    log = []
+    paths = export_people(root, "json", log=log.append)
+    assert any("undone as for" in line for line in log)
+    assert json.loads((paths[1].parent / "floor.json").read_text())["people"]["person1"]["camera_move"]
+    exported = [json.loads(p.read_text())["frames"] for p in paths]
+    for k in (0, 40, m.num_frames - 1):
+        np.testing.assert_allclose(exported[1][k]["joints3d"], exported[0][k]["joints3d"], atol=0.02)
+        np.testing.assert_allclose(exported[1][k]["camera_t"], exported[0][k]["camera_t"], atol=0.02)
+    # the owner's run found the move only up to 10 frames before person1's last: not undone for person1
+    short = {k: (v[:-10] if isinstance(v, list) and len(v) == m.num_frames else v) for k, v in cm.items()}
+    write_run(root / "person0", {**run, "camera_motion": short})
+    fits = people_floor([root / "person0", root / "person1"])
+    assert fits[1].camera_move.startswith(f"not undone: the move was found up to frame {m.num_frames - 11}")
+    # the owner's floor disagrees and person1's agrees: undone for nobody
+    write_run(root / "person0", {**run, "camera_motion": {**cm, "floor_normal": _tilted(R)}})
+    write_run(root / "person1", {**run, "camera_motion": cm})
+    fits = people_floor([root / "person0", root / "person1"])
+    assert fits[1].camera_move.startswith("not undone: the person whose floor and frame are shared did not have it")
+    data = ViewerData(root)
+    assert all(p["motion"].shifts is None for p in data.people)
+    # the owner's own world frame: nobody turned back (each at their own size: nothing else moves them)
+    world = [json.loads(p.read_text())["frames"] for p in export_people(root, "json", frame="world", floor=False)]
+    own = load_fitted_motion(root / "person1", frame="world").joints()
+    np.testing.assert_allclose(world[1][40]["joints3d"], own[40], atol=1e-4)
+    np.testing.assert_allclose(world[1][40]["joints3d"], world[0][40]["joints3d"], atol=1e-4)
 
 
 def test_the_floor_is_looked_for_about_the_persons_feet():

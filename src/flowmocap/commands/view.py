@@ -103,7 +103,8 @@ class ViewerData:
             if k == self.owner:
                 motions.append(self.motion)
                 continue
-            m = load_fitted_motion(d, frame="ground", model=model, smooth=smooth)  # its own foot contacts
+            m = load_fitted_motion(d, frame="ground", model=model, smooth=smooth,  # its own foot contacts
+                                   camera_move_of=self.motion)  # the camera's move undone as for the owner
             if self.floor is not None and self.floor[k].scale is not None:
                 m = scaled_about_camera(m, self.floor[k].scale)
             motions.append(motion_in_frame_of(m, self.motion))

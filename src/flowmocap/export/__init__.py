@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -175,7 +176,9 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
             centres, or ``"halpe26"``, Pose2Sim's keypoints); other formats take only the default.
         frame_of: another result of the same input, loaded: export in its frame instead
             (:func:`~flowmocap.export.motion.motion_in_frame_of`; ``frame`` is then not used;
-            the foot contacts are the result's own).
+            the foot contacts are the result's own). The camera's turn is undone as in
+            ``frame_of`` (not at all in its ``"world"`` frame) and its move where
+            ``frame_of``'s was (:func:`~flowmocap.export.motion.shared_move_refusal`).
         scale: with ``frame_of``, scale the body about the camera centre by this first
             (:func:`~flowmocap.export.floor.scaled_about_camera`; e.g. the factor that
             stands it on ``frame_of``'s floor, :func:`~flowmocap.export.floor.floor_scale`).
@@ -197,7 +200,10 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     if scale is not None and frame_of is None:
         raise InputError("a scale moves a person onto another's floor: give the other's motion too (frame_of).")
     if frame_of is not None:  # loaded in its own ground frame for its foot contacts, then moved
-        motion = load_fitted_motion(result_dir, frame="ground", model=model, smooth=smooth)
+        motion = load_fitted_motion(result_dir, frame="ground", model=model, smooth=smooth, camera_move_of=frame_of)
+        if frame_of.frame == "world" and motion.turns is not None:  # frame_of is not turned back: nor is this one
+            motion = replace(load_fitted_motion(result_dir, frame="world", model=model, smooth=smooth),
+                             contacts=motion.foot_contacts)
         if scale is not None:
             from flowmocap.export.floor import scaled_about_camera
 

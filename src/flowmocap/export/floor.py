@@ -66,6 +66,9 @@ class FloorFit:
         why: None, or why the person keeps their own size.
         floor_of: the index (rank order) of the person whose floor is shared; None where
             nobody's is.
+        camera_move: where the camera was carried and this person's own body decided
+            otherwise than the owner's, what was done instead: the owner's decision, for
+            everyone (:func:`~flowmocap.export.motion.shared_move_refusal`); else None.
     """
 
     scale: float | None
@@ -74,20 +77,22 @@ class FloorFit:
     own_stature_m: float
     why: str | None = None
     floor_of: int | None = None
+    camera_move: str | None = None
 
     def to_dict(self) -> dict:
         return {"scale": None if self.scale is None else round(self.scale, 4), "points": self.points,
                 "stature_m": round(self.stature_m, 3), "own_stature_m": round(self.own_stature_m, 3),
-                "why": self.why}
+                "why": self.why, "camera_move": self.camera_move}
 
     def describe(self, name: str, owner: str) -> str:
         """One line for the user; ``owner``: the name of the person whose floor is shared."""
+        move = "" if self.camera_move is None else f"; the camera's move {self.camera_move}"
         if self.scale is None:
-            return f"{name}: kept the size of its own fit ({self.own_stature_m:.2f} m tall): {self.why}"
+            return f"{name}: kept the size of its own fit ({self.own_stature_m:.2f} m tall): {self.why}{move}"
         if name == owner:
-            return f"{name}: its floor is everyone's ({self.own_stature_m:.2f} m tall)"
+            return f"{name}: its floor is everyone's ({self.own_stature_m:.2f} m tall){move}"
         return (f"{name}: stood on {owner}'s floor: {self.scale:.2f}x the size and distance of its own fit "
-                f"({self.own_stature_m:.2f} -> {self.stature_m:.2f} m tall; {self.points} standing-foot points)")
+                f"({self.own_stature_m:.2f} -> {self.stature_m:.2f} m tall; {self.points} standing-foot points){move}")
 
 
 def floor_owner(fits: list[FloorFit] | None) -> int:
@@ -241,6 +246,12 @@ def people_floor(folders, model=None) -> list[FloorFit]:
     their lowest foot point): the floor of the next person in order who does stand is
     shared, and the first person is stood on it like anyone else.
 
+    Under a carried camera, the move found from the floor is undone for everyone as it is
+    for that person (the first where nobody stands), or for nobody
+    (:func:`~flowmocap.export.motion.shared_move_refusal`): each person's run found the
+    camera's motion again and judged its floor against their own upright body, and one
+    camera cannot have moved for one person and not for another.
+
     Args:
         folders: result folders of one input (``track --person all``'s ``person0``, ...),
             in rank order.
@@ -256,15 +267,26 @@ def people_floor(folders, model=None) -> list[FloorFit]:
 
     motions = [load_fitted_motion(d, frame="ground", model=model) for d in folders]
     standing = [k for k, m in enumerate(motions) if m.world.plane.method == "contacts"]
+    owner = standing[0] if standing else 0
+    moves = [None] * len(motions)
+    for k, m in enumerate(motions):  # one camera: its move undone for everyone as for the owner, or for nobody
+        if k != owner and (m.shifts is not None or motions[owner].shifts is not None):
+            motions[k] = load_fitted_motion(folders[k], frame="ground", model=model, camera_move_of=motions[owner])
+            if motions[k].shifts is not None and m.shifts is None:
+                alone = m.camera_move_refused or "its own run found no move of the camera"
+                moves[k] = f"undone as for the person whose floor is shared (alone it would not be: {alone})"
+            elif motions[k].shifts is None and motions[k].camera_move_refused != m.camera_move_refused:
+                moves[k] = f"not undone: {motions[k].camera_move_refused}"
     fits = []
-    for k, m in enumerate(motions):
+    for k, (m, move) in enumerate(zip(motions, moves)):
         own = stature(m.model, m.betas)
         if not standing:
-            fits.append(FloorFit(None, 0, own, own, "nobody's floor is fitted to standing feet: nobody is moved"))
-        elif k == standing[0]:
+            fits.append(FloorFit(None, 0, own, own, "nobody's floor is fitted to standing feet: nobody is moved",
+                                 camera_move=move))
+        elif k == owner:
             fits.append(FloorFit(1.0, int(np.asarray(m.world.contacts).sum()), own, own, floor_of=k))
         else:
-            fits.append(replace(floor_scale(m, motions[standing[0]]), floor_of=standing[0]))
+            fits.append(replace(floor_scale(m, motions[owner]), floor_of=owner, camera_move=move))
     return fits
 
 

@@ -43,8 +43,8 @@ from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
-           "camera_turns", "camera_shifts", "camera_height_from_feet", "camera_move_refused", "turned_camera",
-           "FLOOR_BODY_MAX_DEG"]
+           "camera_turns", "camera_shifts", "camera_height_from_feet", "camera_move_refused", "shared_move_refusal",
+           "turned_camera", "FLOOR_BODY_MAX_DEG"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).
@@ -270,7 +270,7 @@ def _model_for(run: dict, gender: str, model):
 
 
 def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None, smooth: bool | dict = False,
-                       cache_world: bool = True) -> FittedMotion:
+                       cache_world: bool = True, camera_move_of: FittedMotion | None = None) -> FittedMotion:
     """Read a result folder's ``motion.npz`` and ``run.json`` for export.
 
     Args:
@@ -285,6 +285,13 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
             offline; ``joints2d`` are then re-projected from the smoothed body. The floor
             is always estimated from the unsmoothed fit.
         cache_world: write the ground frame to ``RESULT/world.json`` (``frame="ground"``).
+        camera_move_of: None, or another person's motion of the same input (loaded), whose
+            decision on the camera's move this one takes: the people of one video share one
+            camera, so its move is undone for all of them or for none. Where it was undone
+            for ``camera_move_of``, it is undone here along that run's floor, turns and move
+            (the camera's height from this body's own feet, in its own size); where it was
+            not, it is not (:func:`shared_move_refusal`). None: the result's own run and body
+            decide (:func:`camera_move_refused`).
 
     Raises:
         DataError: not a result folder, or a result without frames.
@@ -327,18 +334,25 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     body = _model_for(run, gender, model)
     turns = camera_turns(run, index) if frame != "world" else None
     shifts = height = refused = None
+    # the run whose move of the camera is undone: this one's, or under camera_move_of the owner's where it was
+    src = camera_move_of.run if camera_move_of is not None and camera_move_of.shifts is not None else run
+    unit = camera_shifts(src, index) if frame != "world" else None
+    if unit is not None:  # the floor's turns go with its moves
+        normal = np.asarray((src.get("camera_motion") or {})["floor_normal"], np.float64)
+        floor_turns = camera_turns(src, index, floor=True)
+        if src is not run:
+            refused = _uncovered(src, index)
+        elif camera_move_of is not None:
+            refused = shared_move_refusal(camera_move_of)
+        else:
+            refused = camera_move_refused(body, poses, trans, betas, camera, floor_turns, normal)
+        if refused is None:
+            height = camera_height_from_feet(body, poses, trans, betas, camera, floor_turns, unit, normal)
+            refused = None if height is not None else "the fitted feet are nowhere below the camera"
+        if refused is None:
+            shifts, turns = unit * height, floor_turns
     if turns is not None:  # each frame's body turned (and moved) back by the camera's since the first frame
         R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-        unit = camera_shifts(run, index)
-        if unit is not None:  # the floor's turns go with its moves
-            normal = np.asarray((run.get("camera_motion") or {})["floor_normal"], np.float64)
-            floor_turns = camera_turns(run, index, floor=True)
-            refused = camera_move_refused(body, poses, trans, betas, camera, floor_turns, normal)
-            if refused is None:
-                height = camera_height_from_feet(body, poses, trans, betas, camera, floor_turns, unit, normal)
-                refused = None if height is not None else "the fitted feet are nowhere below the camera"
-            if refused is None:
-                shifts, turns = unit * height, floor_turns
         moved = t[None] if shifts is None else t[None] - shifts
         A = np.einsum("ji,tkj,kl->til", R, turns, R)  # R^T turns_k^T R: the turn back, in the result's world
         b = np.einsum("ji,tkj,tk->ti", R, turns, moved) - t @ R  # R^T (turns_k^T (t - shifts_k) - t)
@@ -453,6 +467,30 @@ def camera_move_refused(body, poses: np.ndarray, trans: np.ndarray, betas: np.nd
         return (f"the floor found in the images lies {angle:.0f} degrees from the body's upright direction "
                 f"(more than {FLOOR_BODY_MAX_DEG:.0f}): its move is not trusted, only the camera's turn is undone")
     return None
+
+
+def _uncovered(run: dict, frame_index) -> str | None:
+    """Why another person's frames ``frame_index`` cannot take ``run``'s move of the camera
+    (it was found up to the last frame that run tracked), or None where they can."""
+    last = int(max((run.get("camera_motion") or {}).get("frames") or [-1]))
+    beyond = int(np.max(frame_index))
+    if beyond > last:
+        return (f"the move was found up to frame {last} (the run of the person whose floor and frame are shared), "
+                f"and this person is tracked to frame {beyond}: it is undone for them only where they are tracked "
+                "alone")
+    return None
+
+
+def shared_move_refusal(holder: FittedMotion) -> str | None:
+    """Why another person of ``holder``'s input should not have the camera's move undone, or
+    None where it should: ``holder`` (the person whose floor and frame the people share,
+    loaded) had it undone. A move ``holder``'s own body refused, or that ``holder``'s run did
+    not find, is refused for everyone, so that no two people of one video are moved back along
+    different cameras."""
+    if holder.shifts is not None:
+        return None
+    why = holder.camera_move_refused or "that person's run found no move of the camera"
+    return f"the person whose floor and frame are shared did not have it undone, so nobody does ({why})"
 
 
 def camera_height_from_feet(body, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, camera,
