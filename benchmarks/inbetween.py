@@ -71,6 +71,8 @@ def cut_and_fill(body, poses: np.ndarray, trans: np.ndarray, fps: float, gap_s: 
         if cycles:
             row["period_frames"] = info["cycles"][0][2] if info["cycles"] else None
             row["cycle_seen"] = info["cycles"][0][3] if info["cycles"] else None
+            # the frames the walk lasted where it was taken to stop in the cut
+            row["walk_stops_after"] = info["stops"][0][2] if info["stops"] else None
     return row
 
 
@@ -132,6 +134,8 @@ def main(argv=None) -> int:
     for r in rows:
         noise = "" if r["noise_deg"] is None else f"{r['noise_deg']:g}"
         seen = f"{r['period_frames']}, {r['cycle_seen']}" if r["period_frames"] else ""
+        if r.get("walk_stops_after") is not None:
+            seen += f", stops after {r['walk_stops_after']} frames"
         lines.append(f"| {r['motion']} | {r['kind']} | {r['where']} | {noise} | {r['gap_s']:g} | {r['held_cm']:.1f} | "
                      f"{r['inbetween_cm']:.1f} | {r['cycle_cm']:.1f} | {seen} |")
     summary = ""
@@ -143,7 +147,8 @@ def main(argv=None) -> int:
                     f"({sum(r['cycle_seen'] == 'after' for r in cyc)} seen after the cut): there the in-between's mean "
                     f"{np.mean([r['inbetween_cm'] for r in cyc]) if cyc else float('nan'):.1f} cm, the cycle's "
                     f"{np.mean([r['cycle_cm'] for r in cyc]) if cyc else float('nan'):.1f}; in the other "
-                    f"{len(other)} the two are the same.\n")
+                    f"{len(other)} the two are the same. The walk taken to stop in the cut: "
+                    f"{sum(r.get('walk_stops_after') is not None for r in cyc)}.\n")
     text = "\n".join(lines) + "\n" + summary
     print(text)
     out = Path(args.out)

@@ -30,7 +30,7 @@ def test_a_held_run_is_filled_by_slerp_and_a_line_and_one_at_the_end_is_left():
               "joints3d": np.zeros((T, 24, 3), np.float32), "joints2d": np.zeros((T, 24, 2), np.float32),
               "camera": np.array(json.dumps(cam.to_dict())), "frame_index": np.arange(10, 10 + T), "fps": np.array(30.0)}
     out, info = inbetween_unseen(motion, model, [(12, 14), (17, 17)])  # the second: the last frame, no after
-    assert info == {"runs": [[12, 14]], "frames": 3, "cycles": []}
+    assert info == {"runs": [[12, 14]], "frames": 3, "cycles": [], "stops": []}
     p = np.asarray(out["poses"], np.float64)
     for k, u in ((2, 0.25), (3, 0.5), (4, 0.75)):
         for j in (0, 5, 17):
@@ -44,7 +44,7 @@ def test_a_held_run_is_filled_by_slerp_and_a_line_and_one_at_the_end_is_left():
     np.testing.assert_allclose(out["joints2d"][3], cam.project(np.asarray(out["joints3d"][3], np.float64)), atol=1e-3)
     # nothing to fill: the same arrays
     same, none = inbetween_unseen(motion, model, [])
-    assert none == {"runs": [], "frames": 0, "cycles": []} and same["poses"] is motion["poses"]
+    assert none == {"runs": [], "frames": 0, "cycles": [], "stops": []} and same["poses"] is motion["poses"]
 
 
 def test_unseen_frames_say_how_each_frame_was_filled():
@@ -107,6 +107,7 @@ def _check_carried(model, motion, truth, first: int, last: int, side: str) -> No
     plain, plain_info = inbetween_unseen(held, model, [(first, last)], cycles=False)
     assert info["runs"] == plain_info["runs"] == [[first, last]] and plain_info["cycles"] == []
     assert len(info["cycles"]) == 1 and info["cycles"][0][:2] == [first, last] and info["cycles"][0][3] == side
+    assert info["stops"] == []  # a walk that goes on does not stop in the run
 
     def local_cm(j):
         j, t = np.asarray(j[first:last + 1], np.float64), truth[first:last + 1]
@@ -138,3 +139,73 @@ def test_a_walk_unseen_early_is_carried_back_from_the_cycle_seen_after():
     _, motion, truth = _walk_motion(model)
     assert motion_period(np.asarray(motion["poses"])[:20], 30.0) is None  # too few frames before the run
     _check_carried(model, motion, truth, 20, 49, "after")
+
+
+def _walk_then_stand(model, stop: int, settle: int = 15, T: int = 150, fps: float = 30.0):
+    """The built-in walk up to frame ``stop``, then ``settle`` frames easing into a standing
+    pose (the body's joints at rest, the walk's root orientation there), then standing, the
+    root still from ``stop`` on. Returns ``(motion, joints)`` as :func:`_walk_motion`."""
+    import torch
+
+    _, motion, _ = _walk_motion(model, T, fps)
+    poses, trans = np.array(motion["poses"], np.float64), np.array(motion["trans"], np.float64)
+    stand = poses[stop].copy()
+    stand[3:] = 0.0
+    a, b = Rotation.from_rotvec(poses[stop].reshape(24, 3)), Rotation.from_rotvec(stand.reshape(24, 3))
+    for f in range(stop + 1, T):
+        w = min(1.0, (f - stop) / settle)
+        poses[f] = (a * Rotation.from_rotvec(w * (a.inv() * b).as_rotvec())).as_rotvec().reshape(-1)
+        trans[f] = trans[stop]
+    with torch.no_grad():
+        joints = model(pose=torch.as_tensor(poses, dtype=torch.float32),
+                       trans=torch.as_tensor(trans, dtype=torch.float32)).joints.double().numpy()
+    return {**motion, "poses": poses.astype(np.float32), "trans": trans.astype(np.float32)}, joints
+
+
+def _reversed(motion: dict, joints: np.ndarray):
+    """The motion played backwards (the frame numbers kept)."""
+    return {**motion, "poses": motion["poses"][::-1].copy(), "trans": motion["trans"][::-1].copy()}, joints[::-1].copy()
+
+
+def test_a_walker_who_stops_behind_the_occluder_walks_only_as_far_as_they_got(monkeypatch):
+    """The built-in walk stops at frame 90 (half a second's ease into standing), hidden in frames
+    75-119: the root moves across the run a third of what the walk's speed covers in its 1.5 s,
+    and the frames after it stand. The walk is carried for the frames that speed needs (16), then
+    settles into the standing pose: the root path within 3 cm of the truth and the body nearer it
+    than the cycle carried through the whole run, which walks on the spot with the root creeping
+    at a third of the pace. Played backwards (standing, then walking off), the same from the
+    cycle seen after the run."""
+    import flowmocap.fit.smooth as smooth
+    from flowmocap.pipeline import inbetween_words
+
+    model = load_body_model("default")
+    first, last = 75, 119
+    for side, (motion, truth), (f0, f1) in (
+            ("before", _walk_then_stand(model, 90), (first, last)),
+            ("after", _reversed(*_walk_then_stand(model, 90)), (149 - last, 149 - first))):
+        held = _held(motion, f0, f1)
+        stopped, info = inbetween_unseen(held, model, [(f0, f1)])
+        assert info["cycles"][0][3] == side and len(info["stops"]) == 1
+        f, l, walked, sd = info["stops"][0]
+        assert (f, l, sd) == (f0, f1, side) and abs(walked - 16) <= 3
+        with monkeypatch.context() as m:
+            m.setattr(smooth, "STOP_MAX_SHARE", 0.0)  # the cycle through the whole run, as before
+            on, on_info = inbetween_unseen(held, model, [(f0, f1)])
+        assert on_info["stops"] == [] and on_info["cycles"] == info["cycles"]
+        run = slice(f0, f1 + 1)
+
+        def root_cm(mo):
+            return np.linalg.norm(np.asarray(mo["joints3d"], np.float64)[run, 0] - truth[run, 0], axis=-1).mean() * 100
+
+        def local_cm(mo):
+            j, t = np.asarray(mo["joints3d"], np.float64)[run], truth[run]
+            return np.linalg.norm((j - j[:, :1]) - (t - t[:, :1]), axis=-1).mean() * 100
+
+        said = inbetween_words(info)  # and the log says so
+        assert (f"in frames {f0}-{f1} the person moved too little to walk all the way" in said
+                and ("the walk stops after" if side == "before" else "into the walk of the last") in said)
+        assert root_cm(stopped) < 3.0 < 8.0 < root_cm(on), (root_cm(stopped), root_cm(on))  # 2.2 and 24.5
+        assert local_cm(stopped) < 1.5 < 5.0 < local_cm(on), (local_cm(stopped), local_cm(on))  # 0.8 and 9.2
+        near = slice(f0 - 5, f1 + 6)  # no jump at the seams or at the stop
+        step = np.linalg.norm(np.diff(np.asarray(stopped["joints3d"], np.float64)[near], axis=0), axis=-1).max(1)
+        assert step.max() < 1.5 * np.linalg.norm(np.diff(truth[near], axis=0), axis=-1).max()

@@ -1087,18 +1087,25 @@ def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
     ``unseen_inbetween``. Returns the run info."""
     from flowmocap.fit.smooth import inbetween_unseen
 
-    def describe(info: dict) -> str:
-        n = len(info["runs"])
-        said = (f"filled {info['frames']} frames where the person was not seen in between the poses before and after "
-                f"({n} stretch{'es' if n != 1 else ''})")
-        if info.get("cycles"):
-            sides = {c[3] for c in info["cycles"]}
-            said += (f"; through {len(info['cycles'])} of them the walk's cycle seen {' or '.join(sorted(sides))} was "
-                     f"carried on (a gait period of {info['cycles'][0][2]} frames)")
-        return said
-
     return _post_step(out, run, "unseen_inbetween", lambda motion: inbetween_unseen(motion, body, _held_runs(run)),
-                      say, describe)
+                      say, inbetween_words)
+
+
+def inbetween_words(info: dict) -> str:
+    """What :func:`~flowmocap.fit.smooth.inbetween_unseen` did (its ``info``), in words for the log."""
+    n = len(info["runs"])
+    said = (f"filled {info['frames']} frames where the person was not seen in between the poses before and after "
+            f"({n} stretch{'es' if n != 1 else ''})")
+    if info.get("cycles"):
+        sides = {c[3] for c in info["cycles"]}
+        said += (f"; through {len(info['cycles'])} of them the walk's cycle seen {' or '.join(sorted(sides))} was "
+                 f"carried on (a gait period of {info['cycles'][0][2]} frames)")
+    for first, last, walked, side in info.get("stops", []):  # moved too little for a walk all the way
+        said += (f"; in frames {first}-{last} the person moved too little to walk all the way: " +
+                 (f"the walk stops after {walked} frames and the body settles into the pose seen after"
+                  if side == "before" else
+                  f"the body settles out of the pose seen before into the walk of the last {walked} frames"))
+    return said
 
 
 def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:

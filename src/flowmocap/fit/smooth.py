@@ -464,6 +464,15 @@ CYCLE_JOINTS = (1, 2, 4, 5)
 #: tracked: 0.71-1.0 and -0.23 to -0.68; the mocap clips that repeat without alternating
 #: (balancing on one leg, jumping, a bend, a combat stance) fail it.
 CYCLE_MIN_ALTERNATION = 0.6
+#: A walk carried through a held run stops part of the way where the root moves, between the
+#: two ends of the run, less than this share of what the walk's own speed (seen over the
+#: cycle's last period next to the run) would cover in the run's time, and the other side
+#: shows no gait: the person stopped behind the occluder (or, with the cycle seen after the
+#: run, started walking there).
+STOP_MAX_SHARE = 0.6
+#: ... then the body settles from the carried cycle into the pose seen on the other side over
+#: this many seconds (a stop from a walk takes about one step).
+STOP_SETTLE_S = 0.4
 
 
 def motion_period(poses: np.ndarray, fps: float, window_s: float = CYCLE_WINDOW_S,
@@ -528,6 +537,11 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
       do not (too few of them: a run early in the clip), but those after it do, the cycle
       seen after carried back through the run the same way (each frame takes the pose one or
       more periods after it);
+      Where the root moves across the run much less than that walk's speed would take it
+      (:data:`STOP_MAX_SHARE`) and the other side shows no gait, the person stopped behind
+      the occluder (or started walking there): the cycle is carried only for the frames
+      that speed needs, the root covering the move in them, and the body then settles into
+      the pose seen on the other side (:data:`STOP_SETTLE_S`) and stands;
     - else every joint's rotation by spherical linear interpolation between the two ends.
 
     The tracker holds the body at the last seen pose through such a run, and the first frame
@@ -548,7 +562,9 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
         ``(motion, info)``: the new arrays (``joints3d`` recomputed, ``joints2d``
         projected), and ``{"runs": [[first, last], ...] (those filled), "frames": n,
         "cycles": [[first, last, period_frames, "before" | "after"], ...] (the runs the cycle
-        was carried through, and the side of the run it was seen on)}``.
+        was carried through, and the side of the run it was seen on), "stops": [[first, last,
+        walked_frames, "before" | "after"], ...] (those of them in which the walk stops, or
+        with "after" starts, and for how many of the run's frames it walks)}``.
     """
     import json
 
@@ -562,7 +578,7 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
     fps = float(fps if fps is not None else np.asarray(motion.get("fps", 30.0)))
     row = {int(f): k for k, f in enumerate(index)}
     unseen = {f for first, last in gaps for f in range(int(first), int(last) + 1)}
-    done, cycled = [], []
+    done, cycled, stopped = [], [], []
     for first, last in gaps:
         a, b = row.get(int(first) - 1), row.get(int(last) + 1)
         inside = [row[f] for f in range(int(first), int(last) + 1) if f in row]
@@ -572,15 +588,19 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
         period = side = None
         if cycles:
             window = int(round(CYCLE_WINDOW_S * fps))
-            for side, f, step in (("before", int(first) - 1, -1), ("after", int(last) + 1, 1)):
-                seen = []  # the seen frames next to the run, consecutive, the nearest first
-                while f in row and f not in unseen and len(seen) < window:
-                    seen.append(row[f])
+            seen, periods = {}, {}
+            for sd, f, step in (("before", int(first) - 1, -1), ("after", int(last) + 1, 1)):
+                seen[sd] = []  # the seen frames next to the run, consecutive, the nearest first
+                while f in row and f not in unseen and len(seen[sd]) < window:
+                    seen[sd].append(row[f])
                     f += step
                 # in time towards the run (after it: time reversed), so the run's side is the last
-                period = motion_period(poses[seen[::-1]], fps) if len(seen) > 2 else None
-                if period is not None:
-                    break
+                periods[sd] = motion_period(poses[seen[sd][::-1]], fps) if len(seen[sd]) > 2 else None
+            side = "before" if periods["before"] is not None else "after"
+            period = periods[side]
+        walked = None  # where the walk stops (or starts) within the run: its frames from the cycle's side
+        if period is not None and periods["before" if side == "after" else "after"] is None:
+            walked = _walked_frames(trans, seen[side], period[0], a, b, index, fps)
         if period is not None:
             lag = period[0]
             ends = np.r_[index[a], index[b]]
@@ -596,16 +616,22 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
                 poses[at[0]].reshape(24, 3)).inv()).as_rotvec()  # (24, 3)
             d1 = (Rotation.from_rotvec(poses[b].reshape(24, 3)) * Rotation.from_rotvec(
                 poses[at[1]].reshape(24, 3)).inv()).as_rotvec()
-            for k, (r, w) in enumerate(zip(inside, u)):
-                fix = Rotation.from_rotvec((1 - w) * d0 + w * d1)
-                poses[r] = (fix * Rotation.from_rotvec(carried[k])).as_rotvec().reshape(-1)
+            if walked is None:
+                for k, (r, w) in enumerate(zip(inside, u)):
+                    fix = Rotation.from_rotvec((1 - w) * d0 + w * d1)
+                    poses[r] = (fix * Rotation.from_rotvec(carried[k])).as_rotvec().reshape(-1)
+            else:  # the walk for its frames next to the cycle's side, then a settle into the other side's pose
+                _stop_within(poses, trans, inside, carried, d0 if side == "before" else d1, a, b, index, walked,
+                             side, max(1, int(round(STOP_SETTLE_S * fps))))
+                stopped.append([int(first), int(last), int(walked), side])
             cycled.append([int(first), int(last), int(lag), side])
         else:
             ends = Rotation.from_rotvec(np.stack([poses[a], poses[b]]).reshape(2, 24, 3).transpose(1, 0, 2)
                                         .reshape(-1, 3))
             for j in range(24):
                 poses[inside, 3 * j:3 * j + 3] = Slerp([0.0, 1.0], ends[2 * j:2 * j + 2])(u).as_rotvec()
-        trans[inside] = (1 - u)[:, None] * trans[a] + u[:, None] * trans[b]
+        if walked is None:
+            trans[inside] = (1 - u)[:, None] * trans[a] + u[:, None] * trans[b]
         done.append([int(first), int(last)])
     out = dict(motion)
     if done:
@@ -615,7 +641,59 @@ def inbetween_unseen(motion: dict, body, gaps, chunk: int = 64, fps: float | Non
         out["trans"] = trans.astype(np.asarray(motion["trans"]).dtype)
         out["joints3d"] = joints.astype(np.asarray(motion["joints3d"]).dtype)
         out["joints2d"] = j2d.astype(np.asarray(motion["joints2d"]).dtype)
-    return out, {"runs": done, "frames": int(sum(b - a + 1 for a, b in done)), "cycles": cycled}
+    return out, {"runs": done, "frames": int(sum(b - a + 1 for a, b in done)), "cycles": cycled,
+                 "stops": stopped}
+
+
+def _walked_frames(trans: np.ndarray, seen: list, lag: int, a: int, b: int, index: np.ndarray,
+                   fps: float) -> int | None:
+    """How many of a held run's frames (between rows ``a`` and ``b``) a walk seen next to it
+    lasts, where it stops (or starts) within the run: the root's move from ``a`` to ``b``
+    over the walk's speed, that of the cycle's last period next to the run (``seen``, rows,
+    the nearest first; ``lag`` frames); None where the move is at least
+    :data:`STOP_MAX_SHARE` of what that speed covers in the run's time, or there is no
+    speed to go by."""
+    if len(seen) <= lag:
+        return None
+    speed = np.linalg.norm(trans[seen[0]] - trans[seen[lag]]) / abs(int(index[seen[0]] - index[seen[lag]]))  # m/frame
+    span = int(index[b] - index[a])
+    if not speed > 0:
+        return None
+    share = float(np.linalg.norm(trans[b] - trans[a]) / (speed * span))
+    if share >= STOP_MAX_SHARE:
+        return None
+    return max(1, int(round(share * span)))
+
+
+def _stop_within(poses, trans, inside, carried, miss, a, b, index, walked, side, settle) -> None:
+    """Fill a held run (rows ``inside`` between rows ``a`` and ``b``) in place with a walk
+    that stops (``side`` "before": the cycle seen before it) or starts (``side`` "after")
+    within it: the frames up to ``walked`` frames from the cycle's side take the carried cycle
+    (``carried`` ``(n, 24, 3)``), its miss of the pose seen there (``miss`` ``(24, 3)``) eased
+    out, while the root covers the whole move from one end to the other in a straight line;
+    the rest settle from the last walking pose into the pose seen on the other side over
+    ``settle`` frames and hold it there, the root still."""
+    from scipy.spatial.transform import Rotation
+
+    near, far = (a, b) if side == "before" else (b, a)
+    dist = np.abs(index[inside] - index[near])  # frames from the cycle's side
+    order = np.argsort(dist)
+    end_pose = Rotation.from_rotvec(poses[far].reshape(24, 3))
+    stop_pose = None
+    for k in order:
+        r, d = inside[k], int(dist[k])
+        if d <= walked:
+            w = d / walked
+            pose = Rotation.from_rotvec((1 - w) * miss) * Rotation.from_rotvec(carried[k])
+            trans[r] = (1 - w) * trans[near] + w * trans[far]
+            stop_pose = pose
+        else:
+            if stop_pose is None:  # no walking frame inside (the walk ends at the run's first frame)
+                stop_pose = Rotation.from_rotvec(poses[near].reshape(24, 3))
+            w = min(1.0, (d - walked) / settle)
+            pose = stop_pose * Rotation.from_rotvec(w * (stop_pose.inv() * end_pose).as_rotvec())
+            trans[r] = trans[far]
+        poses[r] = pose.as_rotvec().reshape(-1)
 
 
 #: the body model's foot joints (SMPL ``left_foot``, ``right_foot``): the stance test's points
