@@ -6,12 +6,16 @@ tracked real clips.
    sideways, a move forward while panning, a diagonal move while panning, a pan alone and a
    still camera. For each: whether it is said to move, the floor normal's error (degrees),
    the error of the camera's last centre as a share of its path, the floor's turn at the end
-   against the truth, the whole background's turn, seconds.
+   against the truth, the whole background's turn and zoom
+   (:func:`flowmocap.vision.camera_motion.frame_turn_zoom`: a move forward looks like a zoom
+   to it), seconds.
 2. **Tracked results** (``--results DIR ...``, ``flowmocap track`` output folders of videos
    or folders of frames, with ``detections/masks``): the camera's motion found again from the
-   input and the result's masks, the share of the turn-alone cost the move leaves on the
-   floor's corners, and what the export frames make of it with the result's body (undone, or
-   refused and why: ``flowmocap.export.motion.camera_move_refused``). Everyone else the
+   input and the result's masks, the camera's zoom (its focal length over the first frame's),
+   the share of the turn-alone cost the move leaves on the floor's corners, and what the
+   export frames make of it with the result's body (undone, or refused and why:
+   ``flowmocap.export.motion.camera_move_refused``; where no move is undone, the zoom is).
+   Everyone else the
    detector saw is left out as ``flowmocap track`` does (``detections/people``); where the
    result stores them, the same is also found with only the tracked person left out (the
    "others in" columns). The result folders are not changed (the export is read from a copy).
@@ -62,7 +66,8 @@ def synthetic(frames: int = 30) -> list[dict]:
         centre, normal = scene.truth(frames - 1)
         row = {"scene": name, "moving_sideways": got.moving_sideways, "sideways_h": got.sideways,
                "true_turn_deg": abs(yaw) * (frames - 1), "background_turn_deg": float(got.turn_deg[-1]),
-               "seconds": seconds, "move_share": got.move_share}
+               "seconds": seconds, "move_share": got.move_share,
+               "zoom_range": [float(got.zooms.min()), float(got.zooms.max())]}
         if got.moving_sideways:
             row.update(normal_error_deg=_deg(got.floor_normal, normal),
                        path_error_share=float(np.linalg.norm(got.centres()[-1] - centre) / np.linalg.norm(centre)),
@@ -101,15 +106,19 @@ def tracked(result: Path) -> dict:
         row["others_in"] = {k: alone[k] for k in ("turn_deg_max", "move_share", "moving_sideways", "sideways_max")}
     if got.floor_normal is not None:
         row["floor_normal"] = np.round(got.floor_normal, 3).tolist()
-    if got.moving_sideways:
+    if got.moving_sideways or got.zooming:
         with tempfile.TemporaryDirectory() as tmp:
             copy = Path(tmp) / "result"
             copy.mkdir()
             shutil.copy(result / "motion.npz", copy / "motion.npz")
             (copy / "run.json").write_text(json.dumps({**run, "camera_motion": got.to_dict(rotations=True)}))
             m = load_fitted_motion(copy, frame="up")
-            row["export"] = ("refused: " + m.camera_move_refused if m.shifts is None else
-                             f"undone: the camera {m.camera_height_m:.2f} m above the floor")
+            zoom = "" if m.zooms is None else f"zoom undone ({m.zooms.min():.2f}-{m.zooms.max():.2f})"
+            if not got.moving_sideways:
+                row["export"] = zoom
+            else:
+                row["export"] = ("refused: " + m.camera_move_refused + (f"; {zoom}" if zoom else "")
+                                 if m.shifts is None else f"undone: the camera {m.camera_height_m:.2f} m above the floor")
     print(f"{result}: {row}", flush=True)
     return row
 
@@ -128,20 +137,22 @@ def main(argv=None) -> int:
     real = [tracked(Path(r)) for r in args.results]
     lines = [f"## Synthetic floors ({args.frames} frames, 1.5 m up, pitched 15 deg, 320 x 240, focal 300 px)", "",
              "| camera | said to move (centre's furthest, h) | floor normal error deg | path end error, % | "
-             "floor's turn at the end (truth) deg | background's turn deg | move's cost / turn's alone | s |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "floor's turn at the end (truth) deg | background's turn deg | background's zoom | "
+             "move's cost / turn's alone | s |",
+             "|---|---|---:|---:|---:|---:|---|---:|---:|"]
     for r in syn:
         moved = f"yes ({r['sideways_h']:.2f})" if r["moving_sideways"] else "no"
         lines.append(f"| {r['scene']} | {moved} | {_fmt(r.get('normal_error_deg'), '{:.1f}')} | "
                      f"{_fmt(100 * r['path_error_share'] if 'path_error_share' in r else None, '{:.1f}')} | "
                      f"{_fmt(r.get('floor_turn_deg'))} ({r['true_turn_deg']:.2f}) | {r['background_turn_deg']:.2f} | "
+                     f"{r['zoom_range'][0]:.3f}-{r['zoom_range'][1]:.3f} | "
                      f"{_fmt(r['move_share'], '{:.3f}')} | {r['seconds']:.1f} |")
     if real:
         lines += ["", "## Tracked results", "", "Everyone else the detector saw left out (frames with others); "
                   "\"others in\": only the tracked person left out.", "",
-                  "| result | frames (with others) | background's turn deg (others in) | move's cost / turn's alone "
-                  "(others in) | said to move (h) (others in) | floor normal | export | ms a frame |",
-                  "|---|---:|---:|---:|---|---|---|---:|"]
+                  "| result | frames (with others) | background's turn deg (others in) | zoom | move's cost / turn's "
+                  "alone (others in) | said to move (h) (others in) | floor normal | export | ms a frame |",
+                  "|---|---:|---:|---|---:|---|---|---|---:|"]
 
         def moved(r):
             return f"yes ({r['sideways_max']:.2f})" if r["moving_sideways"] else "no"
@@ -150,6 +161,7 @@ def main(argv=None) -> int:
             o = r.get("others_in")
             lines.append(f"| {r['result']} | {r['frames']} ({_fmt(r['frames_with_others'], '{}')}) | "
                          f"{r['turn_deg_max']:.2f} ({_fmt(o and o['turn_deg_max'])}) | "
+                         f"{r['zoom_min']:.3f}-{r['zoom_max']:.3f} | "
                          f"{_fmt(r['move_share'], '{:.3f}')} ({_fmt(o and o['move_share'], '{:.3f}')}) | "
                          f"{moved(r)} ({moved(o) if o else ''}) | {r.get('floor_normal', '')} | {r['export']} | "
                          f"{r['ms_per_frame']:.0f} |")

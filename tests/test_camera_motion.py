@@ -32,11 +32,13 @@ def _panorama(seed: int = 0) -> np.ndarray:
 
 
 class Turning:
-    """Frames of a camera that turns by ``rotations[i]`` (x_i = R_i x_0) about its centre;
-    optionally a "person" (a textured block moving right 4 px a frame) in front, with masks."""
+    """Frames of a camera that turns by ``rotations[i]`` (x_i = R_i x_0) about its centre and
+    optionally zooms (its focal length ``zooms[i]`` times the first's); optionally a "person" (a
+    textured block moving right 4 px a frame) in front, with masks."""
 
-    def __init__(self, rotations, person: bool = False):
+    def __init__(self, rotations, person: bool = False, zooms=None):
         self.rotations, self.person, self.pano = rotations, person, _panorama()
+        self.zooms = [1.0] * len(rotations) if zooms is None else list(zooms)
         self.masks = [None] * len(rotations) if person else None
         self.camera = None
 
@@ -49,7 +51,8 @@ class Turning:
     def frame(self, i):
         import cv2
 
-        M = K @ self.rotations[i] @ np.linalg.inv(K) @ np.array([[1, 0, -PAD], [0, 1, -PAD], [0, 0, 1.0]])
+        Z = np.diag([self.zooms[i], self.zooms[i], 1.0])  # the focal length scaled about the image's centre
+        M = K @ Z @ self.rotations[i] @ np.linalg.inv(K) @ np.array([[1, 0, -PAD], [0, 1, -PAD], [0, 0, 1.0]])
         img = cv2.warpPerspective(self.pano, M, (W, H), flags=cv2.INTER_LINEAR)
         if self.person:
             x0, y0, x1, y1 = self._box(i)
@@ -79,6 +82,26 @@ def test_a_camera_turning_half_a_degree_a_frame_is_found_to_turn_by_that():
     assert got.residual_px < 0.5
     doc = got.to_dict(rotations=True)
     assert doc["moving"] and doc["turn_deg_end"] == pytest.approx(9.5, rel=0.03) and len(doc["rotvecs"]) == 20
+
+
+def test_a_camera_zooming_out_while_it_pans_is_found_to_do_both():
+    """A camera panning 0.3 degrees a frame while it zooms out 1 % a frame (20 frames, to 0.83
+    of its focal length): each frame's turn and zoom are found together, within 0.5 % of the
+    zoom and 3 % of the turn; the turn alone would leave the background pixels off. A still
+    camera and one that only pans do not zoom. (The scene is one flat picture, which a move
+    towards it would show alike, so the floor's move is not looked for here.)"""
+    zooms = 0.99 ** np.arange(20)
+    got = camera_motion(Turning(_pan(20, 0.3), zooms=zooms), CAM, sideways=False)
+    assert got.moving and got.zooming and not got.unknown
+    np.testing.assert_allclose(got.zooms, zooms, rtol=0.005)
+    np.testing.assert_allclose(got.turn_deg, 0.3 * np.arange(20), rtol=0.03, atol=0.1)
+    assert got.residual_px < 0.5
+    doc = got.to_dict(rotations=True)
+    assert doc["zooming"] and doc["zoom_min"] == pytest.approx(zooms[-1], rel=0.005) and len(doc["zooms"]) == 20
+    assert frame_rotation(Turning([np.eye(3)] * 2, zooms=[1.0, 0.9]).frame(0),
+                          Turning([np.eye(3)] * 2, zooms=[1.0, 0.9]).frame(1), K)[1] > 3.0  # a turn cannot
+    for still in (camera_motion(Turning(_pan(15, 0.0)), CAM), camera_motion(Turning(_pan(15, 0.5)), CAM)):
+        assert not still.zooming and np.abs(still.zooms - 1).max() < 0.002 and "zooms" not in still.to_dict(True)
 
 
 def test_a_still_camera_is_still_and_a_person_in_front_is_left_out():
@@ -179,6 +202,28 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
 
 
+def test_a_run_on_a_zooming_camera_says_so(tmp_path, monkeypatch, capsys):
+    """flowmocap track on a video whose camera zooms out 3 % a frame while it pans: run.json's
+    camera_motion holds the zoom per frame and the run says what the export frames do with it.
+    The scene is one flat picture, whose zoom the floor's corners also fit as a move; that
+    floor is 65 degrees from the walker's upright, so its move is refused and the zoom undone
+    (as on DAVIS)."""
+    cm = _track_over(Turning(_pan(6, 0.5), zooms=0.97 ** np.arange(6)), tmp_path, monkeypatch)["camera_motion"]
+    assert cm["moving"] and cm["zooming"] and len(cm["zooms"]) == 6
+    np.testing.assert_allclose(cm["zooms"], 0.97 ** np.arange(6), rtol=0.01)
+    said = capsys.readouterr().out
+    assert "The background fits a zoom as well (the focal length from 0.86 to 1.00 times the first frame's)" in said
+    assert ("the camera's move is not undone: the floor found in the images lies" in said and
+            "its turn and zoom are undone instead (the camera's focal length goes from 0.86 to 1.00" in said)
+    # where the floor shows no move, the zoom alone is said
+    from flowmocap.vision import camera_motion as module
+
+    monkeypatch.setattr(module, "camera_motion", lambda *a, **k: camera_motion(*a, **{**k, "sideways": False}))
+    cm = _track_over(Turning(_pan(6, 0.5), zooms=0.97 ** np.arange(6)), tmp_path / "again", monkeypatch)["camera_motion"]
+    assert cm["zooming"] and not cm["moving_sideways"]
+    assert "the camera zooms: its focal length goes from 0.86 to 1.00 times the first frame's" in capsys.readouterr().out
+
+
 def test_a_run_on_a_carried_camera_says_so(tmp_path, monkeypatch, capsys):
     """flowmocap track on a video whose camera is carried sideways over a floor (6 cm a
     frame, 1.5 m up): run.json's camera_motion holds its move per frame, in units of its
@@ -253,6 +298,79 @@ def test_a_result_of_a_turning_camera_is_turned_back_into_the_world(tmp_path):
         own, first = _overlay_iou(data, url, 40, tmp_path, [data.motion.camera_at(40), data.motion.camera],
                                   min_share=0.01)  # a small body: 100 px tall in 320 x 240
         assert own > 0.85 and first < 0.5, (own, first)
+
+
+def test_a_result_of_a_zooming_camera_is_brought_back_to_its_depth(tmp_path):
+    """The built-in walk seen by a camera that pans 0.2 degrees a frame and zooms out 0.5 % a
+    frame (to 0.69 of its focal length): the tracker, keeping the first focal length, puts the
+    walker further away frame by frame (1.45x at the end). With run.json's zooms the ground
+    frame brings each frame's body to the depth its focal length gives and turns it back: the still camera's
+    walk. Each frame's camera (its focal length zoomed) sees the body where the tracker did, the
+    exports carry the focal lengths and the page each frame's projection."""
+    import json
+
+    from flowmocap.commands.view import ViewerData
+    from flowmocap.export import export_result, load_fitted_motion
+    from flowmocap.export.gltf_skin import read_skinned_glb
+    from flowmocap.export.motion import zoomed_depth
+    from flowmocap.io.results import read_result, write_motion, write_run
+    from flowmocap.io.smpl_motion import rotate_motion
+
+    from test_ground import _walk_result
+
+    still = tmp_path / "still"
+    _walk_result(still, 10.0, height=1.5)
+    m = load_fitted_motion(still, frame="world")  # the camera's frame (R = I)
+    T = m.num_frames
+    turns, zooms = np.stack(_pan(T, -0.2)), 0.995 ** np.arange(T)
+    poses, trans = rotate_motion(m.poses, m.trans, m.rest_joints()[0], turns)  # as the turning camera saw it
+    trans = zoomed_depth(m.model, m.betas, trans, np.eye(3), np.zeros(3), 1.0 / zooms)  # and the tracker placed it
+    seen = replace_motion(m, poses, trans)
+    j = seen.joints()
+    assert j[-1, 0, 2] / (m.joints()[-1, 0] @ turns[-1].T)[2] == pytest.approx(1 / zooms[-1])
+    arrays, run = read_result(still)
+    zoomed = tmp_path / "zoomed"
+    write_motion(zoomed, {**arrays, "poses": poses.astype(np.float32), "trans": trans.astype(np.float32),
+                          "joints3d": j.astype(np.float32), "joints2d": m.camera.project(j).astype(np.float32)})
+    cm = {"moving": True, "frames": list(range(T)), "rotvecs": Rotation.from_matrix(turns).as_rotvec().tolist(),
+          "zooms": zooms.tolist()}
+    write_run(zoomed, {**run, "camera_motion": cm})
+    a, b = load_fitted_motion(still, frame="ground"), load_fitted_motion(zoomed, frame="ground")
+    np.testing.assert_allclose(b.zooms, zooms)
+    np.testing.assert_allclose(b.joints(), a.joints(), atol=2e-4)  # the same walk in the world
+    for k in (0, 40, T - 1):  # each frame's camera sees the body where the tracker did: the root exactly
+        np.testing.assert_allclose(b.camera_at(k).project(b.joints()[k, :1]), m.camera.project(j[k, :1]), atol=1e-3)
+        np.testing.assert_allclose(b.camera_at(k).project(b.joints()[k]), m.camera.project(j[k]), atol=2.0)
+    # told only the turn, the walker walks away from the camera
+    write_run(zoomed, {**run, "camera_motion": {**cm, "zooms": None}})
+    c = load_fitted_motion(zoomed, frame="ground")
+    assert c.zooms is None and np.abs(c.joints() - a.joints()).max() > 1.5
+    write_run(zoomed, {**run, "camera_motion": cm})
+    frames = json.loads(export_result(zoomed, "json", out=tmp_path / "m.json").read_text())["frames"]
+    assert frames[40]["camera_focal_px"] == pytest.approx([F * zooms[40]] * 2, rel=1e-6)
+    extras = read_skinned_glb(export_result(zoomed, "glb", out=tmp_path / "m.glb"))[0].scenes[0].extras
+    np.testing.assert_allclose(extras["camera_zooms"], zooms, atol=1e-6)
+    meta = ViewerData(zoomed).meta()
+    assert len(meta["gl_projections"]) == T and meta["gl_projections"][0] == pytest.approx(meta["gl_camera"]["projection"])
+    assert meta["gl_projections"][-1][0] == pytest.approx(meta["gl_camera"]["projection"][0] * zooms[-1])
+    assert ViewerData(still).meta()["gl_projections"] is None
+    write_run(zoomed, {**run, "camera_motion": {**cm, "zooms": cm["zooms"][:-1]}})
+    from flowmocap.errors import DataError
+
+    with pytest.raises(DataError, match="different number of frames and zooms"):
+        load_fitted_motion(zoomed, frame="ground")
+    from dataclasses import replace
+
+    from test_view import _chromium, _overlay_iou, _serving
+
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    write_run(zoomed, {**run, "camera_motion": cm})
+    data = ViewerData(zoomed)
+    unzoomed = replace(data.motion, zooms=None).camera_at(60)  # that frame's turn, the first focal length
+    for _, url in _serving(data):  # late in the zoom the page draws the body with that frame's focal length
+        own, first = _overlay_iou(data, url, 60, tmp_path, [data.motion.camera_at(60), unzoomed], min_share=0.01)
+        assert own > 0.85 and first < 0.7, (own, first)
 
 
 def replace_motion(m, poses, trans):
@@ -398,14 +516,15 @@ class PasserBy:
 
 def test_someone_walking_past_is_left_out_of_the_cameras_motion():
     """Someone else crossing the floor below the camera moves like the floor would under a
-    camera carried the other way: taken for background, the still camera is found to turn
-    (over 2 degrees) and move. With everyone else's pixels left out (the detector's
-    ``people``), it stands still."""
+    camera carried the other way: taken for background, the still camera is found to turn and
+    zoom (by 6 %; a camera that zooms is not searched for a move). With everyone else's pixels
+    left out (the detector's ``people``), it stands still."""
     scene = PasserBy(30)
     fooled = camera_motion(scene, CAM, masks=False)
-    assert fooled.moving and fooled.moving_sideways
+    assert fooled.moving and fooled.zooming
     still = camera_motion(scene, CAM, masks=False, others=scene.people)
-    assert not still.moving and not still.moving_sideways and still.turn_deg.max() < 0.1
+    assert not still.moving and not still.moving_sideways and not still.zooming and still.turn_deg.max() < 0.1
+    assert np.abs(still.zooms - 1).max() < 0.002
 
 
 def _carried_walk(still, carried):

@@ -507,12 +507,20 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                 f"{turned:.0f} degrees. The body is tracked in the moving camera's "
                 "frame; after tracking, the move is checked against the fitted body, and where the two agree, export "
                 "and view move each frame back into the world, scaled by the camera's height that the fitted feet "
-                "give (run.json 'camera_motion' holds the camera's turn and move per frame).")
+                "give (run.json 'camera_motion' holds the camera's turn and move per frame)." +
+                (f" The background fits a zoom as well (the focal length from {moved.zooms.min():.2f} to "
+                 f"{moved.zooms.max():.2f} times the first frame's), which a move forward can look like: where the move "
+                 "is not undone, the zoom is." if moved.zooming else ""))
         elif moved.moving:
             say(f"the camera turns (a pan or a tilt): up to {notes['camera_motion']['turn_deg_max']:.0f} degrees from "
                 "where it points in the first frame. The body is tracked in the turning camera's frame; export and "
                 "view turn each frame back into the world (run.json 'camera_motion' holds the camera's rotation per "
                 "frame).")
+        if moved.zooming and not moved.moving_sideways:
+            say(f"the camera zooms: its focal length goes from {moved.zooms.min():.2f} to {moved.zooms.max():.2f} times "
+                "the first frame's. The body is tracked with the first frame's, so it seems to move away as the camera "
+                "zooms out (nearer as it zooms in); export and view bring each frame's body back to the depth its "
+                "focal length gives (run.json 'camera_motion' 'zooms').")
     write_json(out / "input.json", notes)
     if joints3d == "off":
         j3d = None
@@ -1027,7 +1035,10 @@ def _camera_move_verdict(out: Path, run: dict, say) -> None:
 
     m = load_fitted_motion(out, frame="up")
     if m.shifts is None:
-        say(f"the camera's move is not undone: {m.camera_move_refused}.")
+        zoom = ("; its turn and zoom are undone instead (the camera's focal length goes from "
+                f"{m.zooms.min():.2f} to {m.zooms.max():.2f} times the first frame's)" if m.zooms is not None
+                else "; only its turn is undone")
+        say(f"the camera's move is not undone: {m.camera_move_refused}{zoom}.")
         return
     centres = -np.einsum("tji,tj->ti", m.turns, m.shifts)
     say(f"export and view undo the camera's move: it stands {m.camera_height_m:.2f} m above the floor (from the "

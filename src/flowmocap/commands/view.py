@@ -29,6 +29,7 @@ import json
 import mimetypes
 import tempfile
 import threading
+from dataclasses import replace
 from functools import partial
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -168,7 +169,8 @@ class ViewerData:
         (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground frame),
         ``camera`` (its ``to_dict``; the first frame's where the camera turned), ``gl_cameras``
         (None, or where the camera turned during the clip each page frame's camera's
-        ``matrix_world``), ``centre`` (mean pelvis of everyone, metres), ``floor``
+        ``matrix_world``), ``gl_projections`` (None, or where it zoomed each page frame's
+        camera's ``projection``), ``centre`` (mean pelvis of everyone, metres), ``floor``
         (how the floor was found), ``floor_of`` (the index of the person whose ground frame
         and floor these are), ``people`` (per person: ``name``, ``glb`` (its URL),
         ``colour`` (RGB 0..1, or None: the glb's own), ``rows`` (T: the person's result row
@@ -223,7 +225,7 @@ class ViewerData:
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
-                "gl_cameras": self._turned_cameras(),
+                "gl_cameras": self._turned_cameras(), "gl_projections": self._zoomed_projections(),
                 "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "floor_of": self.owner,
                 "people": people,
                 "contacts": people[0]["contacts"], "feet": people[0]["feet"], "path": people[0]["path"],
@@ -244,6 +246,17 @@ class ViewerData:
         shifts = (camera_shifts(m.run, self.frame_index) * m.camera_height_m if m.shifts is not None
                   else [None] * len(turns))
         return [gl_camera(turned_camera(m.camera, T, s))["matrix_world"] for T, s in zip(turns, shifts)]
+
+    def _zoomed_projections(self) -> list | None:
+        """Where the camera zoomed during the clip (:mod:`flowmocap.export.motion`): per page
+        frame, that frame's camera's OpenGL ``projection`` (:func:`gl_camera`); else None."""
+        from flowmocap.export.motion import camera_zooms
+
+        m = self.motion
+        if m.zooms is None:
+            return None
+        return [gl_camera(replace(m.camera, fx=m.camera.fx * z, fy=m.camera.fy * z))["projection"]
+                for z in camera_zooms(m.run, self.frame_index)]
 
     @staticmethod
     def _unseen(motion, frame_index) -> list[str]:

@@ -70,7 +70,8 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     null outside the 13 scored joints: how far the run's 3D sources part,
     :mod:`flowmocap.fit.disagreement`) and, where the camera turned during the clip (the
     motion turned back into the world, :mod:`flowmocap.export.motion`), "camera_R" (3x3) and
-    "camera_t" (3): that frame's camera; the top-level "camera" is then the first frame's}, ...]}``.
+    "camera_t" (3): that frame's camera; the top-level "camera" is then the first frame's; and
+    where it zoomed, "camera_focal_px" (fx, fy)}, ...]}``.
     """
     from flowmocap.body.skeleton import JOINT_NAMES, PARENTS
     from flowmocap.body.stature import stature
@@ -98,6 +99,9 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
             # where the camera turned, this frame's camera (the top-level one is the first frame's)
             **({"camera_R": r(motion.camera_at(k).R, 9), "camera_t": r(motion.camera_at(k).t, 9)}
                if motion.turns is not None else {}),
+            # where the camera zoomed, this frame's focal lengths (pixels)
+            **({"camera_focal_px": r([motion.camera_at(k).fx, motion.camera_at(k).fy], 4)}
+               if motion.zooms is not None else {}),
         }
 
     doc = {
@@ -128,8 +132,9 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
 def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
     """A :class:`FittedMotion` as a skinned, animated ``.glb``
     (:func:`flowmocap.export.gltf_skin.write_skinned_glb`); the scene's ``extras`` hold the
-    camera in the motion's frame, the frame's name, the input's frame numbers and, in the
-    ground frame, the floor and the per-frame foot contacts."""
+    camera in the motion's frame, the frame's name, the input's frame numbers, where the camera
+    turned, moved or zoomed its turns, moves and zooms per frame, and, in the ground frame,
+    the floor and the per-frame foot contacts."""
     import torch
 
     from flowmocap.export.gltf_skin import write_skinned_glb
@@ -145,6 +150,8 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
         if motion.shifts is not None:  # and moved: each frame's camera is "camera" turned, then moved by these (m)
             extras["camera_shifts_m"] = np.round(motion.shifts, 6).tolist()
             extras["camera_height_m"] = round(float(motion.camera_height_m), 4)
+        if motion.zooms is not None:  # and zoomed: each frame's focal length is "camera"'s times these
+            extras["camera_zooms"] = np.round(motion.zooms, 6).tolist()
     if motion.world is not None:
         extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
     if motion.foot_contacts is not None:

@@ -29,6 +29,15 @@ floor in units of the camera's height above it), that height in metres is taken 
 body's feet (:func:`camera_height_from_feet`) and each frame's body is moved back by the
 camera's move too (:attr:`FittedMotion.shifts`, :attr:`FittedMotion.camera_height_m`), so a
 person followed by a moving camera walks their path in the world instead of on the spot.
+
+Where the camera zoomed (``camera_motion``'s ``zooms``: each frame's focal length over the
+first frame's) and no move of it is undone, the tracker, which keeps the first frame's focal
+length, put a person further away as the camera zoomed out (nearer as it zoomed in). Each
+frame's body is then brought to the depth that frame's focal length gives (its depth times the
+zoom, :func:`zoomed_depth`) before it is turned back (:attr:`FittedMotion.zooms`), so its
+distance is the world's; :meth:`FittedMotion.camera_at` gives each row's camera its focal
+length, which projects the body onto that frame's pixels (its root exactly; the body's own
+size kept: a few pixels at its edges where a zoom is large).
 """
 
 from __future__ import annotations
@@ -43,7 +52,7 @@ from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
-           "camera_turns", "camera_shifts", "camera_height_from_feet", "camera_move_refused", "shared_move_refusal",
+           "camera_turns", "camera_shifts", "camera_zooms", "zoomed_depth", "camera_height_from_feet", "camera_move_refused", "shared_move_refusal",
            "turned_camera", "FLOOR_BODY_MAX_DEG"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
@@ -96,6 +105,10 @@ class FittedMotion:
             without them.
         camera_move_refused: where ``run.json`` holds a move of the camera that was not
             undone, why (:func:`camera_move_refused`); else None.
+        zooms: ``(T,)`` each row's focal length over the input's first frame's, where the
+            camera zoomed and the body was brought to the depth it gives (see the module
+            docstring); None where it did not, a move was undone instead, or the frame is
+            ``"world"``.
     """
 
     poses: np.ndarray
@@ -119,6 +132,7 @@ class FittedMotion:
     shifts: np.ndarray | None = None
     camera_height_m: float | None = None
     camera_move_refused: str | None = None
+    zooms: np.ndarray | None = None
 
     def __post_init__(self):
         if self.offset is None:
@@ -126,11 +140,15 @@ class FittedMotion:
 
     def camera_at(self, k: int):
         """The camera of row ``k`` in the export frame: :attr:`camera`, turned by
-        ``turns[k]`` (and moved by ``shifts[k]``) where the camera turned or moved (a
+        ``turns[k]`` (and moved by ``shifts[k]``) where the camera turned or moved, its focal
+        length scaled by ``zooms[k]`` where it zoomed (a
         :class:`~flowmocap.geometry.PinholeCamera`)."""
         if self.turns is None:
             return self.camera
-        return turned_camera(self.camera, self.turns[k], None if self.shifts is None else self.shifts[k])
+        cam = turned_camera(self.camera, self.turns[k], None if self.shifts is None else self.shifts[k])
+        if self.zooms is not None:
+            cam = replace(cam, fx=cam.fx * float(self.zooms[k]), fy=cam.fy * float(self.zooms[k]))
+        return cam
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """``(T, N, 2)`` pixels of ``points`` ``(T, N, 3)`` (metres, export frame), each row by
@@ -351,6 +369,10 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
             refused = None if height is not None else "the fitted feet are nowhere below the camera"
         if refused is None:
             shifts, turns = unit * height, floor_turns
+    zooms = camera_zooms(run, index) if frame != "world" and shifts is None else None
+    if zooms is not None:  # the tracker's one focal length put the body further as the camera zoomed out
+        R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+        trans = zoomed_depth(body, betas, trans, R, t, zooms)
     if turns is not None:  # each frame's body turned (and moved) back by the camera's since the first frame
         R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
         moved = t[None] if shifts is None else t[None] - shifts
@@ -387,7 +409,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
                       offset=offset, world=world, smoothed=smoothed,
                       disagreement=(np.asarray(motion["disagreement"], np.float64) if "disagreement" in motion
                                     else None), turns=turns, shifts=shifts, camera_height_m=height,
-                      camera_move_refused=refused)
+                      camera_move_refused=refused, zooms=zooms)
     if not np.allclose(W, np.eye(3)) or np.any(offset != 0):
         p, t = rotate_motion(poses, trans, fm.rest_joints()[0], W)
         fm.poses, fm.trans = p, t + offset
@@ -414,6 +436,42 @@ def _nearest_rows(frames: np.ndarray, frame_index) -> np.ndarray:
     prev = np.clip(idx - 1, 0, len(frames) - 1)
     nearer = np.abs(frames[prev] - frame_index) < np.abs(frames[idx] - frame_index)
     return np.where(nearer, prev, idx)
+
+
+def camera_zooms(run: dict, frame_index) -> np.ndarray | None:
+    """``(T,)`` the camera's focal length over the input's first frame's at each of
+    ``frame_index``, from ``run.json``'s ``camera_motion`` ``zooms``
+    (:mod:`flowmocap.vision.camera_motion`); None where the camera did not zoom. A frame the
+    estimate does not cover takes the nearest one's."""
+    cm = run.get("camera_motion") or {}
+    if not cm.get("moving") or not cm.get("zooms"):
+        return None
+    frames = np.asarray(cm["frames"], np.int64)
+    zooms = np.asarray(cm["zooms"], np.float64).reshape(-1)
+    if len(frames) != len(zooms) or not len(frames) or not np.all(zooms > 0):
+        raise DataError("run.json 'camera_motion' holds a different number of frames and zooms, or a zoom that is "
+                        "not positive; the result is damaged: track the input again with --force.")
+    return zooms[_nearest_rows(frames, frame_index)]
+
+
+def zoomed_depth(body, betas: np.ndarray, trans: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 zooms: np.ndarray) -> np.ndarray:
+    """``trans`` ``(T, 3)`` metres with each frame's body where a camera of focal length
+    ``zooms[k]`` times the tracked one's puts it: the root's depth (its camera ``z``,
+    ``x_cam = R x + t``) ``zooms[k]`` times the tracked one, its camera ``x`` and ``y`` kept.
+
+    A camera ``z`` times the focal length shows a body at depth ``d`` as large as one of the
+    first focal length shows it at ``d / z``, at the same pixel when its ``x`` and ``y`` are
+    the same; so a tracker that keeps the first focal length puts it at ``(x, y, d / z)``.
+    The body's size and pose are unchanged (the pixels off the root move by its depth's share
+    of the root's, a few pixels at the edges of a body where a zoom is large)."""
+    import torch
+
+    with torch.no_grad():
+        J0 = body(betas=torch.as_tensor(np.asarray(betas)[None], dtype=torch.float64)).rest_joints[0, 0].numpy()
+    root = (np.asarray(trans, np.float64) + J0) @ R.T + t  # the posed root, camera coordinates
+    root[:, 2] *= np.asarray(zooms, np.float64)
+    return (root - t) @ R - J0
 
 
 def camera_shifts(run: dict, frame_index) -> np.ndarray | None:
@@ -465,7 +523,7 @@ def camera_move_refused(body, poses: np.ndarray, trans: np.ndarray, betas: np.nd
     angle = float(np.degrees(np.arccos(np.clip(-up @ np.asarray(normal, np.float64), -1.0, 1.0))))
     if angle > FLOOR_BODY_MAX_DEG:
         return (f"the floor found in the images lies {angle:.0f} degrees from the body's upright direction "
-                f"(more than {FLOOR_BODY_MAX_DEG:.0f}): its move is not trusted, only the camera's turn is undone")
+                f"(more than {FLOOR_BODY_MAX_DEG:.0f}): its move is not trusted")
     return None
 
 
@@ -476,8 +534,7 @@ def _uncovered(run: dict, frame_index) -> str | None:
     beyond = int(np.max(frame_index))
     if beyond > last:
         return (f"the move was found up to frame {last} (the run of the person whose floor and frame are shared), "
-                f"and this person is tracked to frame {beyond}: it is undone for them only where they are tracked "
-                "alone")
+                f"and this person is tracked to frame {beyond}")
     return None
 
 

@@ -207,6 +207,10 @@ function draw() {
     cameraPyramid.matrix.copy(videoCam.matrixWorld).multiply(firstCamInverse);
     cameraPyramid.matrixWorldNeedsUpdate = true;
   }
+  if (meta.gl_projections) {  // the camera zoomed during the clip: this frame's focal length
+    videoCam.projectionMatrix.fromArray(meta.gl_projections[current]);
+    videoCam.projectionMatrixInverse.copy(videoCam.projectionMatrix).invert();
+  }
   const r = $('overlay-box').getBoundingClientRect();
   document.body.dataset.overlay = JSON.stringify([r.left, r.top, r.width, r.height]);
   const shown = [];

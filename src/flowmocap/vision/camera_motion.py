@@ -13,13 +13,27 @@ background (OpenCV's Shi-Tomasi corners and pyramidal Lucas-Kanade, the person's
 left out), fits ``H`` robustly (RANSAC) and takes the rotation nearest ``K^-1 H K``;
 :func:`camera_motion` finds each frame's turn against a keyframe, which moves on as the
 camera turns away from it (:data:`KEYFRAME_MAX_PX`): turns chained frame by frame drifted.
-Measured on the project's clips with the tracked person's masks left out
-(docs/experiments.md, "A camera carried along"): DAVIS dance-twirl turns up to 29.2 degrees
-from where it pointed in the first frame; the Sports2D walk (a camera on a stand, 230 frames)
-at most 0.08 degrees, and the four calibrated cameras of the real3d recording at most
-0.01-0.05 (100 frames, either person's masks; chained, up to 2.24 with the second person's,
-the first walking through the background): the estimate's drift. :data:`MOVING_DEG` lies
-between.
+Measured on the project's clips with everyone the detector sees left out, each turn fitted
+with the zoom (below; docs/experiments.md, "A camera that zooms"): DAVIS dance-twirl turns up
+to 37.7 degrees from where it pointed in the first frame (29.2 with the turn alone, which took
+some of its zoom for a turn); the Sports2D walk (a camera on a stand, 230 frames) at most 0.02
+degrees (0.08 with the turn alone), and the four calibrated cameras of the real3d recording at
+most 0.00-0.01 (100 frames; 0.01-0.04 with the turn alone; chained frame by frame, up to 2.24
+with the first person walking through the background): the estimate's drift.
+:data:`MOVING_DEG` lies between.
+
+A camera that zooms scales the image about its centre as well: ``H = K Z R K^-1``, ``Z =
+diag(z, z, 1)`` with ``z`` its focal length over the first frame's. Each pair's turn and zoom
+are fitted together (:func:`frame_turn_zoom`): the still cameras of the project's clips come
+out at 0.999-1.000, DAVIS dance-twirl zooms out to 0.62 of its first focal length over its
+90 frames (the turn alone left its background corners 2.8 px off, the median over its frames;
+turn and zoom 1.0 px). A tracker that
+keeps one focal length sees a person shrink as the camera zooms out and puts them further
+away; the export frames bring each frame's body back to the depth its focal length gives
+(:mod:`flowmocap.export.motion`), where no move of the camera is undone. Over one frame a
+camera carried forward over a floor looks much like one that zooms in (the synthetic dolly
+shots below come out "zooming" by 0.94-1.33): a move the floor shows and the body agrees with
+is undone instead of the zoom, and the zoom where it is not.
 
 A camera that also moves (carried along, on a dolly or a vehicle) moves the points of the
 floor by the homography a plane induces, ``H = K (R + tau n^T) K^-1``, where ``n`` is the
@@ -48,12 +62,16 @@ import numpy as np
 
 from flowmocap.errors import InputError
 
-__all__ = ["CameraMotion", "frame_rotation", "camera_motion", "floor_motion", "floor_region", "MOVING_DEG",
-           "SIDEWAYS_SHARE"]
+__all__ = ["CameraMotion", "frame_rotation", "frame_turn_zoom", "camera_motion", "floor_motion", "floor_region",
+           "MOVING_DEG", "ZOOMING", "SIDEWAYS_SHARE"]
 
 #: A camera whose direction lies more than this many degrees from its first frame's in some
 #: frame is said to move (the estimate's drift on the project's still cameras: at most 0.5 degrees).
 MOVING_DEG = 2.0
+
+#: A camera whose focal length lies more than this share above or below its first frame's in
+#: some frame is said to zoom (the still cameras of the project's clips: within 0.1 %).
+ZOOMING = 0.02
 
 #: A corner counts when, tracked to the next frame and back, it lands within this many pixels
 #: of where it started (a corner lost, e.g. into a cut to another shot or a grey frame, does not).
@@ -124,6 +142,8 @@ class CameraMotion:
         move_share: where some frame pair's floor showed a move, the share of the cost a turn
             alone leaves on the floor's corners that the move leaves (:data:`MOVE_EVIDENCE`);
             NaN where none did.
+        zooms: ``(T,)`` each frame's focal length over the first frame's (1 where the camera
+            does not zoom; below 1 where it zooms out), or None where not found.
     """
 
     frames: np.ndarray
@@ -137,6 +157,13 @@ class CameraMotion:
     sideways: float = float("nan")
     floor_unknown: list | None = None
     move_share: float = float("nan")
+    zooms: np.ndarray | None = None
+
+    @property
+    def zooming(self) -> bool:
+        """Whether the focal length moved by more than :data:`ZOOMING` of the first frame's."""
+        return bool(self.zooms is not None and len(self.zooms)
+                    and np.nanmax(np.abs(np.log(self.zooms))) > np.log1p(ZOOMING))
 
     @property
     def turning(self) -> bool:
@@ -151,8 +178,9 @@ class CameraMotion:
 
     @property
     def moving(self) -> bool:
-        """Whether the camera turned (:attr:`turning`) or moved sideways (:attr:`moving_sideways`)."""
-        return self.turning or self.moving_sideways
+        """Whether the camera turned (:attr:`turning`), zoomed (:attr:`zooming`) or moved
+        sideways (:attr:`moving_sideways`)."""
+        return self.turning or self.zooming or self.moving_sideways
 
     def centres(self) -> np.ndarray | None:
         """``(T, 3)`` the camera's centre in each frame in the first frame's camera axes, in
@@ -164,10 +192,11 @@ class CameraMotion:
     def to_dict(self, rotations: bool = False) -> dict:
         """A JSON summary: ``moving``, ``turn_deg_max``, ``turn_deg_end``, ``residual_px``,
         ``unknown_frames``, ``sideways_max`` (units of the camera's height above the floor, or
-        None), ``move_share`` (or None) and ``moving_sideways``; with ``rotations``, also
-        ``rotvecs`` (T x 3 radians, the first frame's camera axes) and ``frames``, and where
-        the camera moved sideways ``shifts`` (T x 3), ``floor_rotvecs`` (T x 3),
-        ``floor_normal`` (3) and ``floor_unknown_frames``."""
+        None), ``move_share`` (or None), ``moving_sideways``, ``zooming`` and ``zoom_min`` /
+        ``zoom_max`` (the focal length over the first frame's); with ``rotations``, also
+        ``rotvecs`` (T x 3 radians, the first frame's camera axes) and ``frames``, where the
+        camera zoomed ``zooms`` (T), and where it moved sideways ``shifts`` (T x 3),
+        ``floor_rotvecs`` (T x 3), ``floor_normal`` (3) and ``floor_unknown_frames``."""
         from scipy.spatial.transform import Rotation
 
         doc = {"moving": self.moving, "turn_deg_max": round(float(np.nanmax(self.turn_deg, initial=0.0)), 2),
@@ -175,10 +204,14 @@ class CameraMotion:
                "residual_px": round(float(self.residual_px), 2), "unknown_frames": len(self.unknown),
                "sideways_max": None if not np.isfinite(self.sideways) else round(float(self.sideways), 3),
                "move_share": None if not np.isfinite(self.move_share) else round(float(self.move_share), 3),
-               "moving_sideways": self.moving_sideways}
+               "moving_sideways": self.moving_sideways, "zooming": self.zooming}
+        if self.zooms is not None and len(self.zooms):
+            doc["zoom_min"], doc["zoom_max"] = round(float(np.min(self.zooms)), 4), round(float(np.max(self.zooms)), 4)
         if rotations:
             doc["frames"] = [int(f) for f in self.frames]
             doc["rotvecs"] = np.round(Rotation.from_matrix(self.rotations).as_rotvec(), 6).tolist()
+            if self.zooming:
+                doc["zooms"] = np.round(self.zooms, 6).tolist()
             if self.shifts is not None:
                 doc["shifts"] = np.round(self.shifts, 6).tolist()
                 doc["floor_rotvecs"] = np.round(Rotation.from_matrix(self.floor_rotations).as_rotvec(), 6).tolist()
@@ -260,6 +293,74 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
         return None
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))
+
+
+def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np.ndarray | None = None,
+                    max_corners: int = 400, min_points: int = 20) -> tuple[np.ndarray, float, float] | None:
+    """The camera's turn and zoom from one frame to the next, from the background.
+
+    The background's corners (as :func:`frame_rotation`) fitted through ``K Z R K^-1``,
+    ``Z = diag(z, z, 1)``: a turn ``R`` and the focal length scaled by ``z`` (robust least
+    squares on the corners that agree with the pair's homography, from the rotation nearest
+    that homography and the zoom its rows give).
+
+    Args:
+        prev, cur, K, exclude, max_corners, min_points: as :func:`frame_rotation` (``K`` the
+            intrinsics of ``prev``).
+
+    Returns:
+        ``(R, z, residual_px)``: ``x_cur = R x_prev`` for directions in the camera axes,
+        ``cur``'s focal length over ``prev``'s, and the median distance (pixels) of the tracked
+        background points from where the two put them; None as for :func:`frame_rotation`
+        (and where the zoom is more than a third either way: a cut).
+
+    Raises:
+        InputError: frames of different sizes or not RGB.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    got = _homography(prev, cur, exclude, max_corners, min_points, "frame_turn_zoom")
+    if got is None:
+        return None
+    a, b, H, agree = got
+    M = np.linalg.inv(K) @ H @ K
+    d = np.linalg.det(M)
+    if not np.isfinite(d) or abs(d) < 1e-12:
+        return None
+    M = M / np.cbrt(d)
+    z0 = float(np.linalg.norm(M[:2], axis=1).mean() / max(np.linalg.norm(M[2]), 1e-12))
+    if not 0.67 < z0 < 1.5:
+        return None
+    U, _, Vt = np.linalg.svd(np.diag([1.0 / z0, 1.0 / z0, 1.0]) @ M)
+    R0 = U @ Vt
+    if np.linalg.det(R0) < 0:
+        return None
+    rays = _rays(K, a)
+    f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
+
+    def moved(x, rays):
+        p = rays @ Rotation.from_rotvec(x[:3]).as_matrix().T
+        return p[:, :2] / p[:, 2:3] * np.exp(x[3]) * f + c
+
+    fit = least_squares(lambda x: (moved(x, rays[agree]) - b[agree]).ravel(),
+                        np.r_[Rotation.from_matrix(R0).as_rotvec(), np.log(z0)], loss="soft_l1", f_scale=1.0,
+                        x_scale=0.01)
+    R, z = Rotation.from_rotvec(fit.x[:3]).as_matrix(), float(np.exp(fit.x[3]))
+    if np.degrees(np.linalg.norm(fit.x[:3])) > MAX_STEP_DEG or not 0.75 < z < 1.33:
+        return None
+    return R, z, float(np.median(np.linalg.norm(moved(fit.x, rays) - b, axis=1)))
+
+
+def _zoomed(K: np.ndarray, z: float) -> np.ndarray:
+    """``K`` with its focal lengths scaled by ``z`` (the principal point kept)."""
+    return np.array([[K[0, 0] * z, K[0, 1] * z, K[0, 2]], [0.0, K[1, 1] * z, K[1, 2]], [0.0, 0.0, 1.0]])
+
+
+def _step_px(R: np.ndarray, z: float, K: np.ndarray) -> float:
+    """How far a turn ``R`` and zoom ``z`` move the image's centre, or its corners by the
+    zoom alone, pixels (whichever is more)."""
+    return max(_turn_px(R, K), abs(z - 1.0) * float(np.hypot(K[0, 2], K[1, 2])))
 
 
 def _turn_px(R: np.ndarray, K: np.ndarray) -> float:
@@ -467,8 +568,9 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
             and the floor like a camera would.
 
     Returns:
-        :class:`CameraMotion` (the first frame's rotation the identity; ``shifts`` where the
-        camera moved more than :data:`SIDEWAYS_SHARE` of its height above the floor).
+        :class:`CameraMotion` (the first frame's rotation the identity and zoom 1; each frame's
+        turn and zoom fitted together, :func:`frame_turn_zoom`; ``shifts`` where the camera
+        moved more than :data:`SIDEWAYS_SHARE` of its height above the floor).
     """
     import cv2
     from tqdm import tqdm
@@ -491,27 +593,32 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
 
     prev = seq.frame(frames[0]).copy() if len(frames) else None
     m, exclude = person(frames[0]) if len(frames) else (None, None)
-    key = (prev, exclude, np.eye(3), 0)  # the keyframe: image, pixels left out, turn, its row
+    zs = [1.0]
+    key = (prev, exclude, np.eye(3), 0, 1.0)  # the keyframe: image, pixels left out, turn, its row, zoom
     for row, i in enumerate(tqdm(frames[1:], disable=not progress, unit="frame", desc="camera motion"), start=1):
         cur = seq.frame(i).copy()
         # against the keyframe first: a turn chained frame by frame drifts (a person walking
         # through the background bends each step a little), one from the keyframe does not
-        got = frame_rotation(key[0], cur, K, key[1])
+        Kk = _zoomed(K, key[4])  # the keyframe's own intrinsics
+        got = frame_turn_zoom(key[0], cur, Kk, key[1])
         new_m, new_exclude = person(i)
         if got is not None:
             Rs.append(got[0] @ key[2])
-            residuals.append(got[1])
-            if _turn_px(got[0], K) > KEYFRAME_MAX_PX:
-                key = (cur, new_exclude, Rs[-1], row)
+            zs.append(got[1] * key[4])
+            residuals.append(got[2])
+            if _step_px(got[0], got[1], Kk) > KEYFRAME_MAX_PX:
+                key = (cur, new_exclude, Rs[-1], row, zs[-1])
         else:
-            got = frame_rotation(prev, cur, K, exclude) if key[3] != row - 1 else None
+            got = frame_turn_zoom(prev, cur, _zoomed(K, zs[-1]), exclude) if key[3] != row - 1 else None
             if got is None:  # a cut, a blank frame: held (the keyframe stays)
                 unknown.append(int(i))
                 Rs.append(Rs[-1])
+                zs.append(zs[-1])
             else:
                 Rs.append(got[0] @ Rs[-1])
-                residuals.append(got[1])
-                key = (cur, new_exclude, Rs[-1], row)
+                zs.append(got[1] * zs[-1])
+                residuals.append(got[2])
+                key = (cur, new_exclude, Rs[-1], row, zs[-1])
         if sideways:
             region = floor_region(prev.shape, m if masks else None)
             if exclude is not None:
@@ -522,6 +629,7 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
             pairs.append(None if floor is None else (floor[0][floor[3]], floor[1][floor[3]], floor[2]))
         prev, m, exclude = cur, new_m, new_exclude
     R = np.asarray(Rs, np.float64)
+    zooms = np.asarray(zs, np.float64)
     fl = floor_motion(pairs, K, R) if sideways and len(pairs) else None
     shifts = normal = floor_R = None
     far = float("nan")
@@ -536,4 +644,4 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
     return CameraMotion(np.asarray(list(frames), np.int64), R, turn,
                         float(np.median(residuals)) if residuals else float("nan"), unknown,
                         shifts=shifts, floor_rotations=floor_R, floor_normal=normal, sideways=far,
-                        floor_unknown=floor_unknown, move_share=share)
+                        floor_unknown=floor_unknown, move_share=share, zooms=zooms)
