@@ -116,9 +116,10 @@ def tracked(result: Path) -> dict:
             zoom = "" if m.zooms is None else f"zoom undone ({m.zooms.min():.2f}-{m.zooms.max():.2f})"
             if not got.moving_sideways:
                 row["export"] = zoom
+            elif m.shifts is None:
+                row["export"] = "refused: " + m.camera_move_refused + (f"; {zoom}" if zoom else "")
             else:
-                row["export"] = ("refused: " + m.camera_move_refused + (f"; {zoom}" if zoom else "")
-                                 if m.shifts is None else f"undone: the camera {m.camera_height_m:.2f} m above the floor")
+                row["export"] = f"undone: the camera {m.camera_height_m:.2f} m above the floor"
     print(f"{result}: {row}", flush=True)
     return row
 

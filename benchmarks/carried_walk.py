@@ -16,8 +16,10 @@ with the truth:
   (m/s; 0 for a walk whose standing foot stays put);
 - the camera's move found (``run.json``'s ``camera_motion``) and whether the export undid it.
 
-Each of the fitted results is read three ways: as exported (the move undone where found and
-believed), with only the camera's turn undone, and in the camera's own frame.
+Each of the fitted results is read four ways: as exported (the move undone where found and
+believed), with only the camera's turn undone, with its turn and zoom undone (what a refused
+move leaves: a camera carried forward also fits a zoom, :mod:`flowmocap.vision.camera_motion`),
+and in the camera's own frame.
 
 Usage::
 
@@ -144,12 +146,15 @@ def main(argv=None) -> int:
                "sideways_h": cm.get("sideways_max"), "move_share": cm.get("move_share"),
                "camera_height_m": exported.camera_height_m, "refused": exported.camera_move_refused,
                "as exported": measures(exported, truth)}
-        if cm.get("moving_sideways"):  # the same result with the turn alone undone
-            copy = d / "turn_only"
-            copy.mkdir()
-            shutil.copy(res / "motion.npz", copy / "motion.npz")
-            (copy / "run.json").write_text(json.dumps({**run, "camera_motion": {**cm, "shifts": None}}))
-            row["turn alone"] = measures(load_fitted_motion(copy, frame="ground", cache_world=False), truth)
+        if cm.get("moving_sideways"):  # the same result with the turn alone undone, and with the turn and zoom
+            for read, given in (("turn alone", {"shifts": None, "zooms": None}), ("turn and zoom", {"shifts": None})):
+                if read == "turn and zoom" and not cm.get("zooms"):
+                    continue
+                copy = d / read.replace(" ", "_")
+                copy.mkdir()
+                shutil.copy(res / "motion.npz", copy / "motion.npz")
+                (copy / "run.json").write_text(json.dumps({**run, "camera_motion": {**cm, **given}}))
+                row[read] = measures(load_fitted_motion(copy, frame="ground", cache_world=False), truth)
         nocam = d / "camera_frame"
         nocam.mkdir()
         shutil.copy(res / "motion.npz", nocam / "motion.npz")
@@ -163,7 +168,7 @@ def main(argv=None) -> int:
     for r in rows:
         found = (f"yes ({r['sideways_h']:.2f}; {r['move_share']:.3f})" if r["moving_sideways"] else
                  f"no ({'' if r['move_share'] is None else round(r['move_share'], 3)})")
-        for read in ("as exported", "turn alone", "camera's frame"):
+        for read in ("as exported", "turn alone", "turn and zoom", "camera's frame"):
             if read not in r:
                 continue
             s = r[read]

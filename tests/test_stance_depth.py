@@ -55,6 +55,32 @@ def test_stance_depth_shift_makes_a_planted_foot_keep_its_depth():
     np.testing.assert_allclose(smooth[:, 2], want, atol=1e-9)  # world = camera axes: z is the depth
 
 
+def test_a_planted_foot_seen_by_a_zooming_camera_keeps_the_worlds_depth():
+    """The planted foot of a still body seen by a camera zooming out from 1 to 0.9 of its focal
+    length: a tracker that keeps the first focal length puts every frame at its depth / zoom, so
+    the foot's tracked depth grows. With the zooms the correction keeps the foot's depth times
+    the zoom (the world's, flowmocap.export.motion.zoomed_depth) where it is; without them it
+    would hold the tracked depth and move the foot 11 % in the world."""
+    FOOT_JOINTS, stance_depth_shift = SD.FOOT_JOINTS, SD.stance_depth_shift
+
+    cam, _, _, true, _ = _planted(wobble=np.zeros(40))
+    left = FOOT_JOINTS[0]
+    zooms = np.linspace(1.0, 0.9, 40)
+    J = true.copy()
+    J[:, :, 2] /= zooms[:, None]  # where the tracker puts it
+    j2d = np.asarray(cam.project(J.reshape(-1, 3))).reshape(40, 24, 2)
+    shift, stance = stance_depth_shift(J, j2d, cam.R, cam.t, 60.0, speed=0.3, min_s=0.1, window_s=0.0, share=1.0,
+                                       zooms=zooms)
+    assert stance.all()
+    world = (J[:, left, 2] + shift[:, 2]) * zooms
+    np.testing.assert_allclose(world, np.median(true[:, left, 2]), atol=0.02)  # the foot's depth, 4.1 m: kept
+    assert np.ptp(world) < 0.01
+    blind, _ = stance_depth_shift(J, j2d, cam.R, cam.t, 60.0, speed=0.3, min_s=0.1, window_s=0.0, share=1.0)
+    assert np.ptp((J[:, left, 2] + blind[:, 2]) * zooms) > 0.4  # the tracked depth held: 11 % of it in the world
+    with pytest.raises(InputError, match="zooms must be"):
+        stance_depth_shift(J, j2d, cam.R, cam.t, 60.0, zooms=zooms[:-1])
+
+
 def test_stance_depth_shift_leaves_moving_feet_short_stances_and_other_runs_alone():
     FOOT_JOINTS, stance_depth_shift = SD.FOOT_JOINTS, SD.stance_depth_shift
 

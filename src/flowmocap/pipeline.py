@@ -1225,11 +1225,16 @@ def _stance_depth(out: Path, cfg: TrackerConfig, run: dict, say) -> dict:
     its depth (:func:`~flowmocap.fit.smooth.stance_depth_motion`, ``cfg.stance_depth_*``,
     starting again at every re-initialisation), written atomically; ``run.json`` records
     it under ``stance_depth``. Returns the run info."""
+    from flowmocap.export.motion import camera_zooms
     from flowmocap.fit.smooth import stance_depth_motion
+
+    def zooms(motion):  # where the camera zooms (and no move can be undone instead): the world's depth
+        cm = run.get("camera_motion") or {}
+        return None if cm.get("moving_sideways") else camera_zooms(run, motion["frame_index"])
 
     return _post_step(out, run, "stance_depth", lambda motion: stance_depth_motion(
         motion, cfg.stance_depth_share, speed=cfg.stance_speed, min_s=cfg.stance_min_s,
-        window_s=cfg.stance_window_s, breaks=_reinit_frames(run)), say,
+        window_s=cfg.stance_window_s, breaks=_reinit_frames(run), zooms=zooms(motion)), say,
         lambda info: f"a foot standing still kept its depth in {info['frames_in_stance']} frames: the body moved "
                      f"{info['mean_shift_mm']:.0f} mm along the camera ray on average")
 

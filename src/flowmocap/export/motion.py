@@ -52,8 +52,8 @@ from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
 __all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
-           "camera_turns", "camera_shifts", "camera_zooms", "zoomed_depth", "camera_height_from_feet", "camera_move_refused", "shared_move_refusal",
-           "turned_camera", "FLOOR_BODY_MAX_DEG"]
+           "camera_turns", "camera_shifts", "camera_zooms", "zoomed_depth", "camera_height_from_feet",
+           "camera_move_refused", "shared_move_refusal", "turned_camera", "FLOOR_BODY_MAX_DEG"]
 
 #: Export frames: ``"ground"`` (y up, floor at 0), ``"up"`` (y up; see :func:`up_rotation`) or
 #: ``"world"`` (the result's own).

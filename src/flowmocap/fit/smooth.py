@@ -702,7 +702,8 @@ FOOT_JOINTS = (10, 11)
 
 def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray,
                        fps: float, speed: float = 0.12, min_s: float = 0.2, window_s: float = 0.25,
-                       share: float = 0.5, frame_index=None, breaks=()) -> tuple[np.ndarray, np.ndarray]:
+                       share: float = 0.5, frame_index=None, breaks=(),
+                       zooms: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """How far to move the body in each frame, along the camera ray through its root, so
     that a foot standing still in the image also stands still in depth.
 
@@ -728,6 +729,10 @@ def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.nd
             seconds. share: the part of the correction applied, in [0, 1].
         frame_index: ``(T,)`` input frame numbers, or None (consecutive).
         breaks: input frame numbers that start a new run (re-initialisations).
+        zooms: ``(T,)`` each frame's focal length over the tracked one's, where the camera
+            zoomed (:mod:`flowmocap.vision.camera_motion`), or None: a tracked depth ``d``
+            is then ``zooms * d`` in the world (:func:`flowmocap.export.motion.zoomed_depth`),
+            and a planted foot keeps that depth, not the tracked one.
 
     Returns:
         ``(shift (T, 3), stance (T,) bool)``: the world shift (metres) to add to the
@@ -745,6 +750,9 @@ def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.nd
     t = np.asarray(camera_t, np.float64).reshape(3)
     T = J.shape[0]
     cam = J @ R.T + t
+    zoom = np.ones(T) if zooms is None else np.asarray(zooms, np.float64).reshape(-1)
+    if zoom.shape != (T,) or not np.all(zoom > 0):
+        raise InputError(f"zooms must be ({T},) positive ratios; got {zoom.shape}.")
     shift = np.zeros((T, 3))
     stance = np.zeros(T, bool)
     ok = np.isfinite(cam).all((1, 2)) & np.isfinite(P).all((1, 2)) & (cam[:, :, 2] > 0).all(1)
@@ -764,8 +772,9 @@ def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.nd
             for s0, s1 in _runs(None, n, v < speed):
                 if s1 - s0 < need:
                     continue
-                z = cam[a + s0:a + s1, f, 2]
-                total[s0:s1] += np.median(z) - z
+                zw = zoom[a + s0:a + s1]
+                z = cam[a + s0:a + s1, f, 2] * zw  # the world's depth where the camera zoomed
+                total[s0:s1] += (np.median(z) - z) / zw
                 count[s0:s1] += 1
         have = count > 0
         if not have.any():
@@ -784,7 +793,7 @@ def stance_depth_shift(joints: np.ndarray, joints2d: np.ndarray, camera_R: np.nd
 
 
 def stance_depth_motion(motion: dict, share: float, speed: float = 0.12, min_s: float = 0.2,
-                        window_s: float = 0.25, breaks=()) -> tuple[dict, dict]:
+                        window_s: float = 0.25, breaks=(), zooms: np.ndarray | None = None) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays moved by :func:`stance_depth_shift`: ``trans`` and
     ``joints3d`` shifted, ``joints2d`` projected again with the result's camera; the
     poses are unchanged. ``share`` 0 returns the arrays unchanged.
@@ -796,6 +805,7 @@ def stance_depth_motion(motion: dict, share: float, speed: float = 0.12, min_s: 
         share, speed, min_s, window_s: as :func:`stance_depth_shift` (the defaults of
             ``TrackerConfig``'s ``stance_depth_*`` settings).
         breaks: input frame numbers where the depth may jump (re-initialisations).
+        zooms: ``(T,)`` or None, as :func:`stance_depth_shift`.
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_in_stance``, ``mean_shift_mm``
@@ -812,7 +822,7 @@ def stance_depth_motion(motion: dict, share: float, speed: float = 0.12, min_s: 
     shift, stance = stance_depth_shift(joints, np.asarray(motion["joints2d"], np.float64), camera.R, camera.t,
                                        float(np.asarray(motion["fps"])), speed=speed, min_s=min_s,
                                        window_s=window_s, share=share, frame_index=motion.get("frame_index"),
-                                       breaks=breaks)
+                                       breaks=breaks, zooms=zooms)
     out = dict(motion)
     trans = np.asarray(motion["trans"])
     out["trans"] = (trans + shift).astype(trans.dtype)
