@@ -1224,13 +1224,16 @@ def _stance_depth(out: Path, cfg: TrackerConfig, run: dict, say) -> dict:
     """The finished ``motion.npz`` moved so that a foot standing still in the image keeps
     its depth (:func:`~flowmocap.fit.smooth.stance_depth_motion`, ``cfg.stance_depth_*``,
     starting again at every re-initialisation), written atomically; ``run.json`` records
-    it under ``stance_depth``. Returns the run info."""
-    from flowmocap.export.motion import camera_zooms
+    it under ``stance_depth``. Where the export frames will undo the camera's zoom
+    (:mod:`flowmocap.export.motion`), the depth kept is the world's. Returns the run info."""
     from flowmocap.fit.smooth import stance_depth_motion
 
-    def zooms(motion):  # where the camera zooms (and no move can be undone instead): the world's depth
-        cm = run.get("camera_motion") or {}
-        return None if cm.get("moving_sideways") else camera_zooms(run, motion["frame_index"])
+    def zooms(motion):  # where the export frames undo the camera's zoom (no move undone instead): the world's depth
+        if not (run.get("camera_motion") or {}).get("zooming"):
+            return None
+        from flowmocap.export.motion import load_fitted_motion
+
+        return load_fitted_motion(out, frame="up", cache_world=False).zooms  # the rows of this motion.npz
 
     return _post_step(out, run, "stance_depth", lambda motion: stance_depth_motion(
         motion, cfg.stance_depth_share, speed=cfg.stance_speed, min_s=cfg.stance_min_s,
