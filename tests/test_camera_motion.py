@@ -290,14 +290,23 @@ def test_a_result_of_a_turning_camera_is_turned_back_into_the_world(tmp_path):
     assert len(meta["gl_cameras"]) == m.num_frames
     np.testing.assert_allclose(meta["gl_cameras"][0], gl_camera(b.camera)["matrix_world"], atol=1e-6)
     assert ViewerData(still).meta()["gl_cameras"] is None
+    # late in the pan the page draws the body where that frame's camera sees it
+    own, first = _page_overlay(data, 40, [data.motion.camera_at(40), data.motion.camera], tmp_path)
+    assert own > 0.85 and first < 0.5, (own, first)
+
+
+def _page_overlay(data, k: int, cameras, tmp_path) -> list[float]:
+    """The viewer's overlay of page frame ``k`` in headless Chromium against the body seen by
+    each of ``cameras`` (``test_view._overlay_iou``; a small body, 100 px tall in 320 x 240);
+    skipped where Chromium is not installed."""
     from test_view import _chromium, _overlay_iou, _serving
 
     if _chromium() is None:
         pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
-    for _, url in _serving(data):  # late in the pan the page draws the body where that frame's camera sees it
-        own, first = _overlay_iou(data, url, 40, tmp_path, [data.motion.camera_at(40), data.motion.camera],
-                                  min_share=0.01)  # a small body: 100 px tall in 320 x 240
-        assert own > 0.85 and first < 0.5, (own, first)
+    out = None
+    for _, url in _serving(data):  # served while the loop runs, shut down after it
+        out = _overlay_iou(data, url, k, tmp_path, cameras, min_share=0.01)
+    return out
 
 
 def test_a_result_of_a_zooming_camera_is_brought_back_to_its_depth(tmp_path):
@@ -361,16 +370,12 @@ def test_a_result_of_a_zooming_camera_is_brought_back_to_its_depth(tmp_path):
         load_fitted_motion(zoomed, frame="ground")
     from dataclasses import replace
 
-    from test_view import _chromium, _overlay_iou, _serving
-
-    if _chromium() is None:
-        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
     write_run(zoomed, {**run, "camera_motion": cm})
     data = ViewerData(zoomed)
     unzoomed = replace(data.motion, zooms=None).camera_at(60)  # that frame's turn, the first focal length
-    for _, url in _serving(data):  # late in the zoom the page draws the body with that frame's focal length
-        own, first = _overlay_iou(data, url, 60, tmp_path, [data.motion.camera_at(60), unzoomed], min_share=0.01)
-        assert own > 0.85 and first < 0.7, (own, first)
+    # late in the zoom the page draws the body with that frame's focal length
+    own, first = _page_overlay(data, 60, [data.motion.camera_at(60), unzoomed], tmp_path)
+    assert own > 0.85 and first < 0.7, (own, first)
 
 
 def replace_motion(m, poses, trans):
@@ -629,16 +634,11 @@ def test_a_result_of_a_carried_camera_is_moved_back_into_the_world(tmp_path):
 
     with pytest.raises(DataError, match="different number of frames and moves, or no floor normal or turns"):
         load_fitted_motion(carried, frame="ground")
-    from test_view import _chromium, _overlay_iou, _serving
-
-    if _chromium() is None:
-        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
     write_run(carried, {**run, "camera_motion": cm})
     data = ViewerData(carried)
-    for _, url in _serving(data):  # late in the move the page draws the body where that frame's camera sees it
-        own, first = _overlay_iou(data, url, 60, tmp_path, [data.motion.camera_at(60), data.motion.camera],
-                                  min_share=0.01)
-        assert own > 0.85 and first < 0.5, (own, first)
+    # late in the move the page draws the body where that frame's camera sees it
+    own, first = _page_overlay(data, 60, [data.motion.camera_at(60), data.motion.camera], tmp_path)
+    assert own > 0.85 and first < 0.5, (own, first)
 
 
 def test_the_people_of_a_carried_camera_have_its_move_undone_alike(tmp_path):

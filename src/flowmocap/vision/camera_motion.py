@@ -255,6 +255,21 @@ def _homography(prev: np.ndarray, cur: np.ndarray, exclude: np.ndarray | None, m
     return a, b, H, inliers[:, 0].astype(bool)
 
 
+def _calibrated_homography(prev, cur, K: np.ndarray, exclude, max_corners: int, min_points: int, who: str):
+    """:func:`_homography` of the background between two frames, in the camera's normalised
+    coordinates: ``(a, b, agree, M)`` with ``M = K^-1 H K`` scaled to determinant 1; None
+    where :func:`_homography` gives none or ``M`` is singular."""
+    got = _homography(prev, cur, exclude, max_corners, min_points, who)
+    if got is None:
+        return None
+    a, b, H, agree = got
+    M = np.linalg.inv(K) @ H @ K
+    d = np.linalg.det(M)
+    if not np.isfinite(d) or abs(d) < 1e-12:
+        return None
+    return a, b, agree, M / np.cbrt(d)
+
+
 def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np.ndarray | None = None,
                    max_corners: int = 400, min_points: int = 20) -> tuple[np.ndarray, float] | None:
     """The camera's turn from one frame to the next, from the background.
@@ -277,15 +292,11 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     """
     import cv2
 
-    got = _homography(prev, cur, exclude, max_corners, min_points, "frame_rotation")
+    got = _calibrated_homography(prev, cur, K, exclude, max_corners, min_points, "frame_rotation")
     if got is None:
         return None
-    a, b, H, _ = got
-    M = np.linalg.inv(K) @ H @ K
-    d = np.linalg.det(M)
-    if not np.isfinite(d) or abs(d) < 1e-12:
-        return None
-    U, _, Vt = np.linalg.svd(M / np.cbrt(d))
+    a, b, _, M = got
+    U, _, Vt = np.linalg.svd(M)
     R = U @ Vt
     if np.linalg.det(R) < 0:
         return None
@@ -320,15 +331,10 @@ def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: n
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
-    got = _homography(prev, cur, exclude, max_corners, min_points, "frame_turn_zoom")
+    got = _calibrated_homography(prev, cur, K, exclude, max_corners, min_points, "frame_turn_zoom")
     if got is None:
         return None
-    a, b, H, agree = got
-    M = np.linalg.inv(K) @ H @ K
-    d = np.linalg.det(M)
-    if not np.isfinite(d) or abs(d) < 1e-12:
-        return None
-    M = M / np.cbrt(d)
+    a, b, agree, M = got
     z0 = float(np.linalg.norm(M[:2], axis=1).mean() / max(np.linalg.norm(M[2]), 1e-12))
     if not 0.67 < z0 < 1.5:
         return None
