@@ -86,6 +86,7 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     contacts = motion.foot_contacts
 
     def frame(k):
+        cam = motion.camera_at(k) if motion.turns is not None else None  # this frame's camera, built once
         return {
             "index": int(motion.frame_index[k]),
             "time_s": round(float(k / motion.fps), 6),
@@ -97,11 +98,9 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
             **({"disagreement": [None if not np.isfinite(v) else round(float(v), 4) for v in motion.disagreement[k]]}
                if motion.disagreement is not None else {}),
             # where the camera turned, this frame's camera (the top-level one is the first frame's)
-            **({"camera_R": r(motion.camera_at(k).R, 9), "camera_t": r(motion.camera_at(k).t, 9)}
-               if motion.turns is not None else {}),
+            **({"camera_R": r(cam.R, 9), "camera_t": r(cam.t, 9)} if cam is not None else {}),
             # where the camera zoomed, this frame's focal lengths (pixels)
-            **({"camera_focal_px": r([motion.camera_at(k).fx, motion.camera_at(k).fy], 4)}
-               if motion.zooms is not None else {}),
+            **({"camera_focal_px": r([cam.fx, cam.fy], 4)} if cam is not None and motion.zooms is not None else {}),
         }
 
     doc = {
