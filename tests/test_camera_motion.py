@@ -145,10 +145,11 @@ def test_frames_without_texture_are_unknown_and_bad_frames_are_refused():
         frame_rotation(blank, blank[:10], K)
 
 
-def _track_over(scene, tmp_path, monkeypatch) -> dict:
+def _track_over(scene, tmp_path, monkeypatch, focal: bool = True) -> dict:
     """``flowmocap track`` on the built-in walker (6 frames) pasted over ``scene``'s frames
     (a body that does not move with the camera: enough for the camera's estimate), with a
-    detector that gives the truth; returns run.json."""
+    detector that gives the truth, and the true focal length given (``focal``) or not;
+    returns run.json."""
     import json
 
     import flowmocap.vision.auto as auto
@@ -177,7 +178,8 @@ def _track_over(scene, tmp_path, monkeypatch) -> dict:
     cfg = tmp_path / "fast.json"
     cfg.write_text(json.dumps({"init_iterations": 8, "init_flow_iterations": 4, "iterations": 4}))
     out = tmp_path / "out"
-    assert main(["track", str(video), "--out", str(out), "--config", str(cfg), "--focal", str(F)]) == 0
+    given = ["--focal", str(F)] if focal else []
+    assert main(["track", str(video), "--out", str(out), "--config", str(cfg), *given]) == 0
     return read_result(out)[1]
 
 
@@ -200,6 +202,73 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     assert cm["moving"] and cm["turn_deg_end"] == pytest.approx(5.0, rel=0.1) and len(cm["rotvecs"]) == 6
     assert not cm["moving_sideways"] and "shifts" not in cm
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("guess", [200.0, 300.0, 450.0])
+@pytest.mark.parametrize("zoom", [False, True])
+def test_a_turning_cameras_focal_length_is_read_from_its_background(guess, zoom):
+    """A camera that pans 0.5 degrees a frame (30 frames, 14.5 degrees), zooming out 1 % a frame
+    or not, fitted with a focal length a third short, right, or half again too long: the
+    background's turns give the true 300 px within 4 %, and fitted again with that, within 1 %
+    (as track does); the turn fitted with a wrong guess is off (why it matters: the world's
+    directions come from it), with the estimate right. A still camera, or one that turns less
+    than FOCAL_MIN_TURN_DEG, gives none."""
+    from flowmocap.vision.camera_motion import FOCAL_MIN_TURN_DEG
+
+    seq = Turning(_pan(30, 0.5), zooms=0.99 ** np.arange(30) if zoom else None)
+    got = camera_motion(seq, PinholeCamera.from_focal(W, H, guess), sideways=False, focal=True)
+    assert got.focal["focal_px"] == pytest.approx(F, rel=0.04)
+    assert got.focal["used_px"] == guess
+    assert got.focal["ratio"] == pytest.approx(got.focal["focal_px"] / guess, rel=1e-3)
+    assert got.focal["sharpness"] > 1.5 and got.to_dict()["focal"] == got.focal
+    again = camera_motion(seq, PinholeCamera.from_focal(W, H, got.focal["focal_px"]), sideways=False, focal=True)
+    assert again.focal["focal_px"] == pytest.approx(F, rel=0.01)
+    assert again.turn_deg[-1] == pytest.approx(14.5, rel=0.04)  # fitted with the first estimate
+    if guess != F:
+        assert abs(got.turn_deg[-1] - 14.5) > 1.0  # the turn itself is off with the guess
+    still = camera_motion(Turning(_pan(30, 0.0)), PinholeCamera.from_focal(W, H, guess), sideways=False, focal=True)
+    assert still.focal is None and "focal" not in still.to_dict()
+    slight = Turning(_pan(30, 0.8 * FOCAL_MIN_TURN_DEG / 29))
+    assert camera_motion(slight, CAM, sideways=False, focal=True).focal is None
+    assert camera_motion(seq, CAM, sideways=False).focal is None  # not asked for
+
+
+def test_a_run_without_a_focal_length_on_a_turning_camera_tracks_with_the_backgrounds(tmp_path, monkeypatch,
+                                                                                      capsys):
+    """flowmocap track with no focal length on a video whose camera pans 1.5 degrees a frame:
+    the guess (0.9 x 320 = 288 px) is replaced by the focal length the background's turns
+    give, within 1 % of the true 300 px; the body is tracked with it, the turns are fitted with
+    it, and run.json and the log say so. With --focal given, or a still camera, the camera is
+    the one given or guessed; where the camera also moves (carried over a floor, turning 1.5
+    degrees a frame; an estimate of 400 px handed in, as the floor-only scene gives none), the
+    estimate is recorded but the guess kept."""
+    run = _track_over(Turning(_pan(6, 1.5)), tmp_path, monkeypatch, focal=False)
+    cm = run["camera_motion"]
+    assert cm["focal"]["guess_px"] == pytest.approx(288.0) and run["camera"]["fx"] == pytest.approx(F, rel=0.01)
+    assert cm["focal"]["used_px"] == pytest.approx(run["camera"]["fx"], abs=0.1)
+    assert cm["focal"]["ratio_to_guess"] == pytest.approx(run["camera"]["fx"] / 288.0, rel=1e-3)
+    assert cm["turn_deg_end"] == pytest.approx(7.5, rel=0.03)  # fitted with the found focal length
+    said = capsys.readouterr().out
+    assert "the background's turns give its focal length: 30" in said and "the body is tracked with it" in said
+    assert "camera: focal length 30" in said and "from the background's turns" in said
+    given = _track_over(Turning(_pan(6, 1.5)), tmp_path / "given", monkeypatch)
+    assert given["camera"]["fx"] == F and "focal" not in given["camera_motion"]
+    still = _track_over(Turning(_pan(6, 0.0)), tmp_path / "still", monkeypatch, focal=False)
+    assert still["camera"]["fx"] == pytest.approx(288.0) and "focal" not in still["camera_motion"]
+    capsys.readouterr()
+    from flowmocap.vision import camera_motion as module
+
+    def estimated(*args, **kwargs):
+        got = camera_motion(*args, **kwargs)
+        if kwargs.get("focal"):
+            got.focal = {"focal_px": 400.0, "used_px": 288.0, "ratio": 1.3889, "pairs": 5, "sharpness": 2.0}
+        return got
+
+    monkeypatch.setattr(module, "camera_motion", estimated)
+    carried = _track_over(Carried(6, (0.06, 0, 0), yaw=1.5), tmp_path / "carried", monkeypatch, focal=False)
+    cm = carried["camera_motion"]
+    assert cm["moving_sideways"] and cm["focal"]["applied"] is False and carried["camera"]["fx"] == pytest.approx(288.0)
+    assert "a camera that moves bends that estimate, so the guess is kept" in capsys.readouterr().out
 
 
 def test_a_run_on_a_zooming_camera_says_so(tmp_path, monkeypatch, capsys):

@@ -497,8 +497,33 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # from the input's first frame, whatever the tracked range: the people of one video
         # (track --person all) are then turned back into one world
         # everyone else left out too: someone walking past is not background
-        moved = camera_motion(seq, cam, frames=range(0, b), masks=getattr(seq, "masks", None) is not None,
-                              progress=progress, others=getattr(detections, "people", None))
+        motion = lambda cam, frames, **kw: camera_motion(  # noqa: E731
+            seq, cam, frames=frames, masks=getattr(seq, "masks", None) is not None, progress=progress,
+            others=getattr(detections, "people", None), **kw)
+        # a guessed focal length is read from the background where the camera turns; only with the
+        # detector's own pass (with own masks and init, detect_joints3d has bound the guess already)
+        guessed = (camera is None and "default focal length" in camera_source and detections is not None)
+        moved = motion(cam, range(0, b), focal=guessed)
+        if moved.focal is not None and moved.moving_sideways:  # a move bends a turn's perspective: not used
+            moved.focal = {**moved.focal, "applied": False}
+            say(f"the camera turns and moves; its background's turns would give a focal length of about "
+                f"{moved.focal['focal_px']:.0f} px (the guess is {cam.fx:.0f} px), but a camera that moves bends that "
+                "estimate, so the guess is kept (run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
+        elif moved.focal is not None:
+            cam, focal = _focal_from_turns(moved.focal, cam, lambda c: motion(c, range(0, len(seq)), focal=True,
+                                                                              sideways=False).focal,
+                                           whole=b == len(seq))
+            if focal is not None:
+                moved = motion(cam, range(0, b))  # the turns, zooms and floor with that focal length
+                moved.focal = focal
+                notes["camera_source"] = camera_source = (
+                    f"focal length {cam.fx:.1f} px from the background's turns (the camera turns up to "
+                    f"{moved.turn_deg.max():.0f} degrees; {focal['ratio_to_guess']:.2f} times the guess, "
+                    f"{focal['guess_px']:.1f} px = {focal['guess_px'] / max(cam.width, cam.height):.2g} x the long "
+                    "side) -- give --focal if you know it")
+                say(f"the camera turns, and the background's turns give its focal length: {cam.fx:.0f} px "
+                    f"({focal['ratio_to_guess']:.2f} times the guess of {focal['guess_px']:.0f} px); the body is "
+                    "tracked with it (run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving_sideways:
             turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()
@@ -654,6 +679,47 @@ def read_init(init, size: tuple[int, int], num_frames: int) -> InitSpec:
                          "or the body would be placed far away. Check the joints' pixel coordinates.")
     return spec
 
+
+#: Where the camera turns and no focal length was given, the one its background's turns give
+#: (:func:`~flowmocap.vision.camera_motion.focal_from_turns`) replaces the guess where the two
+#: differ by more than this share.
+FOCAL_CHANGE = 0.02
+#: Rounds of the focal length's estimate at most, each with the turns fitted with the last
+#: (the first, with the guess's turns, is within 4 % on the tests' pans; the next within 1 %).
+FOCAL_ROUNDS = 3
+
+
+def _focal_from_turns(found: dict, cam: PinholeCamera, estimate, whole: bool) -> tuple[PinholeCamera, dict | None]:
+    """The camera to track a turning camera's video with, where no focal length was given
+    and the floor shows no move (a turn about the camera's centre: what the estimate assumes).
+
+    Args:
+        found: :attr:`~flowmocap.vision.camera_motion.CameraMotion.focal` of the tracked
+            frames, fitted with the guess ``cam``.
+        cam: the guessed camera.
+        estimate: ``estimate(camera)``: the focal found over the whole video with the turns
+            fitted with ``camera`` (a dict as ``found``, or None).
+        whole: ``found`` is already the whole video's.
+
+    Returns:
+        ``(camera, focal)``: the guess and None where the background's focal length is within
+        :data:`FOCAL_CHANGE` of it; else a camera with the last estimate, refined over at most
+        :data:`FOCAL_ROUNDS` rounds until one moves it by less, and ``focal`` (the last
+        estimate's dict, with ``guess_px``, ``ratio_to_guess`` and ``applied`` True).
+    """
+    guess = float(cam.fx)
+    focal = found if whole else estimate(cam)
+    last = None
+    for _ in range(FOCAL_ROUNDS):
+        if focal is None or abs(np.log(focal["focal_px"] / cam.fx)) <= np.log1p(FOCAL_CHANGE):
+            break
+        cam = PinholeCamera.from_focal(cam.width, cam.height, focal["focal_px"])
+        last, focal = focal, estimate(cam)
+    if cam.fx == guess:
+        return cam, None
+    focal = focal or last
+    return cam, {**focal, "applied": True, "guess_px": round(guess, 1),
+                 "ratio_to_guess": round(float(cam.fx) / guess, 4)}
 
 #: An init's joints must span at least this fraction of the image height.
 MIN_INIT_SPREAD = 0.03

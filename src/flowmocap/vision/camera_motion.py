@@ -62,8 +62,8 @@ import numpy as np
 
 from flowmocap.errors import InputError
 
-__all__ = ["CameraMotion", "frame_rotation", "frame_turn_zoom", "camera_motion", "floor_motion", "floor_region",
-           "MOVING_DEG", "ZOOMING", "SIDEWAYS_SHARE"]
+__all__ = ["CameraMotion", "frame_rotation", "frame_turn_zoom", "focal_from_turns", "camera_motion", "floor_motion",
+           "floor_region", "MOVING_DEG", "ZOOMING", "SIDEWAYS_SHARE"]
 
 #: A camera whose direction lies more than this many degrees from its first frame's in some
 #: frame is said to move (the estimate's drift on the project's still cameras: at most 0.5 degrees).
@@ -111,6 +111,19 @@ FLOOR_ROWS_NO_PERSON = 0.4
 #: move's cost share from 0.915 down to 0.807, nearer the 0.7 that believes a move.
 FLOOR_CORNER_QUALITY = 0.002
 
+#: The focal length is read from the background (:func:`focal_from_turns`) only where the
+#: camera turns by at least this many degrees (a turn's perspective tells the focal length;
+#: the turn of a still camera is noise) ...
+FOCAL_MIN_TURN_DEG = 5.0
+#: ... and kept only where the background's fit is at least this many times worse at 0.8 and
+#: at 1.25 times the estimate than at it (else the background does not tell).
+FOCAL_SHARPNESS = 1.1
+#: The frame pairs it reads at most: those that turn the most.
+FOCAL_PAIRS = 30
+#: The focal lengths it searches, as shares of the image's long side (fields of view of
+#: 14-118 degrees across it).
+FOCAL_RANGE = (0.3, 4.0)
+
 
 @dataclass
 class CameraMotion:
@@ -144,6 +157,10 @@ class CameraMotion:
             NaN where none did.
         zooms: ``(T,)`` each frame's focal length over the first frame's (1 where the camera
             does not zoom; below 1 where it zooms out), or None where not found.
+        focal: where asked for and the camera turned enough, the first frame's focal length
+            the background's turns give (:func:`focal_from_turns`: ``focal_px``, ``used_px``
+            the one the motion was fitted with, ``ratio`` the two's, ``pairs``, ``sharpness``);
+            else None.
     """
 
     frames: np.ndarray
@@ -158,6 +175,7 @@ class CameraMotion:
     floor_unknown: list | None = None
     move_share: float = float("nan")
     zooms: np.ndarray | None = None
+    focal: dict | None = None
 
     @property
     def zooming(self) -> bool:
@@ -193,7 +211,8 @@ class CameraMotion:
         """A JSON summary: ``moving``, ``turn_deg_max``, ``turn_deg_end``, ``residual_px``,
         ``unknown_frames``, ``sideways_max`` (units of the camera's height above the floor, or
         None), ``move_share`` (or None), ``moving_sideways``, ``zooming`` and ``zoom_min`` /
-        ``zoom_max`` (the focal length over the first frame's); with ``rotations``, also
+        ``zoom_max`` (the focal length over the first frame's), ``focal`` where found
+        (:attr:`focal`); with ``rotations``, also
         ``rotvecs`` (T x 3 radians, the first frame's camera axes) and ``frames``, where the
         camera zoomed ``zooms`` (T), and where it moved sideways ``shifts`` (T x 3),
         ``floor_rotvecs`` (T x 3), ``floor_normal`` (3) and ``floor_unknown_frames``."""
@@ -205,6 +224,8 @@ class CameraMotion:
                "sideways_max": None if not np.isfinite(self.sideways) else round(float(self.sideways), 3),
                "move_share": None if not np.isfinite(self.move_share) else round(float(self.move_share), 3),
                "moving_sideways": self.moving_sideways, "zooming": self.zooming}
+        if self.focal is not None:
+            doc["focal"] = self.focal
         if self.zooms is not None and len(self.zooms):
             doc["zoom_min"], doc["zoom_max"] = round(float(np.min(self.zooms)), 4), round(float(np.max(self.zooms)), 4)
         if rotations:
@@ -307,7 +328,8 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
 
 
 def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np.ndarray | None = None,
-                    max_corners: int = 400, min_points: int = 20) -> tuple[np.ndarray, float, float] | None:
+                    max_corners: int = 400, min_points: int = 20, found: list | None = None
+                    ) -> tuple[np.ndarray, float, float] | None:
     """The camera's turn and zoom from one frame to the next, from the background.
 
     The background's corners (as :func:`frame_rotation`) fitted through ``K Z R K^-1``,
@@ -318,6 +340,9 @@ def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: n
     Args:
         prev, cur, K, exclude, max_corners, min_points: as :func:`frame_rotation` (``K`` the
             intrinsics of ``prev``).
+        found: a list to append the pair's agreeing corners to, ``(a, b, H)`` (``(N, 2)``
+            pixels of ``prev`` and ``cur``, the pixel homography), where the fit is kept
+            (:func:`focal_from_turns` reads them).
 
     Returns:
         ``(R, z, residual_px)``: ``x_cur = R x_prev`` for directions in the camera axes,
@@ -328,13 +353,34 @@ def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: n
     Raises:
         InputError: frames of different sizes or not RGB.
     """
-    from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     got = _calibrated_homography(prev, cur, K, exclude, max_corners, min_points, "frame_turn_zoom")
     if got is None:
         return None
     a, b, agree, M = got
+    fit = _turn_zoom_fit(a[agree], b[agree], M, K)
+    if fit is None:
+        return None
+    x, _, moved = fit
+    R, z = Rotation.from_rotvec(x[:3]).as_matrix(), float(np.exp(x[3]))
+    if np.degrees(np.linalg.norm(x[:3])) > MAX_STEP_DEG or not 0.75 < z < 1.33:
+        return None
+    if found is not None:
+        found.append((a[agree], b[agree], K @ M @ np.linalg.inv(K)))
+    return R, z, float(np.median(np.linalg.norm(moved(x, _rays(K, a)) - b, axis=1)))
+
+
+def _turn_zoom_fit(a: np.ndarray, b: np.ndarray, M: np.ndarray, K: np.ndarray):
+    """``K Z R K^-1`` fitted to corners ``a`` -> ``b`` (``(N, 2)`` pixels) from ``M``, the
+    pair's homography in ``K``'s normalised coordinates (determinant 1): ``(x, cost, moved)``
+    with ``x`` the turn's rotation vector and the zoom's log, ``cost`` the robust least
+    squares' (soft L1, 1 px) and ``moved(x, rays)`` the pixels ``x`` puts the rays
+    ``_rays(K, px)`` of pixels ``px`` at; None where
+    ``M``'s zoom is more than a third either way or it holds a reflection."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     z0 = float(np.linalg.norm(M[:2], axis=1).mean() / max(np.linalg.norm(M[2]), 1e-12))
     if not 0.67 < z0 < 1.5:
         return None
@@ -342,20 +388,65 @@ def frame_turn_zoom(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: n
     R0 = U @ Vt
     if np.linalg.det(R0) < 0:
         return None
-    rays = _rays(K, a)
     f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
 
     def moved(x, rays):
         p = rays @ Rotation.from_rotvec(x[:3]).as_matrix().T
         return p[:, :2] / p[:, 2:3] * np.exp(x[3]) * f + c
 
-    fit = least_squares(lambda x: (moved(x, rays[agree]) - b[agree]).ravel(),
-                        np.r_[Rotation.from_matrix(R0).as_rotvec(), np.log(z0)], loss="soft_l1", f_scale=1.0,
-                        x_scale=0.01)
-    R, z = Rotation.from_rotvec(fit.x[:3]).as_matrix(), float(np.exp(fit.x[3]))
-    if np.degrees(np.linalg.norm(fit.x[:3])) > MAX_STEP_DEG or not 0.75 < z < 1.33:
+    rays = _rays(K, a)
+    fit = least_squares(lambda x: (moved(x, rays) - b).ravel(), np.r_[Rotation.from_matrix(R0).as_rotvec(), np.log(z0)],
+                        loss="soft_l1", f_scale=1.0, x_scale=0.01)
+    return fit.x, float(fit.cost), moved
+
+
+def focal_from_turns(pairs: list, centre: tuple[float, float], side: float) -> tuple[float, float] | None:
+    """The focal length a turning camera's background gives.
+
+    A turn about the camera's centre moves the image by a homography ``K Z R K^-1`` that
+    only the right focal length in ``K`` fits: a wrong one bends the background's corners off
+    it, the more the larger the turn. So each pair's turn and zoom are fitted
+    (:func:`_turn_zoom_fit`) with focal lengths searched over :data:`FOCAL_RANGE` times
+    ``side``, and the one whose summed robust cost is least is kept.
+
+    Args:
+        pairs: per frame pair ``(a, b, H, scale)``: the background's corners ``(N, 2)`` in
+            pixels of the two frames, the pair's pixel homography ``(3, 3)``, and the first
+            frame's focal length relative to the clip's first frame (the zoom so far).
+        centre: the principal point ``(cx, cy)``, pixels.
+        side: the image's long side, pixels.
+
+    Returns:
+        ``(focal_px, sharpness)``: the clip's first frame's focal length (pixels) and how much
+        worse the fit is at 0.8 and 1.25 times it (the smaller of the two cost ratios); None
+        without pairs, or where the least cost lies at the end of the range searched.
+    """
+    from scipy.optimize import minimize_scalar
+
+    if not pairs:
         return None
-    return R, z, float(np.median(np.linalg.norm(moved(fit.x, rays) - b, axis=1)))
+
+    def cost(log_f):
+        total = 0.0
+        for a, b, H, scale in pairs:
+            f = np.exp(log_f) * scale
+            K = np.array([[f, 0.0, centre[0]], [0.0, f, centre[1]], [0.0, 0.0, 1.0]])
+            M = np.linalg.inv(K) @ H @ K
+            d = np.linalg.det(M)
+            fit = _turn_zoom_fit(a, b, M / np.cbrt(d), K) if np.isfinite(d) and abs(d) > 1e-12 else None
+            total += fit[1] / len(a) if fit is not None else 1e3  # a pair it cannot fit: far off
+        return total
+
+    lo, hi = np.log(FOCAL_RANGE[0] * side), np.log(FOCAL_RANGE[1] * side)
+    grid = np.linspace(lo, hi, 12)
+    costs = [cost(g) for g in grid]
+    k = int(np.argmin(costs))
+    if k in (0, len(grid) - 1):
+        return None
+    best = minimize_scalar(cost, bounds=(grid[k - 1], grid[k + 1]), method="bounded", options={"xatol": 1e-3})
+    f, c0 = float(np.exp(best.x)), float(best.fun)
+    sharp = min(cost(best.x + np.log(0.8)), cost(best.x + np.log(1.25))) / max(c0, 1e-12)
+    return f, float(sharp)
 
 
 def _zoomed(K: np.ndarray, z: float) -> np.ndarray:
@@ -556,7 +647,7 @@ def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | No
 
 
 def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, dilate_px: int = 15,
-                  progress: bool = False, sideways: bool = True, others=None) -> CameraMotion:
+                  progress: bool = False, sideways: bool = True, others=None, focal: bool = False) -> CameraMotion:
     """:func:`frame_rotation` chained over ``frames`` of ``seq``, and where the floor shows the
     camera moving sideways, :func:`floor_motion`.
 
@@ -572,6 +663,9 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
             None (:meth:`~flowmocap.vision.auto.PersonTrack.people`); left out like the
             person, grown by ``dilate_px``. Someone walking past moves over the background
             and the floor like a camera would.
+        focal: read the first frame's focal length from the background's turns too
+            (:func:`focal_from_turns`, where the camera turns by :data:`FOCAL_MIN_TURN_DEG` or
+            more; the motion itself stays fitted with ``camera``'s).
 
     Returns:
         :class:`CameraMotion` (the first frame's rotation the identity and zoom 1; each frame's
@@ -600,27 +694,38 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
     prev = seq.frame(frames[0]).copy() if len(frames) else None
     m, exclude = person(frames[0]) if len(frames) else (None, None)
     zs = [1.0]
+    turned: list = []  # with focal: the pairs that turn the most (corners, pixel homography, zoom so far, degrees)
+
+    def keep(found, zoom, R):
+        if focal and found:
+            turned.extend((a, b, H, zoom, _angle(R)) for a, b, H in found)
+            if len(turned) > 2 * FOCAL_PAIRS:  # bounded, however long the video
+                turned.sort(key=lambda t: -t[4])
+                del turned[FOCAL_PAIRS:]
     key = (prev, exclude, np.eye(3), 0, 1.0)  # the keyframe: image, pixels left out, turn, its row, zoom
     for row, i in enumerate(tqdm(frames[1:], disable=not progress, unit="frame", desc="camera motion"), start=1):
         cur = seq.frame(i).copy()
         # against the keyframe first: a turn chained frame by frame drifts (a person walking
         # through the background bends each step a little), one from the keyframe does not
         Kk = _zoomed(K, key[4])  # the keyframe's own intrinsics
-        got = frame_turn_zoom(key[0], cur, Kk, key[1])
+        found: list = []  # the pair's corners, where its fit is kept
+        got = frame_turn_zoom(key[0], cur, Kk, key[1], found=found)
         new_m, new_exclude = person(i)
         if got is not None:
+            keep(found, key[4], got[0])
             Rs.append(got[0] @ key[2])
             zs.append(got[1] * key[4])
             residuals.append(got[2])
             if _step_px(got[0], got[1], Kk) > KEYFRAME_MAX_PX:
                 key = (cur, new_exclude, Rs[-1], row, zs[-1])
         else:
-            got = frame_turn_zoom(prev, cur, _zoomed(K, zs[-1]), exclude) if key[3] != row - 1 else None
+            got = frame_turn_zoom(prev, cur, _zoomed(K, zs[-1]), exclude, found=found) if key[3] != row - 1 else None
             if got is None:  # a cut, a blank frame: held (the keyframe stays)
                 unknown.append(int(i))
                 Rs.append(Rs[-1])
                 zs.append(zs[-1])
             else:
+                keep(found, zs[-1], got[0])
                 Rs.append(got[0] @ Rs[-1])
                 zs.append(got[1] * zs[-1])
                 residuals.append(got[2])
@@ -647,7 +752,20 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
         if far > SIDEWAYS_SHARE:
             floor_R, shifts, normal, floor_unknown = fl["rotations"], fl["shifts"], fl["normal"], fl["unknown"]
     turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    focal_found = None
+    if focal and len(turn) and turn.max() >= FOCAL_MIN_TURN_DEG:
+        most = sorted(turned, key=lambda t: -t[4])[:FOCAL_PAIRS]
+        got = focal_from_turns([t[:4] for t in most], (K[0, 2], K[1, 2]), float(max(prev.shape[:2])))
+        if got is not None and got[1] >= FOCAL_SHARPNESS:
+            focal_found = {"focal_px": round(got[0], 1), "used_px": round(float(K[0, 0]), 1),
+                           "ratio": round(got[0] / float(K[0, 0]), 4), "pairs": len(most),
+                           "sharpness": round(got[1], 3)}
     return CameraMotion(np.asarray(list(frames), np.int64), R, turn,
                         float(np.median(residuals)) if residuals else float("nan"), unknown,
                         shifts=shifts, floor_rotations=floor_R, floor_normal=normal, sideways=far,
-                        floor_unknown=floor_unknown, move_share=share, zooms=zooms)
+                        floor_unknown=floor_unknown, move_share=share, zooms=zooms, focal=focal_found)
+
+
+def _angle(R: np.ndarray) -> float:
+    """The angle of the rotation ``R``, degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
