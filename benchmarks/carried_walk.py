@@ -41,9 +41,13 @@ import numpy as np
 HEIGHT, PITCH_DEG, DISTANCE, FOCAL_FACTOR = 1.5, 10.0, 4.0, 0.9
 
 
-def render(out: Path, frames: int, follow: float, size: tuple[int, int], seed: int = 0) -> dict:
+def render(out: Path, frames: int, follow: float, size: tuple[int, int], seed: int = 0, pan: bool = False,
+           focal_factor: float = FOCAL_FACTOR) -> dict:
     """Write ``out/frames/*.png`` and return the truth: ``joints`` (T, 24, 3) world metres,
-    ``centres`` (T, 3) the camera's centre per frame, and the ``focal`` length (px)."""
+    ``centres`` (T, 3) the camera's centre per frame, ``yaws`` (T,) its turn about the vertical
+    from the first frame's (radians), and the ``focal`` length (px, ``focal_factor`` times the
+    long side). ``pan``: the camera stays where it starts and turns to keep the walker's pelvis
+    in the middle of the image (a pan on a tripod; ``follow`` is not used)."""
     import cv2
     import torch
     from scipy.spatial.transform import Rotation
@@ -64,22 +68,27 @@ def render(out: Path, frames: int, follow: float, size: tuple[int, int], seed: i
     verts, joints = verts + shift, joints + shift
     speed = (joints[-1, 0, 0] - joints[0, 0, 0]) / (frames - 1)
     W, H = size
-    f = FOCAL_FACTOR * max(W, H)
-    R = Rotation.from_euler("x", np.radians(PITCH_DEG)).as_matrix() @ np.diag([-1.0, -1.0, 1.0])
+    f = focal_factor * max(W, H)
+    R0 = Rotation.from_euler("x", np.radians(PITCH_DEG)).as_matrix() @ np.diag([-1.0, -1.0, 1.0])
     faces = prepare_faces(body.faces_np)
     clothing = ClothingPattern.for_body(rest.rest_joints[0].numpy(), seed=seed)
     (out / "frames").mkdir(parents=True, exist_ok=True)
-    centres = []
+    centres, yaws = [], []
     for i in range(frames):
-        C = np.array([joints[0, 0, 0] + follow * speed * i, HEIGHT, 0.0])
+        C = np.array([joints[0, 0, 0] + (0.0 if pan else follow * speed * i), HEIGHT, 0.0])
+        # a pan: turned about the vertical towards the pelvis (x_world - C_x to the side, DISTANCE ahead)
+        yaw = -float(np.arctan2(joints[i, 0, 0] - C[0], DISTANCE)) if pan else 0.0
+        R = R0 @ Rotation.from_euler("y", yaw).as_matrix()
         cam = PinholeCamera(fx=f, fy=f, cx=W / 2, cy=H / 2, width=W, height=H, R=R, t=-R @ C)
-        background = render_background(cam, seed=seed, supersample=2, wall_distance=DISTANCE + 4.0)
+        background = render_background(cam, seed=seed, supersample=2, wall_distance=DISTANCE + 4.0,
+                                       wall_facing=R0[2] if pan else None)  # a pan: the wall stays where it is
         vc = verts[i] @ R.T + cam.t
         image = shade(cam.project(verts[i]), vc[:, 2], faces, vc, surface_coords=rest.rest_vertices[0].numpy(),
                       pattern=clothing, background=background, light_dir=tuple(R @ WORLD_LIGHT), supersample=2)
         cv2.imwrite(str(out / "frames" / f"{i:06d}.png"), np.ascontiguousarray(image[..., ::-1]))
         centres.append(C)
-    return {"joints": joints, "centres": np.asarray(centres), "focal": f}
+        yaws.append(yaw)
+    return {"joints": joints, "centres": np.asarray(centres), "yaws": np.asarray(yaws), "focal": f}
 
 
 def _rigid_about_vertical(a: np.ndarray, b: np.ndarray) -> np.ndarray:

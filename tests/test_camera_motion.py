@@ -784,3 +784,23 @@ def test_the_floor_is_looked_for_about_the_persons_feet():
     bare = floor_region((H, W, 3), None)
     assert bare[144:].all() and not bare[:144].any()
     np.testing.assert_array_equal(floor_region((H, W), np.zeros((H, W), bool)), bare)
+
+
+def test_a_rendered_wall_given_its_facing_stays_put_while_the_camera_pans():
+    """The synthetic scene's wall faces the camera's viewing direction unless told where it is
+    (benchmarks/panned_walk.py tells it): a camera turned 3 degrees about the vertical over
+    that fixed wall and floor is found to turn by that; with the wall turning with it, the
+    background's corners (mostly the wall's) show almost none of the turn."""
+    from flowmocap.synth.scene import render_background
+
+    flip, centre = np.diag([-1.0, -1.0, 1.0]), np.array([0.0, 1.5, 0.0])  # y up to y down; 1.5 m above the floor
+    pitch = Rotation.from_euler("x", 10.0, degrees=True).as_matrix()
+    Rs = [pitch @ Rotation.from_euler("y", yaw, degrees=True).as_matrix() @ flip for yaw in (0.0, 3.0)]
+    cams = [PinholeCamera(fx=F, fy=F, cx=W / 2, cy=H / 2, width=W, height=H, R=R, t=-R @ centre) for R in Rs]
+    ahead = np.array([0.0, 0.0, 1.0])
+    fixed = [render_background(c, supersample=1, wall_distance=3.0, wall_facing=ahead) for c in cams]
+    R, residual = frame_rotation(fixed[0], fixed[1], K)
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())) == pytest.approx(3.0, rel=0.03)
+    turning = [render_background(c, supersample=1, wall_distance=3.0) for c in cams]
+    got = frame_rotation(turning[0], turning[1], K)
+    assert got is None or np.degrees(np.linalg.norm(Rotation.from_matrix(got[0]).as_rotvec())) < 0.5

@@ -504,17 +504,15 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # detector's own pass (with own masks and init, detect_joints3d has bound the guess already)
         guessed = (camera is None and "default focal length" in camera_source and detections is not None)
         moved = motion(cam, range(0, b), focal=guessed)
-        if moved.focal is not None and moved.moving_sideways:  # a move bends a turn's perspective: not used
-            moved.focal = {**moved.focal, "applied": False}
-            say(f"the camera turns and moves; its background's turns would give a focal length of about "
-                f"{moved.focal['focal_px']:.0f} px (the guess is {cam.fx:.0f} px), but a camera that moves bends that "
-                "estimate, so the guess is kept (run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
-        elif moved.focal is not None:
-            cam, focal = _focal_from_turns(moved.focal, cam, lambda c: motion(c, range(0, len(seq)), focal=True,
-                                                                              sideways=False).focal,
-                                           whole=b == len(seq))
-            if focal is not None:
-                moved = motion(cam, range(0, b))  # the turns, zooms and floor with that focal length
+        if moved.focal is not None:
+            new_cam, focal = _focal_from_turns(moved.focal, cam, lambda c: motion(c, range(0, len(seq)), focal=True,
+                                                                                  sideways=False).focal,
+                                               whole=b == len(seq))
+            # with a wrong focal length a pan looks like a move on the floor; a move the floor
+            # still shows with the turns' focal length bends that estimate: then the guess is kept
+            again = motion(new_cam, range(0, b)) if focal is not None else None
+            if again is not None and not again.moving_sideways:
+                cam, moved = new_cam, again
                 moved.focal = focal
                 notes["camera_source"] = camera_source = (
                     f"focal length {cam.fx:.1f} px from the background's turns (the camera turns up to "
@@ -524,6 +522,14 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                 say(f"the camera turns, and the background's turns give its focal length: {cam.fx:.0f} px "
                     f"({focal['ratio_to_guess']:.2f} times the guess of {focal['guess_px']:.0f} px); the body is "
                     "tracked with it (run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
+            elif again is None:  # the guess is within FOCAL_CHANGE of it
+                moved.focal = {**moved.focal, "applied": False}
+            else:
+                moved.focal = {**focal, "applied": False}
+                say(f"the camera turns, and its background's turns would give a focal length of about "
+                    f"{focal['focal_px']:.0f} px (the guess is {cam.fx:.0f} px), but the floor shows the camera moving "
+                    "with that focal length too, and a camera that moves bends that estimate, so the guess is kept "
+                    "(run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
         notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
         if moved.moving_sideways:
             turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()
@@ -691,7 +697,8 @@ FOCAL_ROUNDS = 3
 
 def _focal_from_turns(found: dict, cam: PinholeCamera, estimate, whole: bool) -> tuple[PinholeCamera, dict | None]:
     """The camera to track a turning camera's video with, where no focal length was given
-    and the floor shows no move (a turn about the camera's centre: what the estimate assumes).
+    (the caller keeps it only where the floor then shows no move: the estimate assumes a turn
+    about the camera's centre).
 
     Args:
         found: :attr:`~flowmocap.vision.camera_motion.CameraMotion.focal` of the tracked

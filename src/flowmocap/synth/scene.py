@@ -113,6 +113,7 @@ def render_background(
     supersample: int = 2,
     wall_distance: float | None = None,
     light: np.ndarray = WORLD_LIGHT,
+    wall_facing: np.ndarray | None = None,
 ) -> np.ndarray:
     """A static textured scene as seen by ``camera``: paved ground ``y = 0``, a brick wall.
 
@@ -128,13 +129,16 @@ def render_background(
         supersample: rays per pixel along each axis.
         wall_distance: metres from the camera to the wall.
         light: ``(3,)`` unit direction towards the light, world coordinates.
+        wall_facing: ``(3,)`` the horizontal direction from the camera to the wall, world
+            (default the camera's horizontal viewing direction). Give it for a camera that
+            turns, or the wall turns with it.
 
     Returns:
         ``(H, W, 3)`` uint8 RGB image.
     """
     H, W, s = camera.height, camera.width, int(supersample)
     C = camera.center
-    fwd = camera.R[2].copy()
+    fwd = (camera.R[2] if wall_facing is None else np.asarray(wall_facing, np.float64)).copy()
     fwd[1] = 0.0
     if np.linalg.norm(fwd) < 1e-6:
         fwd = np.array([0.0, 0.0, 1.0])
