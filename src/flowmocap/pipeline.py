@@ -728,6 +728,7 @@ def _focal_from_turns(found: dict, cam: PinholeCamera, estimate, whole: bool) ->
     return cam, {**focal, "applied": True, "guess_px": round(guess, 1),
                  "ratio_to_guess": round(float(cam.fx) / guess, 4)}
 
+
 #: An init's joints must span at least this fraction of the image height.
 MIN_INIT_SPREAD = 0.03
 
