@@ -240,8 +240,8 @@ def test_a_run_without_a_focal_length_on_a_turning_camera_tracks_with_the_backgr
     give, within 1 % of the true 300 px; the body is tracked with it, the turns are fitted with
     it, and run.json and the log say so. With --focal given, or a still camera, the camera is
     the one given or guessed; where the camera also moves (carried over a floor, turning 1.5
-    degrees a frame; an estimate of 400 px handed in, as the floor-only scene gives none), the
-    estimate is recorded but the guess kept."""
+    degrees a frame; an estimate of 400 px handed in, as the floor-only scene gives none) and
+    its floor shows the move with the estimate too, the estimate is recorded but the guess kept."""
     run = _track_over(Turning(_pan(6, 1.5)), tmp_path, monkeypatch, focal=False)
     cm = run["camera_motion"]
     assert cm["focal"]["guess_px"] == pytest.approx(288.0) and run["camera"]["fx"] == pytest.approx(F, rel=0.01)
@@ -269,6 +269,26 @@ def test_a_run_without_a_focal_length_on_a_turning_camera_tracks_with_the_backgr
     cm = carried["camera_motion"]
     assert cm["moving_sideways"] and cm["focal"]["applied"] is False and carried["camera"]["fx"] == pytest.approx(288.0)
     assert "a camera that moves bends that estimate, so the guess is kept" in capsys.readouterr().out
+
+
+def test_a_pan_over_a_floor_seen_with_the_wrong_focal_length_is_not_taken_for_a_move(tmp_path, monkeypatch,
+                                                                                       capsys):
+    """A camera on a tripod 1.5 m above a floor, panning 2 degrees a frame, with a lens of 430 px
+    (1.5 times the guess of 288): fitted with the guess, its floor shows a move (0.13 of its
+    height) that is not there. track reads the focal length from the turns (within 5 % from five
+    frame pairs of an encoded video, mostly floor), finds no move with it, and tracks with it."""
+    from flowmocap.synth.carried import CarriedCamera
+
+    true = 430.0
+    K2 = np.array([[true, 0, W / 2], [0, true, H / 2], [0, 0, 1.0]])
+    pan = CarriedCamera(6, (0.0, 0.0, 0.0), 2.0, K=K2, size=(W, H), pitch_deg=15.0)
+    assert camera_motion(pan, PinholeCamera.from_focal(W, H, 288.0)).moving_sideways  # with the guess
+    run = _track_over(pan, tmp_path, monkeypatch, focal=False)
+    cm = run["camera_motion"]
+    # five frame pairs of an encoded video, mostly floor: within 5 % (the guess is 33 % short)
+    assert run["camera"]["fx"] == pytest.approx(true, rel=0.05) and cm["focal"]["applied"] is True
+    assert not cm["moving_sideways"] and cm["turn_deg_end"] == pytest.approx(10.0, rel=0.05)
+    assert "the background's turns give its focal length: 4" in capsys.readouterr().out
 
 
 def test_a_run_on_a_zooming_camera_says_so(tmp_path, monkeypatch, capsys):
