@@ -321,7 +321,7 @@ def frame_rotation(prev: np.ndarray, cur: np.ndarray, K: np.ndarray, exclude: np
     R = U @ Vt
     if np.linalg.det(R) < 0:
         return None
-    if np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))) > MAX_STEP_DEG:
+    if _angle(R) > MAX_STEP_DEG:
         return None
     moved = cv2.perspectiveTransform(a[None], K @ R @ np.linalg.inv(K))[0]
     return R, float(np.median(np.linalg.norm(moved - b, axis=1)))
@@ -751,7 +751,7 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
         far = float(np.linalg.norm(centres, axis=1).max())
         if far > SIDEWAYS_SHARE:
             floor_R, shifts, normal, floor_unknown = fl["rotations"], fl["shifts"], fl["normal"], fl["unknown"]
-    turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    turn = _angle(R)
     focal_found = None
     if focal and len(turn) and turn.max() >= FOCAL_MIN_TURN_DEG:
         most = sorted(turned, key=lambda t: -t[4])[:FOCAL_PAIRS]
@@ -766,6 +766,7 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
                         floor_unknown=floor_unknown, move_share=share, zooms=zooms, focal=focal_found)
 
 
-def _angle(R: np.ndarray) -> float:
-    """The angle of the rotation ``R``, degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+def _angle(R: np.ndarray):
+    """The angle of the rotation ``R`` ``(3, 3)`` (a float) or of each of ``(T, 3, 3)`` (``(T,)``), degrees."""
+    a = np.degrees(np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(a) if np.ndim(a) == 0 else a
