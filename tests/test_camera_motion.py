@@ -562,6 +562,43 @@ def test_a_floor_that_does_not_move_shows_no_move_whatever_its_homography():
     assert _moving_pairs([(a, still, Hm)], chain, K) == []
 
 
+@pytest.mark.parametrize("w", [(0.1, -0.2, 0.05), (2.0, 0.5, -1.0), (1e-6, 0.0, 2e-6), (0.0, 0.0, 0.0)])
+def test_the_exponential_map_and_its_right_jacobian_against_scipy_and_finite_differences(w):
+    """``_exp_so3``: the rotation is scipy's (Rodrigues) and ``J_r`` satisfies ``exp(w + d) =
+    exp(w) exp(J_r d)`` to first order (central differences of ``log(exp(w)^T exp(w + d))``)."""
+    from flowmocap.vision.camera_motion import _exp_so3
+
+    w = np.asarray(w, np.float64)
+    R, Jr = _exp_so3(w)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-15)
+    h = 1e-6
+    numeric = np.stack([(Rotation.from_matrix(R.T @ Rotation.from_rotvec(w + h * e).as_matrix()).as_rotvec()
+                         - Rotation.from_matrix(R.T @ Rotation.from_rotvec(w - h * e).as_matrix()).as_rotvec())
+                        / (2 * h) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(Jr, numeric, atol=1e-8)
+
+
+@pytest.mark.parametrize("move", [True, False])
+@pytest.mark.parametrize("x", [(0.1, -0.2, 0.05, 0.02, -0.01, 0.03), (1e-7, 0.0, 0.0, 0.0, 0.0, 0.0),
+                               (0.3, 0.2, -0.1, 0.2, 0.1, -0.1)])
+def test_the_floor_pairs_jacobian_against_finite_differences(move, x):
+    """The floor fit's residuals (pixels) carried through ``K (R + tau n^T)``: the closed-form
+    Jacobian by the turn's rotation vector and the move equals central differences."""
+    from flowmocap.vision.camera_motion import _pair_jacobian, _pair_residual
+
+    rng = np.random.default_rng(1)
+    rays = np.c_[rng.uniform(-0.5, 0.5, (25, 2)), np.ones(25)]
+    b = rng.uniform(0, 320, (25, 2))
+    n = np.array([0.0, np.cos(np.radians(15)), np.sin(np.radians(15))])
+    x = np.asarray(x if move else x[:3], np.float64)
+    J = _pair_jacobian(x, rays, K, n, move)
+    h = 1e-6
+    numeric = np.stack([(_pair_residual(x + h * e, rays, b, K, n, move) - _pair_residual(x - h * e, rays, b, K, n, move))
+                        / (2 * h) for e in np.eye(len(x))], axis=1)
+    assert J.shape == (50, 6 if move else 3)
+    np.testing.assert_allclose(J, numeric, rtol=1e-6, atol=1e-6 * np.abs(numeric).max())
+
+
 def test_a_camera_that_only_turns_over_a_floor_does_not_move():
     """Over the same floor, a camera that pans and one that stands still: no move is made up
     (the floor's corners are no better explained with one), and the turn is the background's."""

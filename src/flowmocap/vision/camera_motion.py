@@ -587,15 +587,66 @@ def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np
         return None
 
     def residual(x):
-        M = Rotation.from_rotvec(x[:3]).as_matrix() + (np.outer(x[3:], n) if move else 0.0)
-        p = rays @ M.T @ K.T
-        return (p[:, :2] / p[:, 2:3] - b).ravel()
+        return _pair_residual(x, rays, b, K, n, move)
+
+    def jacobian(x):
+        return _pair_jacobian(x, rays, K, n, move)
 
     x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), 0.0, 0.0, 0.0] if move else Rotation.from_matrix(R0).as_rotvec()
-    fit = least_squares(residual, x0, loss="soft_l1", f_scale=1.0, x_scale=0.01)
+    fit = least_squares(residual, x0, jac=jacobian, loss="soft_l1", f_scale=1.0, x_scale=0.01)
     r = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
     tau = fit.x[3:] if move else np.zeros(3)
     return Rotation.from_rotvec(fit.x[:3]).as_matrix(), tau, float(np.median(r)), r
+
+
+def _pair_residual(x: np.ndarray, rays: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray,
+                   move: bool = True) -> np.ndarray:
+    """:func:`_fit_pair`'s residuals ``(2N,)`` pixels: the rays ``(N, 3)`` of the earlier
+    frame's corners carried through ``K (R + tau n^T)`` against where they are seen, ``b``
+    ``(N, 2)``; ``x`` is ``R``'s rotation vector (radians) then, with ``move``, ``tau`` (units
+    of the camera's height above the floor)."""
+    M = _exp_so3(x[:3])[0] + (np.outer(x[3:], n) if move else 0.0)
+    p = rays @ (K @ M).T
+    return (p[:, :2] / p[:, 2:3] - b).ravel()
+
+
+def _pair_jacobian(x: np.ndarray, rays: np.ndarray, K: np.ndarray, n: np.ndarray, move: bool = True) -> np.ndarray:
+    """The derivative of :func:`_pair_residual` by ``x``: ``(2N, 6)`` (``(2N, 3)`` without
+    ``move``), pixels per radian and per unit of ``tau``. With ``R = exp([w])``, the rotation
+    vector ``w`` changed by ``d`` turns a ray ``r`` by ``-R [r]_x J_r(w) d``, ``J_r`` the
+    exponential map's right Jacobian; ``tau`` moves it by ``(n . r) d``."""
+    R, Jr = _exp_so3(x[:3])
+    KR = K @ R
+    q = rays @ (KR + (np.outer(K @ x[3:], n) if move else 0.0)).T  # (N, 3) the carried corners, homogeneous px
+    # column j of [r]_x Jr is r x Jr[:, j] = -[Jr[:, j]]_x r: d q / d w_j = K R [Jr[:, j]]_x r
+    cols = [rays @ (KR @ _cross_matrix(Jr[:, j])).T for j in range(3)]
+    if move:
+        cols += [(rays @ n)[:, None] * K[:, j] for j in range(3)]  # d q / d tau_j = (n . r) K e_j
+    dq = np.stack(cols, axis=2)  # (N, 3, P)
+    z = q[:, 2, None]
+    du = (dq[:, :2] - (q[:, :2] / z)[:, :, None] * dq[:, 2:3]) / z[:, :, None]  # (N, 2, P)
+    return du.reshape(2 * len(rays), -1)
+
+
+def _exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, J_r)``, both ``(3, 3)``: the rotation of the rotation vector ``w`` (radians; Rodrigues'
+    formula, as :meth:`scipy.spatial.transform.Rotation.from_rotvec`) and the exponential map's
+    right Jacobian there (``exp([w + d]) = exp([w]) exp([J_r d])`` to first order in ``d``)."""
+    w = np.asarray(w, np.float64)
+    W = _cross_matrix(w)
+    t2 = float(w @ w)
+    if t2 < 1e-8:  # the series, to the theta^4 terms
+        s0, c0, c2 = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    else:
+        t = np.sqrt(t2)
+        s0, c0, c2 = np.sin(t) / t, (1.0 - np.cos(t)) / t2, (t - np.sin(t)) / (t2 * t)
+    WW = W @ W
+    return np.eye(3) + s0 * W + c0 * WW, np.eye(3) - c0 * W + c2 * WW
+
+
+def _cross_matrix(v: np.ndarray) -> np.ndarray:
+    """``(3, 3)``: ``[v]_x``, the matrix of ``u -> v x u``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | None:
