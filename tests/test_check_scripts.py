@@ -3,9 +3,11 @@ benchmarks/real3d_torso.py (the torso's yaw), benchmarks/detector_runs_2d.py (th
 detector runs' keypoints combined), benchmarks/source_selection.py and
 benchmarks/disagreement.py (the sources' disagreement as a flag),
 benchmarks/error_over_time.py (a clip's error by time), benchmarks/prior_flip.py (the
-pose prior against a limb mirrored in depth), and benchmarks/mediapipe_image_depth.py
-(MediaPipe's image-landmark depth)."""
+pose prior against a limb mirrored in depth), benchmarks/mediapipe_image_depth.py
+(MediaPipe's image-landmark depth), and benchmarks/camera_motion_cost.py (the camera's
+motion timed pass by pass)."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -375,3 +377,36 @@ def test_people_floor_measures_are_zero_at_the_reference_and_see_a_wrong_depth()
     assert m["depth_ratio"] == pytest.approx(np.log(1.2))
     gap = np.abs(np.linalg.norm(1.2 * ref_o - ref_f, axis=1) - np.linalg.norm(ref_o - ref_f, axis=1)) / ref_f[:, 2]
     assert m["gap"] == pytest.approx(np.median(gap))
+
+
+def test_camera_motion_cost_times_each_pass_and_writes_its_table(tmp_path, monkeypatch):
+    """benchmarks/camera_motion_cost.py: every synthetic floor timed ``--repeat`` times, the
+    median in the table, what was found summarised (the fit itself replaced by a stand-in here:
+    the real one is timed by the script, not by the tests)."""
+    from types import SimpleNamespace
+
+    import flowmocap.vision.camera_motion as cm
+
+    cost = _load("camera_motion_cost")
+    calls = []
+
+    def fake(seq, camera, **kw):
+        calls.append(len(seq))
+        return SimpleNamespace(turn_deg=np.array([0.0, 2.5]), moving_sideways=True, move_share=0.02,
+                               sideways=0.9, focal=None)
+
+    monkeypatch.setattr(cm, "camera_motion", fake)
+    monkeypatch.setattr("sys.argv", ["camera_motion_cost.py", "--synthetic", "--repeat", "2",
+                                     "--out", str(tmp_path / "cost")])
+    cost.main()
+    assert calls == [30] * 4  # two scenes of 30 frames, twice each
+    doc = json.loads((tmp_path / "cost.json").read_text())
+    assert [len(r["seconds"]) for r in doc["rows"]] == [2, 2]
+    assert all(r["median_s"] == pytest.approx(np.median(r["seconds"])) for r in doc["rows"])
+    assert doc["rows"][0]["found"] == {"turn_deg_max": 2.5, "moving_sideways": True, "move_share": 0.02,
+                                       "sideways_h": 0.9, "focal_px": None}
+    table = (tmp_path / "cost.md").read_text()
+    assert "| synthetic | dolly sideways 5 cm a frame | 30 |" in table and "2.50, yes (0.9), 0.02, None" in table
+    with pytest.raises(SystemExit):  # nothing to time
+        monkeypatch.setattr("sys.argv", ["camera_motion_cost.py"])
+        cost.main()

@@ -505,27 +505,37 @@ def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray) -> tuple[np.nda
     if not moving:
         return None
     window = range(moving[0], min(len(pairs), moving[0] + NORMAL_PAIRS))  # from the first pair that moves
+    last: dict = {}  # (pair, move) -> its latest fit (R, tau): the next normal's fit starts there
 
     def normal(angles):  # in the axes of the window's first frame
         return Rotation.from_euler("xz", angles).as_matrix() @ np.array([0.0, 1.0, 0.0])
 
-    def cost(angles, move=True):
+    def cost(angles, move=True, above=np.inf):
+        """The cost at the normal of ``angles``; once the sum (of terms >= 0) passes ``above``,
+        that sum at once: the rest cannot bring it back."""
         n, R_k, total = normal(angles), np.eye(3), 0.0
         for k in window:
             if pairs[k] is None:
                 continue
             a, b, _ = pairs[k]
-            got = _fit_pair(a, b, K, R_k @ n, chain[k + 1] @ chain[k].T, move)
+            got = _fit_pair(a, b, K, R_k @ n, chain[k + 1] @ chain[k].T, move, last.get((k, move)))
             if got is None:
                 total += 9.0 * len(a)
-                continue
-            total += float(np.sum(np.minimum(got[3], 3.0) ** 2)) + 9.0 * (len(a) - len(got[3]))  # off the floor: cut
-            R_k = got[0] @ R_k  # the floor's own turn (the background's is bent by the move)
+            else:
+                last[(k, move)] = got[:2]
+                total += float(np.sum(np.minimum(got[3], 3.0) ** 2)) + 9.0 * (len(a) - len(got[3]))  # off the floor: cut
+                R_k = got[0] @ R_k  # the floor's own turn (the background's is bent by the move)
+            if total > above:
+                return total
         return total
 
     lo, hi = np.radians([-20.0, -30.0]), np.radians([60.0, 30.0])  # the tilts searched: a camera upright-ish
     grid = [(np.radians(x), np.radians(z)) for x in range(-20, 61, 10) for z in range(-30, 31, 10)]
-    start = min(grid, key=cost)
+    start, least = grid[0], np.inf  # the grid's first least cost (as min() would), the rest cut short
+    for g in grid:
+        c = cost(g, above=least)
+        if c < least:
+            start, least = g, c
     bounded = lambda x: cost(x) if np.all((x >= lo) & (x <= hi)) else np.inf  # noqa: E731
     best = minimize(bounded, np.asarray(start), method="Nelder-Mead",
                     options={"xatol": np.radians(0.2), "fatol": 1e-3, "initial_simplex":
@@ -571,12 +581,14 @@ def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
     return out
 
 
-def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np.ndarray, move: bool = True):
+def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np.ndarray, move: bool = True,
+              start: tuple | None = None):
     """The turn ``R`` and move ``tau`` (units of the camera's height above the floor in the
     earlier frame) that carry the floor corners ``a`` onto ``b`` through
     ``K (R + tau n^T) K^-1``, the median distance (px) they leave and each corner's distance;
-    robust least squares from ``R0`` and no move; None with fewer than 8 corners on the floor.
-    ``move=False`` fits the turn alone (``tau`` zero)."""
+    robust least squares from ``R0`` and no move, or from ``start`` = ``(R, tau)`` where given
+    (a fit of the same pair with a normal near ``n``: fewer steps to the same minimum); None
+    with fewer than 8 corners on the floor. ``move=False`` fits the turn alone (``tau`` zero)."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
@@ -592,7 +604,10 @@ def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np
     def jacobian(x):
         return _pair_jacobian(x, rays, K, n, move)
 
-    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), 0.0, 0.0, 0.0] if move else Rotation.from_matrix(R0).as_rotvec()
+    R_start, tau_start = (R0, np.zeros(3)) if start is None else start
+    x0 = Rotation.from_matrix(R_start).as_rotvec()
+    if move:
+        x0 = np.r_[x0, tau_start]
     fit = least_squares(residual, x0, jac=jacobian, loss="soft_l1", f_scale=1.0, x_scale=0.01)
     r = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
     tau = fit.x[3:] if move else np.zeros(3)
