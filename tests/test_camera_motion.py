@@ -201,6 +201,7 @@ def test_a_run_on_a_turning_camera_says_so(tmp_path, monkeypatch, capsys):
     assert seen["others"].__func__.__name__ == "people" and seen["others"](3) is None  # one person in view
     assert cm["moving"] and cm["turn_deg_end"] == pytest.approx(5.0, rel=0.1) and len(cm["rotvecs"]) == 6
     assert not cm["moving_sideways"] and "shifts" not in cm
+    assert 0.0 < cm["seconds"] < 600.0  # the time its fit took, every pass together
     assert "the camera turns (a pan or a tilt): up to 5 degrees" in capsys.readouterr().out
 
 

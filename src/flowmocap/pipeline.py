@@ -497,9 +497,15 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         # from the input's first frame, whatever the tracked range: the people of one video
         # (track --person all) are then turned back into one world
         # everyone else left out too: someone walking past is not background
-        motion = lambda cam, frames, **kw: camera_motion(  # noqa: E731
-            seq, cam, frames=frames, masks=getattr(seq, "masks", None) is not None, progress=progress,
-            others=getattr(detections, "people", None), **kw)
+        spent = [0.0]  # seconds over every pass (run.json 'camera_motion' 'seconds')
+
+        def motion(cam, frames, **kw):
+            t0 = time.perf_counter()
+            try:
+                return camera_motion(seq, cam, frames=frames, masks=getattr(seq, "masks", None) is not None,
+                                     progress=progress, others=getattr(detections, "people", None), **kw)
+            finally:
+                spent[0] += time.perf_counter() - t0
         # a guessed focal length is read from the background where the camera turns; only with the
         # detector's own pass (with own masks and init, detect_joints3d has bound the guess already)
         guessed = (camera is None and "default focal length" in camera_source and detections is not None)
@@ -530,7 +536,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                     f"{focal['focal_px']:.0f} px (the guess is {cam.fx:.0f} px), but the floor shows the camera moving "
                     "with that focal length too, and a camera that moves bends that estimate, so the guess is kept "
                     "(run.json 'camera_motion' 'focal'; give --focal if you know the lens)")
-        notes["camera_motion"] = moved.to_dict(rotations=moved.moving)
+        notes["camera_motion"] = {**moved.to_dict(rotations=moved.moving), "seconds": round(spent[0], 2)}
         if moved.moving_sideways:
             turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()
             say(f"the floor about the person's feet shows the camera moving: its centre goes up to {moved.sideways:.1f} "
