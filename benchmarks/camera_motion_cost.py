@@ -32,10 +32,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/camera_move.py's loader
 
 
 def _summary(m) -> dict:
@@ -55,21 +58,12 @@ def _timed(fn, repeat: int) -> tuple[list[float], dict]:
 
 
 def result_passes(result: Path, repeat: int) -> list[dict]:
+    from camera_move import tracked_input
+
     from flowmocap.geometry.camera import PinholeCamera
-    from flowmocap.io.sequence import load_sequence
-    from flowmocap.io.video import load_video
-    from flowmocap.vision.auto import load_detections
     from flowmocap.vision.camera_motion import camera_motion
 
-    run = json.loads((result / "run.json").read_text())
-    cam = PinholeCamera.from_dict(run["camera"])
-    src = Path(run["input"])
-    side = max(cam.width, cam.height)
-    seq = load_sequence(src, max_side=side) if src.is_dir() else load_video(src, max_side=side)
-    masks = sorted((result / "detections" / "masks").glob("*.png"))
-    seq.masks = masks if len(masks) == len(seq) else None
-    det = load_detections(result)
-    people = det.people if det is not None and det.people_dir is not None else None
+    run, cam, seq, people = tracked_input(result)
     focal = (run.get("camera_motion") or {}).get("focal")
 
     def motion(c, **kw):

@@ -78,13 +78,15 @@ def synthetic(frames: int = 30) -> list[dict]:
     return rows
 
 
-def tracked(result: Path) -> dict:
-    from flowmocap.export.motion import load_fitted_motion
+def tracked_input(result: Path) -> tuple:
+    """``(run, camera, seq, people)`` of a ``flowmocap track`` result: its ``run.json``, its
+    camera, its input opened at the size it was tracked with the result's masks
+    (``seq.masks``, None without one per frame), and everyone else the detector saw
+    (``PersonTrack.people``, None where the result does not store them)."""
     from flowmocap.geometry.camera import PinholeCamera
     from flowmocap.io.sequence import load_sequence
     from flowmocap.io.video import load_video
     from flowmocap.vision.auto import load_detections
-    from flowmocap.vision.camera_motion import camera_motion
 
     run = json.loads((result / "run.json").read_text())
     cam = PinholeCamera.from_dict(run["camera"])
@@ -95,6 +97,14 @@ def tracked(result: Path) -> dict:
     seq.masks = masks if len(masks) == len(seq) else None
     det = load_detections(result)
     people = det.people if det is not None and det.people_dir is not None else None
+    return run, cam, seq, people
+
+
+def tracked(result: Path) -> dict:
+    from flowmocap.export.motion import load_fitted_motion
+    from flowmocap.vision.camera_motion import camera_motion
+
+    run, cam, seq, people = tracked_input(result)
     t0 = time.perf_counter()
     got = camera_motion(seq, cam, masks=seq.masks is not None, others=people)
     seconds = time.perf_counter() - t0
