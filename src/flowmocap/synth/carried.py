@@ -40,6 +40,8 @@ class CarriedCamera:
         K: ``(3, 3)`` the intrinsics, pixels; ``size``: ``(W, H)``.
         height: the camera's height above the floor in the first frame, metres.
         pitch_deg: how far it looks down, degrees.
+        zoom: each frame's focal length over the frame before's (1: no zoom; the principal
+            point stays): frame ``i`` is seen with ``zoom ** i`` times ``K``'s focal length.
 
     ``masks`` and ``camera`` are None (a sequence without a person or a given camera).
     """
@@ -47,7 +49,7 @@ class CarriedCamera:
     masks, camera = None, None
 
     def __init__(self, frames: int, velocity, yaw_deg: float = 0.0, K=None, size=(320, 240), height: float = 1.5,
-                 pitch_deg: float = 15.0):
+                 pitch_deg: float = 15.0, zoom: float = 1.0):
         from scipy.spatial.transform import Rotation
 
         self.n, self.velocity, self.yaw = int(frames), np.asarray(velocity, np.float64), float(yaw_deg)
@@ -55,6 +57,7 @@ class CarriedCamera:
         default = np.array([[300.0, 0, size[0] / 2], [0, 300.0, size[1] / 2], [0, 0, 1.0]])
         self.K = default if K is None else np.asarray(K, np.float64)
         self.height = float(height)
+        self.zoom = float(zoom)
         self.base = Rotation.from_euler("x", np.radians(pitch_deg)).as_matrix() @ np.diag([-1.0, -1.0, 1.0])
         self.tex = floor_texture()
 
@@ -73,16 +76,23 @@ class CarriedCamera:
 
         W, H = self.size
         R, C = self.pose(i)
+        K = self.K_of(i)
         ss = 4
         texture_to_floor = np.array([[0.01, 0, -6.0], [0, 0.01, -2.0], [0, 0, 1.0]])  # pixels -> (x, z) metres
-        M = np.diag([ss, ss, 1.0]) @ self.K @ np.c_[R[:, 0], R[:, 2], -R @ C] @ texture_to_floor
+        M = np.diag([ss, ss, 1.0]) @ K @ np.c_[R[:, 0], R[:, 2], -R @ C] @ texture_to_floor
         img = cv2.resize(cv2.warpPerspective(self.tex, M, (W * ss, H * ss), flags=cv2.INTER_LINEAR), (W, H),
                          interpolation=cv2.INTER_AREA)
         px = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).reshape(-1, 2)
-        rays = np.c_[px, np.ones(len(px))] @ np.linalg.inv(self.K).T
+        rays = np.c_[px, np.ones(len(px))] @ np.linalg.inv(K).T
         depth_share = rays @ (R @ np.array([0.0, -1.0, 0.0]))  # the ray's drop a metre forward
         img.reshape(-1, 3)[depth_share * 10.0 <= self.height] = 128  # above the horizon or beyond 10 m
         return img
+
+    def K_of(self, i: int) -> np.ndarray:
+        """``(3, 3)`` frame ``i``'s intrinsics, pixels: ``K`` with its focal lengths times ``zoom ** i``."""
+        z = self.zoom ** i
+        return np.array([[self.K[0, 0] * z, self.K[0, 1] * z, self.K[0, 2]], [0.0, self.K[1, 1] * z, self.K[1, 2]],
+                         [0.0, 0.0, 1.0]])
 
     def truth(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Camera ``i``'s centre in camera 0's axes in units of ``height``, and the floor's

@@ -41,7 +41,7 @@ floor's normal in the earlier frame's camera axes (pointing down, to the floor) 
 the camera's move in units of its height above the floor. :func:`floor_motion` tracks
 corners of the floor near the person's feet, searches the floor's normal with which the frame
 pairs that show a move are explained best (their turns and moves fitted and chained), believes
-the move only where it explains the floor's corners clearly better than a turn alone, then
+the move only where it explains the floor's corners clearly better than a turn and a zoom, then
 fits each pair's turn and move with that normal and chains them: the camera's path in units of
 its height above the floor in the first frame. That height, in metres, is not in the
 images; the export frames take it from the fitted body's feet on the floor
@@ -97,7 +97,7 @@ NORMAL_MIN_MOVE = 0.01
 #: its corners 0.004 px apart, showed a move and brought the move's cost share to 0.668).
 MOVE_MIN_PX = 0.5
 #: A move is believed only where, over the pairs the floor's normal is searched with, it
-#: leaves at most this share of the floor corners' cost that a turn alone leaves.
+#: leaves at most this share of the floor corners' cost that a turn and a zoom leave.
 MOVE_EVIDENCE = 0.7
 #: Floor corners are taken from the image rows below the person's lowest pixel less this share
 #: of their height (the floor about their feet), or without a person from the lowest
@@ -153,7 +153,7 @@ class CameraMotion:
             frame, in units of ``h`` (NaN where the floor could not tell).
         floor_unknown: frames whose floor motion could not be fitted (held from the frame before).
         move_share: where some frame pair's floor showed a move, the share of the cost a turn
-            alone leaves on the floor's corners that the move leaves (:data:`MOVE_EVIDENCE`);
+            and a zoom leave on the floor's corners that the move leaves (:data:`MOVE_EVIDENCE`);
             NaN where none did.
         zooms: ``(T,)`` each frame's focal length over the first frame's (1 where the camera
             does not zoom; below 1 where it zooms out), or None where not found.
@@ -484,14 +484,18 @@ def _rays(K: np.ndarray, px: np.ndarray) -> np.ndarray:
     return np.c_[px, np.ones(len(px))] @ np.linalg.inv(K).T
 
 
-def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float] | None:
+def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray, zooms: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, float] | None:
     """The floor's normal in the first frame's camera axes, from the pairs that show a move
     (:data:`NORMAL_MIN_MOVE`; None where none does): the normal with which the pairs' turns
     and moves (:func:`_fit_pair`) leave the floor's corners nearest where they are seen (the
     sum of squared distances cut at 3 px, over the :data:`NORMAL_PAIRS` pairs from the first
     that moves, their turns chained), searched on a grid of tilts about the camera's down and
-    then refined (Nelder-Mead). Returns the normal and the share of the turn-alone cost that
-    the move leaves (near 1: the floor shows no move).
+    then refined (Nelder-Mead). Returns the normal and the share of the cost a turn and a zoom
+    leave (each pair its own, no move; the earlier frame seen with its focal length of ``zooms``,
+    ``(T,)`` times the first frame's, the background's, where given) that the move leaves (near
+    1: the floor shows no move; a camera on a tripod that zooms over a floor moves its corners
+    much as a move forward would).
 
     One pair alone tells the normal poorly: over a frame a small move sideways looks much
     like a small turn, and only the floor's near corners moving more than its far ones tell
@@ -510,19 +514,20 @@ def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray) -> tuple[np.nda
     def normal(angles):  # in the axes of the window's first frame
         return Rotation.from_euler("xz", angles).as_matrix() @ np.array([0.0, 1.0, 0.0])
 
-    def cost(angles, move=True, above=np.inf):
+    def cost(angles, move=True, above=np.inf, zoom=False):
         """The cost at the normal of ``angles``; once the sum (of terms >= 0) passes ``above``,
-        that sum at once: the rest cannot bring it back."""
+        that sum at once: the rest cannot bring it back. ``zoom``: each pair with a zoom too."""
         n, R_k, total = normal(angles), np.eye(3), 0.0
         for k in window:
             if pairs[k] is None:
                 continue
             a, b, _ = pairs[k]
-            got = _fit_pair(a, b, K, R_k @ n, chain[k + 1] @ chain[k].T, move, last.get((k, move)))
+            K_k = _zoomed(K, float(zooms[k])) if zoom and zooms is not None else K
+            got = _fit_pair(a, b, K_k, R_k @ n, chain[k + 1] @ chain[k].T, move, last.get((k, move, zoom)), zoom)
             if got is None:
                 total += 9.0 * len(a)
             else:
-                last[(k, move)] = got[:2]
+                last[(k, move, zoom)] = got[:2]
                 total += float(np.sum(np.minimum(got[3], 3.0) ** 2)) + 9.0 * (len(a) - len(got[3]))  # off the floor: cut
                 R_k = got[0] @ R_k  # the floor's own turn (the background's is bent by the move)
             if total > above:
@@ -540,9 +545,10 @@ def _plane_normal(pairs: list, chain: np.ndarray, K: np.ndarray) -> tuple[np.nda
     best = minimize(bounded, np.asarray(start), method="Nelder-Mead",
                     options={"xatol": np.radians(0.2), "fatol": 1e-3, "initial_simplex":
                              np.asarray(start) + np.radians([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]])})
-    # the evidence for a move: the floor's corners with the move against with the turn alone
-    turn_only = cost(best.x, move=False)
-    share = best.fun / turn_only if turn_only > 0 else 1.0
+    # the evidence for a move: the floor's corners with the move against with a turn and a zoom
+    # (a zoom moves the floor's corners much as a move forward does, a turn alone cannot tell)
+    no_move = min(cost(best.x, move=False), cost(best.x, move=False, zoom=True))
+    share = best.fun / no_move if no_move > 0 else 1.0
     # into the first frame's axes, through the background's turn up to the window (no move there)
     return chain[window[0]].T @ normal(best.x), float(share)
 
@@ -582,13 +588,15 @@ def _moving_pairs(pairs: list, chain: np.ndarray, K: np.ndarray) -> list[int]:
 
 
 def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np.ndarray, move: bool = True,
-              start: tuple | None = None):
+              start: tuple | None = None, zoom: bool = False):
     """The turn ``R`` and move ``tau`` (units of the camera's height above the floor in the
     earlier frame) that carry the floor corners ``a`` onto ``b`` through
     ``K (R + tau n^T) K^-1``, the median distance (px) they leave and each corner's distance;
     robust least squares from ``R0`` and no move, or from ``start`` = ``(R, tau)`` where given
     (a fit of the same pair with a normal near ``n``: fewer steps to the same minimum); None
-    with fewer than 8 corners on the floor. ``move=False`` fits the turn alone (``tau`` zero)."""
+    with fewer than 8 corners on the floor. ``move=False`` fits the turn alone (``tau`` zero);
+    ``zoom`` fits a zoom of the later frame too (``K`` scaled about its principal point;
+    :func:`_pair_residual`)."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
@@ -599,44 +607,62 @@ def _fit_pair(a: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray, R0: np
         return None
 
     def residual(x):
-        return _pair_residual(x, rays, b, K, n, move)
+        return _pair_residual(x, rays, b, K, n, move, zoom)
 
     def jacobian(x):
-        return _pair_jacobian(x, rays, K, n, move)
+        return _pair_jacobian(x, rays, K, n, move, zoom)
 
     R_start, tau_start = (R0, np.zeros(3)) if start is None else start
     x0 = Rotation.from_matrix(R_start).as_rotvec()
     if move:
         x0 = np.r_[x0, tau_start]
+    if zoom:
+        x0 = np.r_[x0, 0.0]
     fit = least_squares(residual, x0, jac=jacobian, loss="soft_l1", f_scale=1.0, x_scale=0.01)
     r = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
-    tau = fit.x[3:] if move else np.zeros(3)
+    tau = fit.x[3:6] if move else np.zeros(3)
     return Rotation.from_rotvec(fit.x[:3]).as_matrix(), tau, float(np.median(r)), r
 
 
 def _pair_residual(x: np.ndarray, rays: np.ndarray, b: np.ndarray, K: np.ndarray, n: np.ndarray,
-                   move: bool = True) -> np.ndarray:
+                   move: bool = True, zoom: bool = False) -> np.ndarray:
     """:func:`_fit_pair`'s residuals ``(2N,)`` pixels: the rays ``(N, 3)`` of the earlier
-    frame's corners carried through ``K (R + tau n^T)`` against where they are seen, ``b``
+    frame's corners carried through ``Z K (R + tau n^T)`` against where they are seen, ``b``
     ``(N, 2)``; ``x`` is ``R``'s rotation vector (radians) then, with ``move``, ``tau`` (units
-    of the camera's height above the floor)."""
-    M = _exp_so3(x[:3])[0] + (np.outer(x[3:], n) if move else 0.0)
-    p = rays @ (K @ M).T
+    of the camera's height above the floor) and, with ``zoom``, ``log s``: ``Z`` scales the
+    image by ``s`` about ``K``'s principal point (the identity without ``zoom``)."""
+    M = _exp_so3(x[:3])[0] + (np.outer(x[3:6], n) if move else 0.0)
+    p = rays @ (_zoomed_px(K, x, move, zoom) @ M).T
     return (p[:, :2] / p[:, 2:3] - b).ravel()
 
 
-def _pair_jacobian(x: np.ndarray, rays: np.ndarray, K: np.ndarray, n: np.ndarray, move: bool = True) -> np.ndarray:
-    """The derivative of :func:`_pair_residual` by ``x``: ``(2N, 6)`` (``(2N, 3)`` without
-    ``move``), pixels per radian and per unit of ``tau``. With ``R = exp([w])``, the rotation
-    vector ``w`` changed by ``d`` turns a ray ``r`` by ``-R [r]_x J_r(w) d``, ``J_r`` the
-    exponential map's right Jacobian; ``tau`` moves it by ``(n . r) d``."""
+def _zoomed_px(K: np.ndarray, x: np.ndarray, move: bool, zoom: bool) -> np.ndarray:
+    """``Z K``: ``K`` with the zoom of ``x`` (its last value, ``log s``, with ``zoom``) about its principal point."""
+    if not zoom:
+        return K
+    return _zoomed(K, float(np.exp(x[6 if move else 3])))
+
+
+def _pair_jacobian(x: np.ndarray, rays: np.ndarray, K: np.ndarray, n: np.ndarray, move: bool = True,
+                   zoom: bool = False) -> np.ndarray:
+    """The derivative of :func:`_pair_residual` by ``x``: ``(2N, P)``, ``P`` = 3, 6 with ``move``,
+    one more with ``zoom``; pixels per radian, per unit of ``tau`` and of ``log s``. With ``R =
+    exp([w])``, the rotation vector ``w`` changed by ``d`` turns a ray ``r`` by ``-R [r]_x J_r(w)
+    d``, ``J_r`` the exponential map's right Jacobian; ``tau`` moves it by ``(n . r) d``; ``log s``
+    scales ``K``'s image about its principal point."""
     R, Jr = _exp_so3(x[:3])
-    KR = K @ R
-    q = rays @ (KR + (np.outer(K @ x[3:], n) if move else 0.0)).T  # (N, 3) the carried corners, homogeneous px
+    Kz = _zoomed_px(K, x, move, zoom)
+    M = R + (np.outer(x[3:6], n) if move else 0.0)
+    q = rays @ (Kz @ M).T  # (N, 3) the carried corners, homogeneous px
+    KR = Kz @ R
     # column j of [r]_x Jr is r x Jr[:, j] = -[Jr[:, j]]_x r: d q / d w_j = K R [Jr[:, j]]_x r
     cols = [rays @ (KR @ _cross_matrix(Jr[:, j])).T for j in range(3)]
     if move:
-        cols += [(rays @ n)[:, None] * K[:, j] for j in range(3)]  # d q / d tau_j = (n . r) K e_j
+        cols += [(rays @ n)[:, None] * Kz[:, j] for j in range(3)]  # d q / d tau_j = (n . r) K e_j
+    if zoom:  # Z = s [[1, 0, -cx], [0, 1, -cy], [0, 0, 0]] + const: d q / d log s = that matrix s (K M r)
+        D = np.array([[1.0, 0.0, -K[0, 2]], [0.0, 1.0, -K[1, 2]], [0.0, 0.0, 0.0]])
+        s_ = float(np.exp(x[6 if move else 3]))
+        cols.append(s_ * (rays @ (K @ M).T) @ D.T)
     dq = np.stack(cols, axis=2)  # (N, 3, P)
     z = q[:, 2, None]
     du = (dq[:, :2] - (q[:, :2] / z)[:, :, None] * dq[:, 2:3]) / z[:, :, None]  # (N, 2, P)
@@ -664,7 +690,7 @@ def _cross_matrix(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | None:
+def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray, zooms: np.ndarray | None = None) -> dict | None:
     """The camera's turn and move over a clip, from the floor corners of each frame pair.
 
     Args:
@@ -674,17 +700,20 @@ def floor_motion(pairs: list, K: np.ndarray, rotations: np.ndarray) -> dict | No
         rotations: ``(T, 3, 3)`` the turn of each frame since the first, from the whole
             background (:func:`frame_rotation`): the start of each pair's fit and the frame
             each pair's normal is turned back through.
+        zooms: ``(T,)`` each frame's focal length over the first frame's, from the whole
+            background (:func:`frame_turn_zoom`), or None (1): the focal lengths with which a
+            turn and a zoom, the alternative to a move, see the floor.
 
     Returns:
         None where no pair shows a move; ``{"share": s}`` where the move leaves more than
-        :data:`MOVE_EVIDENCE` of the cost a turn alone leaves on the floor's corners (``s``,
+        :data:`MOVE_EVIDENCE` of the cost a turn and a zoom leave on the floor's corners (``s``,
         the move not believed); else also ``rotations`` ``(T, 3, 3)``, ``shifts`` ``(T, 3)``
         (``x_t = R_t x_0 + h shifts_t``, ``h`` the camera's height above the floor in the first
         frame), ``normal`` ``(3,)`` (first frame's axes, pointing down), ``residual_px``
         (median over pairs) and ``unknown`` (frames whose pair could not be fitted; held: no
         turn or move from the frame before).
     """
-    got = _plane_normal(pairs, rotations, K)
+    got = _plane_normal(pairs, rotations, K, zooms)
     if got is None:
         return None
     n0, share = got
@@ -807,7 +836,7 @@ def camera_motion(seq, camera, frames: range | None = None, masks: bool = True, 
         prev, m, exclude = cur, new_m, new_exclude
     R = np.asarray(Rs, np.float64)
     zooms = np.asarray(zs, np.float64)
-    fl = floor_motion(pairs, K, R) if sideways and len(pairs) else None
+    fl = floor_motion(pairs, K, R, zooms) if sideways and len(pairs) else None
     shifts = normal = floor_R = None
     far = float("nan")
     floor_unknown = None
