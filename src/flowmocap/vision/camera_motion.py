@@ -659,10 +659,9 @@ def _pair_jacobian(x: np.ndarray, rays: np.ndarray, K: np.ndarray, n: np.ndarray
     cols = [rays @ (KR @ _cross_matrix(Jr[:, j])).T for j in range(3)]
     if move:
         cols += [(rays @ n)[:, None] * Kz[:, j] for j in range(3)]  # d q / d tau_j = (n . r) K e_j
-    if zoom:  # Z = s [[1, 0, -cx], [0, 1, -cy], [0, 0, 0]] + const: d q / d log s = that matrix s (K M r)
+    if zoom:  # dZ/dlog s = s D, D = [[1, 0, -cx], [0, 1, -cy], [0, 0, 0]], and s D = D Z: d q / d log s = D q
         D = np.array([[1.0, 0.0, -K[0, 2]], [0.0, 1.0, -K[1, 2]], [0.0, 0.0, 0.0]])
-        s_ = float(np.exp(x[6 if move else 3]))
-        cols.append(s_ * (rays @ (K @ M).T) @ D.T)
+        cols.append(q @ D.T)
     dq = np.stack(cols, axis=2)  # (N, 3, P)
     z = q[:, 2, None]
     du = (dq[:, :2] - (q[:, :2] / z)[:, :, None] * dq[:, 2:3]) / z[:, :, None]  # (N, 2, P)
