@@ -80,6 +80,8 @@ class FloorFit:
     camera_move: str | None = None
 
     def to_dict(self) -> dict:
+        """A JSON summary: ``scale`` (or None), ``points``, ``stature_m`` and ``own_stature_m``
+        (metres, to the millimetre), ``why`` and ``camera_move``."""
         return {"scale": None if self.scale is None else round(self.scale, 4), "points": self.points,
                 "stature_m": round(self.stature_m, 3), "own_stature_m": round(self.own_stature_m, 3),
                 "why": self.why, "camera_move": self.camera_move}

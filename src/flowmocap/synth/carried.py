@@ -72,6 +72,8 @@ class CarriedCamera:
         return self.base @ turn.T, np.array([0.0, self.height, 0.0]) + self.velocity * i
 
     def frame(self, i: int) -> np.ndarray:
+        """``(H, W, 3)`` uint8 RGB: frame ``i``, the floor's texture seen through :meth:`pose`
+        and :meth:`K_of` (4x supersampled); grey above the horizon and beyond 10 m."""
         import cv2
 
         W, H = self.size

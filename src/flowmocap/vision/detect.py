@@ -240,9 +240,14 @@ class PersonDetector(Protocol):
 
     name: str
 
-    def detect(self, image_rgb: np.ndarray) -> Detection | None: ...
+    def detect(self, image_rgb: np.ndarray) -> Detection | None:
+        """The person in ``image_rgb`` ``(H, W, 3)`` uint8 RGB, the next frame of the video:
+        a :class:`Detection` in its pixels, or None where it shows no person."""
+        ...
 
-    def reset(self) -> None: ...
+    def reset(self) -> None:
+        """Forget the tracked person: the next frame starts a new video."""
+        ...
 
 
 class MediaPipePoseDetector:
