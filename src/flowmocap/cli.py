@@ -246,7 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--profile", default=None, choices=["video", "synthetic"], help="settings profile (default: "
                    "'video' when the masks come from the detector, else 'synthetic'); printed and recorded in run.json")
     t.add_argument("--focal", type=float, help="focal length in pixels of the video's frames (default: from the "
-                   "video's metadata, else 0.9 x the long side, a 58 degree field of view)")
+                   "video's metadata, else 0.9 x the long side, a 58 degree field of view, or where the camera "
+                   "turns by 5 degrees or more without moving, the focal length its background's turns give)")
     t.add_argument("--camera", help="camera.json (default: INPUT/camera.json)")
     t.add_argument("--max-size", type=int, default=640, help="scale video frames (and a plain folder's frames) down "
                    "so that the long side is at most this many pixels (default 640; 0 keeps their size)")
@@ -290,8 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "confidence thresholds set for it (NETWORK_SETTINGS, docs/settings.md)")
     t.add_argument("--fast", action="store_true", help="faster, at some cost in the 2D fit: every optimisation "
                    "stops at a coarser stall, refits take fewer iterations, a refit turned down waits longer "
-                   "before the next and the detector runs without its mask augmentation (docs/settings.md has the "
-                   "measurements)")
+                   "before the next and the detector runs MediaPipe's full network (not the heavy one) without its "
+                   "mask augmentation (docs/settings.md has the measurements)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
     t.add_argument("--export", metavar="FMT[,FMT...]", help="after tracking, also export each finished result "

@@ -7,7 +7,7 @@ from flowmocap.export.marker_sets import MARKER_SETS
 FORMAT_HELP = {
     "bvh": "skeleton with the fitted bone lengths (Blender, Maya, MotionBuilder, Unity)",
     "glb": "glTF binary: one skinned mesh, 24-joint rig, keyframed joint rotations (Blender, three.js, engines)",
-    "glb-frames": "glTF binary flipbook: one full mesh per frame (exact vertices, about 170 kB per frame)",
+    "glb-frames": "glTF binary flipbook: one full mesh per frame (exact vertices, about 165 kB per frame)",
     "obj": "one .obj mesh per frame in a folder",
     "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
