@@ -227,3 +227,63 @@ def test_overlay_video_says_which_frames_were_not_seen(demo, tmp_path):
     corner = lambda v, f: v[f, :30, :200]  # noqa: E731 -- where the words go
     changed = [np.abs(corner(a, f) - corner(b, f)).max(-1).__gt__(60).mean() for f in range(T)]
     assert changed[1] > 0.02 and changed[2] > 0.02 and changed[0] < 0.005 and changed[3] < 0.005, changed
+
+
+def test_the_framing_side_camera_keeps_a_long_path_in_view():
+    """Points along the input camera's view, 3 to 9 m away and 1 m either side of its axis
+    vertically: orbited 90 degrees at the input's distance, the side camera sees the path
+    end-on too close, and points fall outside the image; the framing camera moves back
+    along its view until every point lies within 0.9 of the half-image, and no further
+    than that needs (the farthest-out point is at the edge). Points that already fit keep
+    the plain orbit."""
+    from flowmocap.geometry.camera import PinholeCamera, look_at
+    from flowmocap.viz.overlay import framing_side_camera, side_camera
+
+    R, t = look_at((0.0, 1.0, 0.0), (0.0, 1.0, 5.0))
+    cam = PinholeCamera(fx=200.0, fy=200.0, cx=80.0, cy=60.0, width=160, height=120, R=R, t=t)
+    z = np.linspace(3.0, 9.0, 25)
+    pts = np.concatenate([np.c_[np.zeros_like(z), np.full_like(z, y), z] for y in (0.0, 1.0, 2.0)])
+
+    def reach(c):  # the largest share of the half-image a point reaches, and whether all lie in front
+        x = pts @ np.asarray(c.R).T + np.asarray(c.t)
+        uv = c.project(pts)
+        share = np.maximum(np.abs(uv[:, 0] - c.width / 2) / (c.width / 2), np.abs(uv[:, 1] - c.height / 2) / (c.height / 2))
+        return share.max(), bool(np.all(x[:, 2] > 0))
+
+    plain = side_camera(cam, 0.5 * (pts.min(0) + pts.max(0)))
+    assert reach(plain)[0] > 1.0  # the path's ends leave the image
+    framed = framing_side_camera(cam, pts)
+    share, front = reach(framed)
+    assert front and share == pytest.approx(0.9, abs=1e-6)
+    np.testing.assert_allclose(framed.R, plain.R)  # the same view direction, only further back
+    small = pts[np.abs(pts[:, 2] - 6.0) < 0.2] * [1, 0.1, 1] + [0, 0.9, 0]  # a few points near the middle
+    near = framing_side_camera(cam, small)
+    np.testing.assert_allclose(near.t, side_camera(cam, 0.5 * (small.min(0) + small.max(0))).t)
+    with pytest.raises(InputError, match="finite point"):
+        framing_side_camera(cam, np.full((3, 3), np.nan))
+
+
+def test_the_side_view_shows_the_motion_with_the_cameras_turn_undone(demo, tmp_path):
+    """A result whose camera turned (run.json's camera_motion: 10 degrees about the vertical a
+    frame): the side view's motion is the export's "up" frame, where each frame's body is
+    turned back by the camera's turn, not the result's own frame (the camera's view), and its
+    camera keeps every joint of every frame inside the image."""
+    from flowmocap.export.motion import load_fitted_motion
+    from flowmocap.viz.result_render import ResultScene
+
+    root, _, _ = demo
+    res = tmp_path / "turned"
+    shutil.copytree(root / "exact", res)
+    run = json.loads((res / "run.json").read_text())
+    run["camera_motion"] = {"moving": True, "frames": list(range(T)),
+                            "rotvecs": [[0.0, np.radians(10.0 * i), 0.0] for i in range(T)]}
+    (res / "run.json").write_text(json.dumps(run))
+    scene = ResultScene(res)
+    motion, cam = scene.side_view()
+    up = load_fitted_motion(res, frame="up")
+    np.testing.assert_allclose(motion.joints(), up.joints(), atol=1e-9)
+    own = load_fitted_motion(res, frame="world").joints()
+    turned = own @ up.rotation.T  # the result's own frame, only turned y up
+    assert np.abs(motion.joints() - turned).max() > 0.1  # the turn was undone: the path differs
+    uv = cam.project(motion.joints().reshape(-1, 3))
+    assert np.all((uv >= 0) & (uv <= [cam.width, cam.height]))

@@ -23,7 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--out", help="folder for outputs given without a path (default RESULT/render)")
     p.add_argument("--video", nargs="?", const="", metavar="MP4",
                    help="the fitted body over the input video (H.264 MP4, the input's size and frame count)")
-    p.add_argument("--side", action="store_true", help="add a side view (camera orbited 90 degrees) to the video")
+    p.add_argument("--side", action="store_true", help="add a side view to the video: the body as it moves in the world (the "
+                   "camera's own turns, zoom and moves undone), from a camera orbited 90 degrees about the "
+                   "middle of its path, far enough back to keep it in view")
     p.add_argument("--alpha", type=float, default=0.6, help="body opacity in the video, 0..1 (default 0.6)")
     p.add_argument("--figure1", nargs="?", const="", metavar="PNG",
                    help="the paper's Fig. 1 (input, observed flow, rendered flow, pose, colour key) per frame")

@@ -8,7 +8,7 @@ from flowmocap.errors import InputError
 from flowmocap.geometry.camera import PinholeCamera, look_at
 
 __all__ = ["BODY_RGB", "PEOPLE_RGB", "overlay_body", "overlay_bodies", "render_body_view", "side_camera",
-           "camera_up"]
+           "framing_side_camera", "camera_up"]
 
 #: Default body colour (RGB in [0, 1]): a light blue that stands out on most footage.
 BODY_RGB = (0.45, 0.70, 1.0)
@@ -135,6 +135,42 @@ def render_body_view(vertices: np.ndarray, faces, camera: PinholeCamera, backgro
 def camera_up(camera: PinholeCamera) -> np.ndarray:
     """``(3,)`` the camera's image-up direction in world coordinates (``-R[1]``, unit)."""
     return -np.asarray(camera.R[1], np.float64)
+
+
+def framing_side_camera(camera: PinholeCamera, points, angle_deg: float = 90.0, fill: float = 0.9) -> PinholeCamera:
+    """:func:`side_camera` about the middle of ``points``, moved back along its view until
+    every point lies within ``fill`` of the image's half-width and half-height of its centre
+    (never nearer than the orbit puts it): a side view that keeps a whole path in sight.
+
+    Args:
+        camera: the input camera.
+        points: ``(N, 3)`` world points to keep in view (e.g. the joints of every frame and
+            some vertices), metres; the orbit is about the middle of their bounding box.
+        angle_deg: orbit angle, degrees (as :func:`side_camera`).
+        fill: the share of the half-image the points may reach, in ``(0, 1]``.
+
+    Returns:
+        :class:`PinholeCamera` of the same size and intrinsics.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts):
+        raise InputError("framing_side_camera needs at least one finite point to keep in view.")
+    centre = 0.5 * (pts.min(0) + pts.max(0))
+    cam = side_camera(camera, centre, angle_deg)
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    x = pts @ R.T + t  # camera axes: a move back by d adds d to every z
+
+    def depth_needed(a, f, c, size):  # the depth at which fx x / z + c lies within fill of the image's middle
+        half, off = fill * 0.5 * size, c - 0.5 * size
+        return np.where(a > 0, f * a / max(half - off, 1e-9), -f * a / max(half + off, 1e-9))
+
+    need = np.maximum(depth_needed(x[:, 0], cam.fx, cam.cx, cam.width), depth_needed(x[:, 1], cam.fy, cam.cy, cam.height))
+    back = max(0.0, float(np.max(need - x[:, 2])))
+    if back == 0.0:
+        return cam
+    return PinholeCamera(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height,
+                         R=R, t=t + np.array([0.0, 0.0, back]))
 
 
 def side_camera(camera: PinholeCamera, centre, angle_deg: float = 90.0) -> PinholeCamera:

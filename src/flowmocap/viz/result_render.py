@@ -24,7 +24,7 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.viz.flow_colors import color_wheel_legend, flow_to_color
 from flowmocap.viz.flow_figure import caption_tile, crop_box
-from flowmocap.viz.overlay import PEOPLE_RGB, overlay_bodies, overlay_body, render_body_view, side_camera
+from flowmocap.viz.overlay import PEOPLE_RGB, framing_side_camera, overlay_bodies, overlay_body, render_body_view
 from flowmocap.viz.traces import GT_TRACE_RGB, TRACE_RGB, draw_traces, trace_box
 
 __all__ = ["ResultScene", "overlay_video", "people_overlay_video", "figure1", "joint_traces", "energy_figure",
@@ -68,6 +68,7 @@ class ResultScene:
         from flowmocap.render import prepare_faces
 
         self.result_dir = Path(result_dir)
+        self._model = model
         self.motion = load_fitted_motion(self.result_dir, frame="world", model=model)
         self.arrays, self.run = read_result(self.result_dir)
         self.camera = self.motion.camera
@@ -122,6 +123,22 @@ class ResultScene:
             for i, v in enumerate(verts):
                 self._verts[s + i] = v
         return self._verts[k]
+
+    def side_view(self, angle_deg: float = 90.0) -> tuple:
+        """The motion seen from the side: ``(motion, camera)``, the motion in the ``"up"`` export
+        frame (:func:`~flowmocap.export.motion.load_fitted_motion`: where the camera turned,
+        zoomed or was carried, that undone, so the body moves as in the world, not as in the
+        camera's view) and :func:`~flowmocap.viz.overlay.framing_side_camera` orbited
+        ``angle_deg`` from the first frame's camera about the middle of the whole path, far
+        enough back to keep every frame's body in view."""
+        from flowmocap.export.motion import load_fitted_motion
+
+        motion = load_fitted_motion(self.result_dir, frame="up", model=self._model, cache_world=False)
+        T = motion.num_frames
+        rows = np.unique(np.linspace(0, T - 1, min(T, 32)).round().astype(int))
+        some = np.concatenate([motion.body(int(r), int(r) + 1)[0][0][::10] for r in rows])  # the body's extent
+        points = np.concatenate([motion.joints().reshape(-1, 3), some])
+        return motion, framing_side_camera(motion.camera, points, angle_deg)
 
     def image(self, k: int) -> np.ndarray:
         """``(H, W, 3)`` uint8 RGB input frame of result row ``k``."""
@@ -198,8 +215,9 @@ def default_frames(scene: ResultScene, count: int = 4, first: int = 1) -> list[i
 def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side: bool = False,
                   progress: bool = True) -> Path:
     """Write the body-over-video MP4: one video frame per tracked frame, the input's size
-    (twice as wide with ``side``: the view from a camera orbited 90 degrees about the
-    body's mean pelvis, on the right). Where the result has the 3D sources' disagreement,
+    (twice as wide with ``side``, on the right: the body as it moves in the world, the
+    camera's own turns, zoom and moves undone, seen from a camera orbited 90 degrees about
+    the middle of its path and far enough back to keep it in view, :meth:`ResultScene.side_view`). Where the result has the 3D sources' disagreement,
     the frames to review (:func:`~flowmocap.fit.disagreement.review_frames`) get a red frame
     and a caption with the frame's value; frames the person was tracked through without being
     seen (``run.json``'s ``gaps``) say so at the top left.
@@ -220,7 +238,16 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
 
     from flowmocap.fit.disagreement import review_frames
 
-    cam2 = side_camera(scene.camera, scene.motion.joints()[:, 0].mean(0)) if side else None
+    side_motion, cam2 = scene.side_view() if side else (None, None)
+    side_verts: dict[int, np.ndarray] = {}
+
+    def side_vertices(k, chunk=32):
+        if k not in side_verts:
+            side_verts.clear()
+            s = (k // chunk) * chunk
+            side_verts.update((s + i, v) for i, v in enumerate(side_motion.body(s, s + chunk)[0]))
+        return side_verts[k]
+
     review = review_frames(scene.arrays["disagreement"]) if "disagreement" in scene.arrays else None
     from flowmocap.io.results import UNSEEN_WORDS, unseen_frames
 
@@ -238,7 +265,8 @@ def overlay_video(scene: ResultScene, path: str | Path, alpha: float = 0.6, side
             if review is not None and review[1][k]:
                 img = _flag(img, f"review: 3D sources part {100 * review[0][k]:.0f} cm")
             if cam2 is not None:
-                img = np.concatenate([img, _label(render_body_view(v, scene.faces, cam2), "side view")], axis=1)
+                img = np.concatenate([img, _label(render_body_view(side_vertices(k), scene.faces, cam2), "side view")],
+                                     axis=1)
             out.write(img)
     return Path(path)
 
