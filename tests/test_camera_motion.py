@@ -582,6 +582,32 @@ def test_the_exponential_map_and_its_right_jacobian_against_scipy_and_finite_dif
     np.testing.assert_allclose(Jr, numeric, atol=1e-8)
 
 
+def test_the_background_turn_and_zoom_fit_is_the_floor_fits_model_without_a_move():
+    """The background's turn and zoom (:func:`_turn_zoom_fit`, fitted with the floor fit's
+    residuals and closed-form Jacobian, ``move`` off and ``zoom`` on) puts the corners where its
+    own ``moved()`` does, for intrinsics with a principal point off the image's middle; and it
+    finds a known turn and zoom from the corners they move."""
+    from scipy.spatial.transform import Rotation
+
+    from flowmocap.vision.camera_motion import _pair_residual, _rays, _turn_zoom_fit
+
+    Kc = np.array([[260.0, 0.0, 150.0], [0.0, 260.0, 110.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(3)
+    a = rng.uniform([0, 0], [320, 240], (40, 2))
+    w, z = np.array([0.01, -0.02, 0.005]), 0.97
+    R = Rotation.from_rotvec(w).as_matrix()
+    H = Kc @ np.diag([z, z, 1.0]) @ R @ np.linalg.inv(Kc)  # Z about the principal point, in normalised coordinates
+    p = np.c_[a, np.ones(len(a))] @ H.T
+    b = p[:, :2] / p[:, 2:3]
+    M = np.diag([z, z, 1.0]) @ R
+    x, cost, moved = _turn_zoom_fit(a, b, M / np.cbrt(np.linalg.det(M)), Kc)
+    np.testing.assert_allclose(x, np.r_[w, np.log(z)], atol=1e-9)
+    assert cost < 1e-12
+    probe = np.r_[w + 0.01, np.log(z) - 0.02]
+    np.testing.assert_allclose(_pair_residual(probe, _rays(Kc, a), b, Kc, np.zeros(3), False, True),
+                               (moved(probe, _rays(Kc, a)) - b).ravel(), atol=1e-9)
+
+
 @pytest.mark.parametrize("zoom", [False, True])
 @pytest.mark.parametrize("move", [True, False])
 @pytest.mark.parametrize("x", [(0.1, -0.2, 0.05, 0.02, -0.01, 0.03, 0.05), (1e-7, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),

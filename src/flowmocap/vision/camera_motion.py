@@ -394,8 +394,11 @@ def _turn_zoom_fit(a: np.ndarray, b: np.ndarray, M: np.ndarray, K: np.ndarray):
         p = rays @ Rotation.from_rotvec(x[:3]).as_matrix().T
         return p[:, :2] / p[:, 2:3] * np.exp(x[3]) * f + c
 
-    rays = _rays(K, a)
-    fit = least_squares(lambda x: (moved(x, rays) - b).ravel(), np.r_[Rotation.from_matrix(R0).as_rotvec(), np.log(z0)],
+    # the floor fit's model without a move (the pixels moved() gives), its Jacobian in closed form
+    rays, unused = _rays(K, a), np.zeros(3)
+    fit = least_squares(lambda x: _pair_residual(x, rays, b, K, unused, False, True),
+                        np.r_[Rotation.from_matrix(R0).as_rotvec(), np.log(z0)],
+                        jac=lambda x: _pair_jacobian(x, rays, K, unused, False, True),
                         loss="soft_l1", f_scale=1.0, x_scale=0.01)
     return fit.x, float(fit.cost), moved
 
