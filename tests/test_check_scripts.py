@@ -4,8 +4,9 @@ detector runs' keypoints combined), benchmarks/source_selection.py and
 benchmarks/disagreement.py (the sources' disagreement as a flag),
 benchmarks/error_over_time.py (a clip's error by time), benchmarks/prior_flip.py (the
 pose prior against a limb mirrored in depth), benchmarks/mediapipe_image_depth.py
-(MediaPipe's image-landmark depth), and benchmarks/camera_motion_cost.py (the camera's
-motion timed pass by pass)."""
+(MediaPipe's image-landmark depth), benchmarks/camera_motion_cost.py (the camera's
+motion timed pass by pass), and benchmarks/virtual_pan.py (a turning camera made from a
+still one)."""
 
 import json
 from pathlib import Path
@@ -410,3 +411,51 @@ def test_camera_motion_cost_times_each_pass_and_writes_its_table(tmp_path, monke
     with pytest.raises(SystemExit):  # nothing to time
         monkeypatch.setattr("sys.argv", ["camera_motion_cost.py"])
         cost.main()
+
+
+def test_virtual_pan_turns_and_sees_a_pixel_where_its_warp_puts_it(tmp_path):
+    """benchmarks/virtual_pan.py: the turns pan from -pan to +pan about the camera's y axis and
+    tilt up and back; a still frame with one bright dot, written through a turned and zoomed
+    virtual camera (undistorted first), shows the dot where :func:`virtual_pixel` says, the
+    truth of the pixel mapping the script carries the person's pixel with; a camera that turns
+    beyond the still view's edge says how much of a frame fell outside."""
+    import cv2
+    from types import SimpleNamespace
+
+    vp = _load("virtual_pan")
+    V = vp.turns(11, 4.0, 2.0)
+    rv = np.degrees(Rotation.from_matrix(V).as_rotvec())
+    np.testing.assert_allclose(rv[[0, -1], 1], [-4.0, 4.0], atol=1e-9)
+    np.testing.assert_allclose(rv[[0, 5, -1], 0], [0.0, 2.0, 0.0], atol=0.01)  # the tilt, up and back
+    K = np.array([[400.0, 0.0, 161.0], [0.0, 400.0, 118.0], [0.0, 0.0, 1.0]])
+    Kv = vp.virtual_intrinsics(K, (320, 240), (160, 120), 1.5)
+    np.testing.assert_allclose(Kv, [[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])  # 400 px at half size, 1.5x
+    cam = SimpleNamespace(K=K, dist=np.array([-0.05, 0.1, 0.0, 0.0, 0.0]))
+    img = np.zeros((240, 320, 3), np.uint8)
+    cv2.circle(img, (175, 130), 3, (255, 255, 255), -1)
+
+    class Still:
+        def __len__(self):
+            return 1
+
+        def frame(self, i):
+            return img
+
+    turn, zoom = Rotation.from_euler("yx", [3.0, -2.0], degrees=True).as_matrix(), vp.zoomed(Kv, 0.9)
+    import flowmocap.io.video as video
+
+    real = video.load_video
+    video.load_video = lambda *a, **k: Still()
+    try:
+        info = vp.write_virtual(Path("still.mp4"), cam, turn[None], [zoom], (160, 120), tmp_path / "v.mp4", 30.0)
+        wide = vp.write_virtual(Path("still.mp4"), cam, Rotation.from_euler("y", 30.0, degrees=True).as_matrix()[None],
+                                [Kv], (160, 120), tmp_path / "w.mp4", 30.0)
+    finally:
+        video.load_video = real
+    import imageio.v3 as iio
+
+    out = iio.imread(tmp_path / "v.mp4", plugin="pyav")[0].astype(float).sum(-1)
+    seen = np.array(np.unravel_index(np.argmax(cv2.GaussianBlur(out, (5, 5), 0)), out.shape))[::-1] + 0.0
+    want = vp.virtual_pixel(cam, (175.0, 130.0), turn, zoom)
+    assert np.linalg.norm(seen - want) < 1.5
+    assert info == {"outside_share": 0.0, "frames": 1} and wide["outside_share"] > 0.1
