@@ -341,6 +341,8 @@ def test_3d_joints_are_stored_and_given_in_smpl_order(small_clip, tmp_path, monk
     hips = track.keypoints[2, [KEYPOINT_NAMES.index("left_hip"), KEYPOINT_NAMES.index("right_hip")]].mean(0)
     turned, _ = track.smpl_joints3d(2, seq.camera)
     np.testing.assert_allclose(turned, j3d @ seq.camera.ray_rotation(*hips).T, atol=1e-9)
+    part, _ = track.smpl_joints3d(2, seq.camera, ray_share=0.3)  # a share of that turn
+    np.testing.assert_allclose(part, j3d @ seq.camera.ray_rotation(*hips, 0.3).T, atol=1e-9)
     stored = load_detections(tmp_path / "a")
     np.testing.assert_allclose(stored.smpl_joints3d(2)[0], j3d)
     # detections stored before the 3D joints existed load without them

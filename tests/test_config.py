@@ -217,3 +217,11 @@ def test_uses_detector3d_names_every_reader_of_the_3d_joints():
     for k, v in (("limb_depth_weight", 1.0), ("detector3d_weight", 50.0), ("init_detector3d_weight", 1e4),
                  ("reinit_max_joint3d_error", 0.1)):
         assert TrackerConfig.load(None, **{**off, k: v}).uses_detector3d, k
+
+
+def test_the_detectors_ray_share_is_a_share():
+    """``detector3d_ray_share`` takes values in [0, 1]; 1, the default, keeps the ray's whole turn."""
+    assert TrackerConfig().detector3d_ray_share == 1.0
+    assert TrackerConfig.load(None, detector3d_ray_share=0.5).detector3d_ray_share == 0.5
+    with pytest.raises(InputError, match="detector3d_ray_share"):
+        TrackerConfig.load(None, detector3d_ray_share=1.5)

@@ -606,3 +606,8 @@ def test_ray_rotation_takes_the_optical_axis_to_the_pixel_ray():
         w, vecs = np.linalg.eig(R)
         axis = np.real(vecs[:, np.argmin(np.abs(w - 1.0))])
         assert abs(axis[2]) < 1e-9
+        # a share of it: the same axis, the angle times the share (two halves make the whole)
+        half = cam.ray_rotation(u, v, 0.5)
+        np.testing.assert_allclose(half @ half, R, atol=1e-12)
+        np.testing.assert_allclose(cam.ray_rotation(u, v, 0.0), np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(cam.ray_rotation(u, v, 1.0), R, atol=0)

@@ -1060,3 +1060,24 @@ def test_the_steps_after_tracking_run_on_the_settings_threads_whatever_the_proce
             assert torch.get_num_threads() == pool  # the process's own pool back afterwards
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_detectors_3d_takes_its_share_of_the_rays_turn():
+    """``_detector_cam``: MediaPipe's 3D of each frame turned from the axes of the ray through the
+    detected hips into the camera's; with ``share`` that turn's angle times the share, so 0 leaves
+    it in its own axes and 1 takes the whole turn (the default)."""
+    from flowmocap.fit.lift_refit import _detector_cam
+
+    rng = np.random.default_rng(0)
+    idx = np.arange(2)
+    world = rng.normal(size=(2, len(KEYPOINT_NAMES), 3))
+    conf = np.ones((2, len(KEYPOINT_NAMES)))
+    px = np.tile(np.array([[500.0, 100.0]]), (2, 13, 1))  # the hips far off the image's middle
+    track = PersonTrack(np.zeros((2, len(KEYPOINT_NAMES), 2)), conf, np.ones(2, bool), [None, None], {}, world=world)
+    full = _detector_cam(track, idx, CAM, px, None)
+    none = _detector_cam(track, idx, CAM, px, None, share=0.0)
+    half = _detector_cam(track, idx, CAM, px, None, share=0.5)
+    R = CAM.ray_rotation(500.0, 100.0)
+    np.testing.assert_allclose(full, none @ R.T, atol=1e-9)
+    np.testing.assert_allclose(half, none @ CAM.ray_rotation(500.0, 100.0, 0.5).T, atol=1e-9)
+    assert np.abs(half - full).max() > 0.01

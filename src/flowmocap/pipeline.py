@@ -464,6 +464,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     keypoints = j3d = None
     lift = cfg.detector3d_source != "mediapipe"  # the 3D cues from flowmocap's lifter of the 2D keypoints
     mix = cfg.detector3d_source == "both"  # ... averaged with the detector's own 3D
+    ray_share = cfg.detector3d_ray_share if not lift else 1.0  # the lifter's 3D is in the ray's axes
     if lift and joints3d == "auto":
         notes["joints3d_source"] = ("the mean of MediaPipe's 3D keypoints and flowmocap.vision.lifter's" if mix else
                                     "flowmocap.vision.lifter, from the detector's 2D keypoints")
@@ -473,7 +474,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         if lift:
             watch = lifted_track(detections, mix=mix, fps=seq.meta.get("fps", 30.0))
-        j3d = lambda i: watch.smpl_joints3d(i, cam)
+        j3d = lambda i: watch.smpl_joints3d(i, cam, ray_share)
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
         watch, notes["joints3d"] = detect_for_given_masks(seq, out, progress=progress, model=cfg.detector_model)
@@ -482,11 +483,11 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
             if lift:
                 watch = lifted_track(watch, mix=mix, fps=seq.meta.get("fps", 30.0))
             keypoints = lambda i: watch.smpl_joints(i) if i < len(watch) and watch.found[i] else None
-            j3d = lambda i: watch.smpl_joints3d(i, cam)
+            j3d = lambda i: watch.smpl_joints3d(i, cam, ray_share)
     elif joints3d == "auto" and cfg.uses_detector3d:
         say(f"finding the person's 3D joints in {len(seq)} frames (MediaPipe pose; for E_d) ...")
         j3d, notes["joints3d"] = detect_joints3d(seq, out, cam, progress=progress, lift=lift, mix=mix,
-                                                 model=cfg.detector_model)
+                                                 model=cfg.detector_model, ray_share=ray_share)
     if (out / "detections").is_dir():
         write_json(out / "detections" / "source.json", {"input": cache_key})
     if getattr(seq, "camera", None) is None:  # a video or a folder of frames: the camera may turn
@@ -1258,7 +1259,9 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
                                           hidden_share=cfg.lifter_refit_hidden_share,
                                           height=cfg.body_height_m or None,
                                           detector_model=cfg.detector_model,
-                                          min_confidence=cfg.lifter_refit_min_confidence)
+                                          min_confidence=cfg.lifter_refit_min_confidence,
+                                          detector_ray_share=(cfg.detector3d_ray_share
+                                                              if cfg.detector3d_source == "mediapipe" else 1.0))
     except InputError as e:  # the tracked motion is written and stays the result
         say(f"the refit towards the lifter's 3D was skipped: {e}")
         run = {**run, "lifter_refit": {"skipped": str(e)}}

@@ -117,7 +117,7 @@ _RANGES: dict[str, str] = {
     "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
     "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _AT_LEAST_0,
     "lifter_refit_min_confidence": _UNIT,
-    "lifter_refit_hidden_share": _UNIT,
+    "lifter_refit_hidden_share": _UNIT, "detector3d_ray_share": _UNIT,
     "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
@@ -216,6 +216,12 @@ class TrackerConfig:
     detector3d_source: str = "mediapipe"  # the 3D keypoints of E_d, E_3d and the 3D refit criterion: the
     #                                    detector's own ("mediapipe"), flowmocap.vision.lifter's ("lifter")
     #                                    or the mean of the two ("both")
+    detector3d_ray_share: float = 1.0  # share, in [0, 1], of the turn from the ray through the person into the
+    #                                    camera's axes given to the detector's own 3D (MediaPipe's world
+    #                                    landmarks) where it is used: 1 takes them to be in the ray's axes;
+    #                                    under a camera's turn they turn by 0.1-0.6 of it themselves
+    #                                    (docs/experiments.md, "A turning camera made from a still one").
+    #                                    The lifter's 3D, trained in the ray's axes, always takes the whole turn
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
     flip_iterations: int = 0           # L-BFGS iterations on each mirrored pose before comparing
     flip_vote_frames: int = 0          # in the tracker: a limb the detector's 3D sees reaching the other way in

@@ -354,7 +354,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
                         ease=None, shape_share: float = 0.0, shape_girth_sigma: float | None = None,
                         bridge_s: float = 0.0, hidden_share: float = 0.0,
                         height: float | None = None, detector_model: str = "full",
-                        min_confidence: float = 0.5) -> tuple[dict, dict]:
+                        min_confidence: float = 0.5, detector_ray_share: float = 1.0) -> tuple[dict, dict]:
     """A result's ``motion.npz`` arrays with each frame refitted (module docstring).
 
     Args:
@@ -418,6 +418,9 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
             detector's own 3D point (aligned onto the fit by a similarity per frame on the
             confident points), and the image term (``pixel_sigma``) lets go of its joint
             (and of the hand or foot below a wrist or ankle); 0: off.
+        detector_ray_share: in [0, 1]: the share of the turn from the ray through the person
+            into the camera's axes the detector's own 3D is given
+            (:attr:`~flowmocap.fit.config.TrackerConfig.detector3d_ray_share`).
 
     Returns:
         ``(motion, info)``: the new arrays, and ``frames_refit``, ``seams_eased`` (the input
@@ -555,7 +558,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
         if vote_sources in ("lifter", "both"):
             srcs.append(lifted)
         if vote_sources in ("detector", "both"):
-            srcs.append(_detector_cam(track, idx, camera, pts2, exchanged))
+            srcs.append(_detector_cam(track, idx, camera, pts2, exchanged, share=detector_ray_share))
         det2 = None
         if vote_check_2d:
             d2, c2 = _detected_as_used(track, idx, exchanged)
@@ -569,7 +572,7 @@ def lifter_refit_motion(motion: dict, track, model, weight: float = 0.5, sigma: 
     from flowmocap.fit.disagreement import review_frames, source_disagreement, to_body_joints
     from flowmocap.vision.auto import frame_runs
 
-    det_all = _detector_cam(track, idx, camera, pts2, exchanged, gate=False)  # every point it gives
+    det_all = _detector_cam(track, idx, camera, pts2, exchanged, gate=False, share=detector_ray_share)  # every point
     disagreement = source_disagreement(fit_cam, [lifted, det_all])
     poses_new = poses0.clone()
     targets_cam = fit_cam.copy()
@@ -648,12 +651,14 @@ def _aligned(src: np.ndarray, fit_cam: np.ndarray) -> np.ndarray:
     return out
 
 
-def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged, gate: bool = True) -> np.ndarray:
+def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged, gate: bool = True,
+                  share: float = 1.0) -> np.ndarray:
     """``(T, 13, 3)`` the detector's own 3D keypoints of the result's frames turned into the
     camera's axes (as the lifter's: about the ray through the detected hips), exchanged left
     for right where the tracker did; NaN for frames without all 13 at confidence 0.5
     (``gate=False``: every frame where the person was found and the detected hips' pixels
-    are known, NaN only for points the detector gives none)."""
+    are known, NaN only for points the detector gives none); ``share``: of the turn from the
+    ray's axes (:attr:`~flowmocap.fit.config.TrackerConfig.detector3d_ray_share`)."""
     from flowmocap.vision.lifter import HIPS, eval_points_2d
 
     out = np.full((len(idx), 13, 3), np.nan)
@@ -667,7 +672,7 @@ def _detector_cam(track, idx: np.ndarray, camera, pts2: np.ndarray, exchanged, g
             continue
         x = w[k][list(MIRROR)] if int(f) in back else w[k]
         u, v = pts2[k, list(HIPS)].mean(0)
-        out[k] = x @ camera.ray_rotation(float(u), float(v)).T
+        out[k] = x @ camera.ray_rotation(float(u), float(v), share).T
     return out
 
 

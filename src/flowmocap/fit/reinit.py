@@ -177,6 +177,8 @@ class ReinitMonitor:
                  max_joint3d_error: float | None = None, patience3d: int | None = None, others=None):
         self.track = track
         self.cfg = cfg
+        # the detector's own 3D takes this share of the turn from the ray's axes; a lifted track's the whole
+        self._ray_share = cfg.detector3d_ray_share if cfg.detector3d_source == "mediapipe" else 1.0
         #: ``others(i)``: frame ``i``'s pixels where someone else may hide the person (``(H, W)``
         #: bool or None; ``PersonTrack.others``), left out of the IoU and unknown to the refit's
         #: silhouette; None: none anywhere
@@ -214,7 +216,7 @@ class ReinitMonitor:
     def _joints3d(self, i: int, camera):
         """Frame ``i``'s detected 3D joints (``PersonTrack.smpl_joints3d``), turned back where the
         tracker exchanged the frame (about the ray through the detected hips)."""
-        det = self.track.smpl_joints3d(i, camera)
+        det = self.track.smpl_joints3d(i, camera, self._ray_share)
         if det is None or i not in self.exchanged:
             return det
         hips = [self.track.keypoints[i][k] for k in _HIP_KEYPOINTS]

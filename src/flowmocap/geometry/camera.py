@@ -274,9 +274,10 @@ class PinholeCamera:
         """``(3,)`` camera centre in world coordinates, metres (``-R^T t``)."""
         return -self.R.T @ self.t
 
-    def ray_rotation(self, u: float, v: float) -> np.ndarray:
+    def ray_rotation(self, u: float, v: float, share: float = 1.0) -> np.ndarray:
         """``(3, 3)`` rotation taking the optical axis ``(0, 0, 1)`` to the viewing ray through
-        pixel ``(u, v)``, the smallest such (about an axis in the image plane).
+        pixel ``(u, v)``, the smallest such (about an axis in the image plane); with ``share``,
+        that rotation's angle times ``share`` about the same axis (0: the identity).
 
         A detector that lifts a person to 3D from a crop around them (MediaPipe's world
         landmarks) gives depth along the ray through the crop, not along the optical
@@ -291,6 +292,9 @@ class PinholeCamera:
             return np.eye(3)
         k = axis / s
         kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        if share != 1.0:
+            angle = share * float(np.arctan2(s, c))
+            s, c = np.sin(angle), np.cos(angle)
         return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
 
     # ---------------------------------------------------------------------- projection

@@ -166,7 +166,7 @@ class PersonTrack:
         (0 for the joints the detector does not give)."""
         return self._in_smpl_order(self.keypoints[i], i)
 
-    def smpl_joints3d(self, i: int, camera=None) -> tuple[np.ndarray, np.ndarray] | None:
+    def smpl_joints3d(self, i: int, camera=None, ray_share: float = 1.0) -> tuple[np.ndarray, np.ndarray] | None:
         """The detector's 3D joints of frame ``i`` in SMPL joint order: ``(24, 3)`` metres
         relative to the middle of the hips and ``(24,)`` confidences (0 for the joints it
         does not give), or None when the frame has none.
@@ -175,7 +175,8 @@ class PersonTrack:
         along the ray); with the ``camera`` (a
         :class:`~flowmocap.geometry.camera.PinholeCamera`) they are turned into the
         camera's own axes (:meth:`~flowmocap.geometry.camera.PinholeCamera.ray_rotation`
-        through the middle of the detected hips, or of the confident keypoints).
+        through the middle of the detected hips, or of the confident keypoints; ``ray_share``
+        of that turn, see :attr:`~flowmocap.fit.config.TrackerConfig.detector3d_ray_share`).
         """
         if self.world is None or i >= len(self) or not self.found[i] or not np.isfinite(self.world[i]).all():
             return None
@@ -185,7 +186,7 @@ class PersonTrack:
             use = hips if (self.confidence[i, hips] > 0).all() else np.nonzero(self.confidence[i] > 0)[0]
             if len(use):
                 u, v = self.keypoints[i, use].mean(0)
-                j3d = j3d @ camera.ray_rotation(float(u), float(v)).T
+                j3d = j3d @ camera.ray_rotation(float(u), float(v), ray_share).T
         return j3d, conf
 
 
@@ -1071,7 +1072,7 @@ def detect_for_given_masks(seq, out_dir: str | Path, progress: bool = True, mode
 
 
 def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True, lift: bool = False,
-                    mix: bool = False, model: str = "full") -> tuple:
+                    mix: bool = False, model: str = "full", ray_share: float = 1.0) -> tuple:
     """The detector's 3D joints for ``E_d`` when nothing else runs the detector (an input
     with its own masks and init.json): MediaPipe without the mask augmentation (about
     0.05 s per frame), stored in ``out_dir/detections`` like :func:`detect_sequence`.
@@ -1083,7 +1084,7 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
         person; and a sentence for ``input.json``. ``lift``: the 3D joints from
         :func:`flowmocap.vision.lifter.lifted_track` (``mix``: its mean with the
         detector's own) instead of the detector's own. ``model``: as
-        :func:`detect_for_given_masks`.
+        :func:`detect_for_given_masks`. ``ray_share``: as :meth:`PersonTrack.smpl_joints3d`.
     """
     track, note = detect_for_given_masks(seq, out_dir, progress, model)
     if track is None:
@@ -1092,7 +1093,7 @@ def detect_joints3d(seq, out_dir: str | Path, camera=None, progress: bool = True
         from flowmocap.vision.lifter import lifted_track
 
         track = lifted_track(track, mix=mix, fps=seq.meta.get("fps", 30.0))
-    return (lambda i: track.smpl_joints3d(i, camera)), (f"3D joints for E_d: {track.info['detector']}, "
+    return (lambda i: track.smpl_joints3d(i, camera, ray_share)), (f"3D joints for E_d: {track.info['detector']}, "
                                                         f"{track.info['frames_with_person']} frames")
 
 
