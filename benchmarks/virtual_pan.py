@@ -26,7 +26,10 @@ person's pixel carried into the virtual frame) and scored:
   turn), beside the still view's own run in ``--bench`` (the same person-view tracked as the
   suite does) and MediaPipe's 3D on the virtual frames; per-sequence (root-relative joints, one
   similarity over the sequence) of the result's own frame (the turning camera's) and of the
-  export's ``"up"`` frame, where each frame's turn (and zoom) is undone.
+  export's ``"up"`` frame, where each frame's turn (and zoom) is undone; and the body's distance
+  from the camera, relative to its first scored frame, against the reference's (the median
+  over frames of the ratio's error, percent): as tracked (with the first frame's focal length
+  throughout, a zoom out puts the body further) and with each frame's zoom undone (the export).
 
 Usage::
 
@@ -118,7 +121,7 @@ def score_view(res: Path, still: Path, reference: dict, person: str, view: str, 
     """The camera's and the body's scores of one virtual run (see the module's docstring)."""
     from scipy.spatial.transform import Rotation
 
-    from flowmocap.eval.real3d import EVAL_JOINTS, pa_mpjpe, score_run, scored_frames
+    from flowmocap.eval.real3d import EVAL_JOINTS, EVAL_NAMES, pa_mpjpe, score_run, scored_frames
     from flowmocap.export.motion import load_fitted_motion
 
     run = json.loads((res / "run.json").read_text())
@@ -152,6 +155,18 @@ def score_view(res: Path, still: Path, reference: dict, person: str, view: str, 
     joints_up = up.joints()[[rows[f] for f in d["used"]]][:, list(EVAL_JOINTS)]
     row["per_sequence_mm"] = {"camera_frame": pa_mpjpe(d["ours"], d["ref"], d["valid"])[1],
                               "turns_undone": pa_mpjpe(joints_up, d["ref"], d["valid"])[1]}
+    # the body's distance from the camera over time, relative to its first scored frame (one camera
+    # leaves the size, so the distance, open): the tracked one (the first frame's focal length
+    # throughout) and the export's (each frame's zoom undone) against the reference's
+    hips = [EVAL_NAMES.index("left_hip"), EVAL_NAMES.index("right_hip")]
+    centre = np.asarray(reference["cameras"][view].center, np.float64)
+    ref_d = np.linalg.norm(d["ref"][:, hips].mean(1) - centre, axis=1)
+
+    def off(dist):  # median over frames of |log| of the distance ratio's error, percent
+        return float(100 * np.median(np.abs(np.log(dist / dist[0] / (ref_d / ref_d[0])))))
+
+    row["distance_error_pct"] = {"tracked": off(np.linalg.norm(d["ours"][:, hips].mean(1), axis=1)),
+                                 "zoom_undone": off(np.linalg.norm(joints_up[:, hips].mean(1), axis=1))}
     return row
 
 
@@ -213,8 +228,8 @@ def table(result: dict) -> str:
              "per-sequence PA-MPJPE in mm against the reference without the view.", "",
              "| person-view | focal true / found (guess) | turn true deg | turn error deg median / max | zoom error "
              "| per frame: virtual / still | at keypoints: virtual / still | MediaPipe: virtual / still "
-             "| per sequence: camera's frame / turns undone / still |",
-             "|---|---|---:|---|---:|---|---|---|---|"]
+             "| per sequence: camera's frame / turns undone / still | distance's change, error %: tracked / zoom undone |",
+             "|---|---|---:|---|---:|---|---|---|---|---|"]
     f = lambda v: "" if v is None else f"{v:.1f}"  # noqa: E731
     for r in result["rows"]:
         found = (r.get("focal_found") or {}).get("focal_px")
@@ -226,7 +241,8 @@ def table(result: dict) -> str:
             f"{r.get('zoom_error_max', float('nan')):.3f} | {f(vi.get('flowmocap'))} / {f(st.get('flowmocap'))} | "
             f"{f(vi.get('flowmocap_kp'))} / {f(st.get('flowmocap_kp'))} | {f(vi.get('detector3d'))} / "
             f"{f(st.get('detector3d'))} | {f(r['per_sequence_mm']['camera_frame'])} / "
-            f"{f(r['per_sequence_mm']['turns_undone'])} / {f(st.get('per_sequence_mm'))} |")
+            f"{f(r['per_sequence_mm']['turns_undone'])} / {f(st.get('per_sequence_mm'))} | "
+            f"{f(r['distance_error_pct']['tracked'])} / {f(r['distance_error_pct']['zoom_undone'])} |")
     return "\n".join(lines) + "\n"
 
 
