@@ -268,7 +268,7 @@ def test_a_run_of_3d_bad_frames_is_reinitialised(setup, monkeypatch):
     seq, track, scene = setup
     truth = {i: (np.asarray(seq.gt["joints3d"][i]) @ np.asarray(seq.camera.R).T, np.full(24, 0.9))
              for i in range(len(seq))}
-    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None: truth[i])
+    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None, ray_share=1.0: truth[i])
     cfg = TrackerConfig(reinit_max_joint3d_error=0.08, reinit_3d_patience=2, reinit_patience=10,
                         reinit_iterations=10, init_detector3d_weight=1e5)
     mon = ReinitMonitor(track, cfg)
@@ -338,7 +338,7 @@ def test_a_refit_turned_down_is_recorded_once(setup, monkeypatch):
     seq, track, scene = setup
     truth = {i: (np.asarray(seq.gt["joints3d"][i]) @ np.asarray(seq.camera.R).T, np.full(24, 0.9))
              for i in range(len(seq))}
-    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None: truth[i])
+    monkeypatch.setattr(track, "smpl_joints3d", lambda i, camera=None, ray_share=1.0: truth[i])
     # every fit gives the tracked pose back: the refit's 3D is no closer than the tracked frame's
     monkeypatch.setattr(reinit, "fit_to_detection", lambda scene_, cfg, j2d, conf, mask, pose0, trans0, **kw:
                         (pose0, trans0, 1.0))
