@@ -219,7 +219,7 @@ class TrackerConfig:
     detector3d_ray_share: float = 1.0  # share, in [0, 1], of the turn from the ray through the person into the
     #                                    camera's axes given to the detector's own 3D (MediaPipe's world
     #                                    landmarks) where it is used: 1 takes them to be in the ray's axes;
-    #                                    under a camera's turn they turn by 0.1-0.6 of it themselves
+    #                                    under a camera's turn they turn by about half of it themselves
     #                                    (docs/experiments.md, "A turning camera made from a still one").
     #                                    The lifter's 3D, trained in the ray's axes, always takes the whole turn
     flip_test: bool = True             # per frame, try each limb mirrored in depth; keep it if E is lower
