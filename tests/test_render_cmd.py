@@ -261,6 +261,8 @@ def test_the_framing_side_camera_keeps_a_long_path_in_view():
     np.testing.assert_allclose(near.t, side_camera(cam, 0.5 * (small.min(0) + small.max(0))).t)
     with pytest.raises(InputError, match="finite point"):
         framing_side_camera(cam, np.full((3, 3), np.nan))
+    with pytest.raises(InputError, match="fill"):
+        framing_side_camera(cam, pts, fill=1.5)
 
 
 def test_the_side_view_shows_the_motion_with_the_cameras_turn_undone(demo, tmp_path):

@@ -152,6 +152,8 @@ def framing_side_camera(camera: PinholeCamera, points, angle_deg: float = 90.0, 
     Returns:
         :class:`PinholeCamera` of the same size and intrinsics.
     """
+    if not 0.0 < fill <= 1.0:
+        raise InputError(f"fill is the share of the half-image the points may reach, in (0, 1]; got {fill}.")
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if not len(pts):
