@@ -52,6 +52,11 @@ from pathlib import Path
 
 import numpy as np
 
+# the camera-motion module's own: K with its focal lengths scaled (the principal point kept), and a
+# rotation's angle in degrees
+from flowmocap.vision.camera_motion import _angle
+from flowmocap.vision.camera_motion import _zoomed as zoomed
+
 
 def turns(T: int, pan_deg: float, tilt_deg: float) -> np.ndarray:
     """``(T, 3, 3)``: the virtual camera's turn from the still camera's axes in each frame
@@ -71,14 +76,6 @@ def virtual_intrinsics(K_still: np.ndarray, full: tuple[int, int], size: tuple[i
     principal point in the image's middle."""
     f = 0.5 * (K_still[0, 0] + K_still[1, 1]) * size[1] / full[1] * narrow
     return np.array([[f, 0.0, size[0] / 2.0], [0.0, f, size[1] / 2.0], [0.0, 0.0, 1.0]])
-
-
-def zoomed(K: np.ndarray, z: float) -> np.ndarray:
-    """``K`` with its focal lengths times ``z``, the principal point kept."""
-    out = K.copy()
-    out[0, 0] *= z
-    out[1, 1] *= z
-    return out
 
 
 def write_virtual(video: Path, cam, V: np.ndarray, Kv: list, size: tuple[int, int], out: Path, fps: float) -> dict:
@@ -112,11 +109,6 @@ def virtual_pixel(cam, px: tuple[float, float], V: np.ndarray, Kv: np.ndarray) -
     return float(p[0, 0, 0]), float(p[0, 0, 1])
 
 
-def _angle_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    c = (np.einsum("tij,tij->t", A, B) - 1.0) / 2.0  # trace(A^T B)
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-
-
 def score_view(res: Path, still: Path, reference: dict, person: str, view: str, truth: dict) -> dict:
     """The camera's and the body's scores of one virtual run (see the module's docstring)."""
     from scipy.spatial.transform import Rotation
@@ -133,7 +125,7 @@ def score_view(res: Path, still: Path, reference: dict, person: str, view: str, 
     if cm.get("rotvecs"):
         frames = np.asarray(cm["frames"], int)
         R = Rotation.from_rotvec(np.asarray(cm["rotvecs"], np.float64)).as_matrix()
-        err = _angle_deg(R, truth["R"][frames])
+        err = _angle(np.einsum("tji,tjk->tik", R, truth["R"][frames]))  # the angle of R^T R_true
         row.update(turn_error_deg_median=float(np.median(err)), turn_error_deg_max=float(err.max()))
         if cm.get("zooms"):
             z = np.asarray(cm["zooms"], np.float64)
@@ -196,7 +188,7 @@ def run(bench: Path, views: list[str], pan: float, tilt: float, zoom: float, nar
         Kv = [zoomed(K0, z) for z in zs]
         truth = {"focal_px": float(K0[0, 0]), "size": size, "R": np.einsum("tij,kj->tik", V, V[0]),
                  "zooms": zs / zs[0]}
-        truth["turn_deg"] = _angle_deg(truth["R"], np.broadcast_to(np.eye(3), truth["R"].shape))
+        truth["turn_deg"] = _angle(truth["R"])
         clip = work / f"{person}-{view}.mp4"
         res = work / "runs" / f"{person}-{view}"
         if not clip.exists():
