@@ -225,21 +225,28 @@ def test_every_video_mask_is_checked_before_any_work(tmp_path):
         load_video(v, masks=_write_masks(tmp_path / "text", 4, 64, 48, bad={2: None}))
 
 
-def test_a_negative_max_size_is_refused(tmp_path):
-    """max_side < 0 (--max-size -5) used to shrink the frames to 1x1; it is an InputError
-    in the loaders and in flowmocap.track, before anything is written."""
-    from flowmocap.io.sequence import load_sequence
+def test_a_negative_or_tiny_max_size_is_refused(tmp_path):
+    """max_side < 0 (--max-size -5) used to shrink the frames to 1x1, and 1-8 to a few pixels
+    where "no person found" hid the cause; each is an InputError in the loaders and in
+    flowmocap.track, before anything is written. 0 keeps the size; 64 is the least."""
+    from flowmocap.io.sequence import MIN_MAX_SIDE, load_sequence
     from flowmocap.pipeline import track
 
     v = write_video(tmp_path / "a.mp4", _frames(2))
-    with pytest.raises(InputError, match=r"--max-size must be >= 0 \(0 keeps the video's size\)"):
+    with pytest.raises(InputError, match=r"--max-size must be 0 \(keep the video's size\) or at least 64 px"):
         load_video(v, max_side=-5)
-    with pytest.raises(InputError, match="--max-size must be >= 0"):
+    with pytest.raises(InputError, match="--max-size must be 0"):
         load_sequence(tmp_path, max_side=-1)
-    with pytest.raises(InputError, match="--max-size must be >= 0"):
+    for tiny in (1, 8, MIN_MAX_SIDE - 1):
+        with pytest.raises(InputError, match="too few pixels"):
+            load_video(v, max_side=tiny)
+    with pytest.raises(InputError, match="--max-size must be 0"):
         track(v, tmp_path / "out", max_size=-5, log=None, progress=False)
+    with pytest.raises(InputError, match="--max-size must be 0"):
+        track(v, tmp_path / "out", max_size=4, log=None, progress=False)
     assert not (tmp_path / "out").exists()
     assert load_video(v, max_side=0).size == (64, 48)
+    assert load_video(v, max_side=MIN_MAX_SIDE).size == (64, 48)
 
 
 def test_an_init_in_the_videos_own_pixels_says_the_frames_are_scaled(tmp_path):

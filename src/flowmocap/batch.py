@@ -110,6 +110,8 @@ class BatchItem:
             worth reporting), else ``""``.
         person: the person to track in the input, as :func:`flowmocap.track`'s ``person``
             (a rank; :func:`track_people` sets it); None: the batch's own setting.
+        exit_code: the exit status the failure would have given alone (``flowmocap.errors``'
+            kinds: 2 bad input, 3 optimiser, ...; 1 for any other exception); 0 unless failed.
     """
 
     input: str
@@ -123,6 +125,7 @@ class BatchItem:
     error: str = ""
     details: str = ""
     person: int | None = None
+    exit_code: int = 0
 
     @property
     def s_per_frame(self) -> float:
@@ -627,7 +630,8 @@ def _track_one(item: BatchItem, kwargs: dict, progress: bool = False,
         except FlowMocapError:
             pass
         return replace(item, status="failed", frames=frames, new_frames=max(frames - before, 0),
-                       seconds=time.perf_counter() - t0, error=_describe(e), details=details)
+                       seconds=time.perf_counter() - t0, error=_describe(e), details=details,
+                       exit_code=e.exit_code if isinstance(e, FlowMocapError) else 1)
 
 
 def _track_in_worker(item: BatchItem, kwargs: dict, threads: int) -> BatchItem:

@@ -90,6 +90,9 @@ def cmd_track(args) -> int:
         items = track_people(args.input[0], args.out, workers=args.workers, ray=ray, force=args.force,
                              progress=not args.quiet, **settings)
         print(summary_table(items, args.out, noun="people"))
+        if all(it.status == "failed" for it in items):  # nobody tracked: the failure's own kind, as a single run
+            print(f"flowmocap: error: {items[0].error}", file=sys.stderr)
+            return items[0].exit_code or 1
         return _export_people(args.out, items, formats, args)
     if not is_batch(args.input, lists):
         if args.workers > 1 or args.ray is not None:

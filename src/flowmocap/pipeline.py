@@ -17,6 +17,7 @@ import contextlib
 import glob
 import json
 import math
+import os
 import platform
 import shutil
 import time
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 
 from flowmocap.body import BodyModel, load_body_model
-from flowmocap.body.stature import check_height, stature
+from flowmocap.body.stature import check_height, stature, with_stature
 from flowmocap.errors import DataError, InputError, ModelFileError, NoPersonError, OutputError
 from flowmocap.fit.config import FAST_SETTINGS, NETWORK_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
@@ -294,9 +295,14 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             ``run.json`` says ``"failed"`` with the error, and ``resume=True`` continues.
     """
     say = log if log is not None else (lambda _msg: None)
+    if not str(out).strip():
+        raise InputError("the result folder (out, --out) is empty; give the path of a new folder.")
     src, out = Path(source), Path(out)
     if not src.exists():
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
+    if not (src.is_file() or src.is_dir()):
+        raise DataError(f"{src} is neither a file nor a folder (a pipe or a device?); give a video file, a folder "
+                        "of frames or a sequence folder.")
     if joints3d not in ("auto", "off"):
         raise InputError(f"joints3d must be 'auto' or 'off'; got {joints3d!r}.")
     check_max_side(max_size)
@@ -371,6 +377,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     cfg = TrackerConfig.load(config, profile=profile, base=base or None, flow_method=flow,
                              body_height_m=None if height is None else float(height), detector_model=detector)
     body = model if isinstance(model, BodyModel) else load_body_model(model, gender=gender)
+    if cfg.body_height_m:  # a model whose shape does not set its height is refused now, not after detection
+        with_stature(body, torch.zeros(10, dtype=torch.float64), cfg.body_height_m)
     if choice[0] != "largest" and not (auto_masks or auto_init):
         raise InputError(f"person={describe_person(choice)!r} chooses among the people the detector finds, but with "
                          "your own init and masks the detector does not choose anyone; leave person at 'largest' "
@@ -570,8 +578,11 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     _camera_move_verdict(out, run, say)
     t = run["timings"]
     reinits = sum(1 for e in run["events"] if e.get("event") == "re-initialised")
-    say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({t.get('s_per_frame_median', float('nan')):.2f} s per "
-        f"frame median; {len(run['events'])} recorded events, {reinits} re-initialisations)")
+    per_frame = t.get("s_per_frame_median")
+    timing = (f"{per_frame:.2f} s per frame median" if per_frame is not None and math.isfinite(per_frame)
+              else "no frame past the start tracked, so no time per frame")
+    say(f"tracked frames {a}:{b} of {len(seq)} into {out} ({timing}; {len(run['events'])} recorded events, "
+        f"{reinits} re-initialisations)")
     say(f"camera: {camera_source}")
     if "frame_range" in notes:
         say(notes["frame_range"])
@@ -614,6 +625,9 @@ def _check_masks_not_all_empty(paths: list[Path], given) -> None:
 def _check_out(out: Path, force: bool) -> None:
     """Refuse an ``out`` that is a file, or a non-empty folder flowmocap did not make
     (unless ``force``), before anything is written."""
+    if out.is_symlink() and not out.exists():
+        raise InputError(f"{out} is a symbolic link to {os.readlink(out)}, which does not exist; give a new folder, "
+                         "or make the folder the link points to.")
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} is a file; the result goes into a folder: give a new folder, or one that holds a "
                          "flowmocap result.")
@@ -835,17 +849,24 @@ def _camera(camera, seq: Sequence, src: Path) -> tuple[PinholeCamera, str]:
     elif seq.camera is not None:
         cam, note = seq.camera, f"{src / 'camera.json'}"
     else:
-        cam, note = default_camera(w, h, seq.meta.get("focal_35mm"))
-        if not _field_of_view_ok(cam):  # metadata the user did not write: set it aside, say so
-            f35 = seq.meta.get("focal_35mm")
+        f35 = seq.meta.get("focal_35mm")
+        cam, note = default_camera(w, h, f35)
+        if not _field_of_view_ok(cam) and f35:  # metadata the user did not write: set it aside, say so
             cam, note = default_camera(w, h, None)
             note = f"the video's 35 mm-equivalent focal length {f35:g} mm is not a real lens's, ignored; {note}"
+        if not _field_of_view_ok(cam):  # the frames' shape itself: no lens sees a sliver like this
+            lo, _ = FIELD_OF_VIEW_DEG
+            raise InputError(f"the frames are {w}x{h} pixels: with any ordinary lens a view that narrow spans less "
+                             f"than {lo:g} degrees on its short side and cannot hold a person; give frames of an "
+                             "ordinary shape (crop less), or --focal/--camera if the lens really is that long.")
+        _check_principal_point(cam, note)
         return cam, note
     if (cam.width, cam.height) != (w, h):
         raise InputError(f"the camera ({note}) is for {cam.width}x{cam.height} images but the frames are {w}x{h}"
                          + (" (scaled by max_size / --max-size; pass 0 to keep the video's size)"
                             if scale != 1.0 else "") + ".")
     _check_field_of_view(cam, note)
+    _check_principal_point(cam, note)
     return cam, note
 
 
@@ -886,6 +907,24 @@ def _check_field_of_view(cam: PinholeCamera, note: str) -> None:
                 "and the tool assumes a 58-degree field of view across the long side.")
 
 
+def _check_principal_point(cam: PinholeCamera, note: str) -> None:
+    """Refuse a principal point more than an image's size outside the image (``InputError``).
+
+    A cropped image may have its principal point off centre, even outside it, but not a whole
+    image width (or height) beyond its edges: that is a mistyped camera file.
+
+    Args:
+        cam: the camera (pixels).
+        note: where it came from, for the message.
+    """
+    for name, c, size in (("cx", cam.cx, cam.width), ("cy", cam.cy, cam.height)):
+        if not -size <= c <= 2 * size:
+            raise InputError(
+                f"the camera ({note}) has its principal point {name} = {c:g} px, more than the image's "
+                f"{size} px outside the image; {name} is in pixels from the image's "
+                f"{'left' if name == 'cx' else 'top'} edge (about {size / 2:g} for a centred one).")
+
+
 def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera_R=None) -> tuple:
     """Automatic initialisation: the InitSpec, the frame range and a sentence about it
     (``camera_R``: the camera's rotation, for the start's orientation in the world's axes)."""
@@ -895,7 +934,12 @@ def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera
         found = [i for i in range(n) if detections.found[i]]
         a, b = 0, (found[-1] + 1 if found else n)
     first = first_person_frame(detections, a)
-    if first is None or first >= b - 1:
+    if first is not None and first >= b - 1:
+        raise NoPersonError(f"the person is seen whole enough to start on only in frame {first}, the last of "
+                            f"{a}:{b} in which the detector sees them; tracking needs them in at least two frames "
+                            "(the flow is measured between neighbouring frames): give a longer clip, --frames that "
+                            "reach further, or --init init.json with the 2D joints of an earlier frame.")
+    if first is None:
         raise NoPersonError(f"no frame in {a}:{b} shows a whole enough person to start on (hips, shoulders and "
                             "at least 8 of the 12 main joints, each with confidence >= 0.5) before the last frame; "
                             "give --init init.json with the 2D joints of the first frame.")

@@ -281,6 +281,36 @@ def _dense(x) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
+#: How far a vertex's skinning weights may sum from 1, and the size of the template's
+#: bounding box (its diagonal, metres) an SMPL-format body may have: SMPL's, SMPL-H's and
+#: SMPL-X's weights sum to 1 within 1e-6 and their templates span about 2 m; a child's
+#: body about 1 m.
+SUM_TOLERANCE = 0.05
+TEMPLATE_DIAGONAL_M = (0.2, 10.0)
+
+
+def _check_plausible(path: Path, v: np.ndarray, weights: np.ndarray) -> None:
+    """Refuse a model whose arrays have the right shapes but cannot be a body
+    (``ModelFileError``): skinning weights that do not sum to 1, or a template that is not a
+    person's size in metres.
+
+    Args:
+        path: the file, for the message.
+        v: ``(V, 3)`` template vertices, metres.
+        weights: ``(V, J)`` skinning weights.
+    """
+    w_sum = weights.sum(axis=1)
+    bad_w = int(np.count_nonzero(np.abs(w_sum - 1.0) > SUM_TOLERANCE))
+    if bad_w or weights.min() < -SUM_TOLERANCE:
+        raise ModelFileError(f"{path}: the skinning weights of {bad_w or 'some'} of {len(w_sum)} vertices do not sum to 1 "
+                             "(or are negative); the file is damaged or not an SMPL-format model. " + WHERE_TO_GET)
+    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) if len(v) else 0.0
+    lo, hi = TEMPLATE_DIAGONAL_M
+    if not lo <= diag <= hi:
+        raise ModelFileError(f"{path}: the template body spans {diag:.3g} m corner to corner; an SMPL-format body is a "
+                             f"person in metres ({lo:g}-{hi:g} m). The file is damaged, or in other units. " + WHERE_TO_GET)
+
+
 def _to_arrays(data: dict, path: Path, gender: str) -> ModelArrays:
     missing = [k for k in REQUIRED_KEYS if k not in data]
     if missing:
@@ -325,6 +355,7 @@ def _to_arrays(data: dict, path: Path, gender: str) -> ModelArrays:
     if bad:
         raise ModelFileError(f"{path}: {', '.join(bad)} {'holds' if len(bad) == 1 else 'hold'} NaN or infinite values; the file is damaged. "
                              + WHERE_TO_GET)
+    _check_plausible(path, v, weights)
     if J == NUM_JOINTS:
         kind = "smpl"
     elif J == 52:

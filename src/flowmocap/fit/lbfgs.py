@@ -84,6 +84,10 @@ def minimise(params: list[torch.Tensor], closure_energy: Callable[[], torch.Tens
         opt.step(closure)
     except _Stalled:
         pass
+    except RuntimeError as err:  # torch's line search on values beyond the float range
+        if "overflow" not in str(err):
+            raise
+        raise OptimizationError(f"the optimiser's step overflowed the float range ({err})") from err
     if best[1] is not None:
         with torch.no_grad():
             for p, b in zip(params, best[1]):

@@ -15,14 +15,16 @@ centre. Intrinsics calibrated with OpenCV (pixel centres at integers) convert by
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
-from flowmocap.errors import InputError
+from flowmocap.errors import DataError, InputError
 
 __all__ = ["PinholeCamera", "look_at"]
 
@@ -248,6 +250,32 @@ class PinholeCamera:
             width=data["width"], height=data["height"],
             R=data.get("R", np.eye(3)), t=data.get("t", np.zeros(3)),
         )
+
+    @classmethod
+    def from_file(cls, path) -> "PinholeCamera":
+        """Camera from a ``camera.json`` file (the fields of :meth:`from_dict`).
+
+        Args:
+            path: path of the file (str or Path).
+
+        Raises:
+            DataError: the path does not exist, is not a regular file, or is not UTF-8 JSON.
+            InputError: the JSON does not describe a camera (:meth:`from_dict`).
+        """
+        p = Path(path)
+        if not p.exists():
+            raise DataError(f"camera file not found: {p}")
+        if not p.is_file():
+            raise DataError(f"camera file {p} is not a file (a folder or a device?); give the path of a camera.json")
+        try:
+            text = p.read_bytes().decode("utf-8")
+        except UnicodeDecodeError:
+            raise DataError(f"{p} is not a text file (not UTF-8); a camera.json holds JSON text") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise DataError(f"{p}:{e.lineno}: not valid JSON ({e.msg})") from None
+        return cls.from_dict(data)
 
     def to_dict(self) -> dict:
         """JSON-ready dict for ``camera.json``.

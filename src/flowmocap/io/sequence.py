@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,10 +103,18 @@ def scaled_size(size: tuple[int, int], max_side: int | None) -> tuple[tuple[int,
     return (max(1, round(w * s)), max(1, round(h * s))), s
 
 
+def frame_order_key(path: Path) -> tuple:
+    """Sort key for frame file names: runs of digits compare as numbers, so ``frame2.png``
+    comes before ``frame10.png`` (names numbered without leading zeros, as ffmpeg's ``%d``
+    writes them) and zero-padded names keep their order. Ties (``f01``, ``f1``) go by name."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple((0, int(x), "") if x.isdigit() else (1, 0, x) for x in parts), path.name
+
+
 def list_images(folder: Path) -> list[Path]:
-    """The image files directly in ``folder`` (suffixes :data:`IMAGE_SUFFIXES`, any case),
-    sorted by name: the frame order of a folder of frames."""
-    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    """The image files directly in ``folder`` (suffixes :data:`IMAGE_SUFFIXES`, any case) in
+    frame order: by name, the numbers in names compared as numbers (:func:`frame_order_key`)."""
+    return sorted((p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=frame_order_key)
 
 
 def read_image(path: Path, size: tuple[int, int] | None = None, gray: bool = False) -> np.ndarray:
@@ -191,14 +200,21 @@ def check_images(paths: list[Path], size: tuple[int, int] | tuple[tuple[int, int
                                 f"must all have one size: resize or replace this {what}.")
 
 
+#: The smallest long side, pixels, frames may be scaled to (``--max-size``): in a smaller frame
+#: a person is too few pixels for the detector or the flow.
+MIN_MAX_SIDE = 64
+
+
 def check_max_side(max_side) -> None:
-    """Refuse a negative ``max_side`` (``--max-size``).
+    """Refuse a ``max_side`` (``--max-size``) that is negative or, other than 0 (keep the size),
+    below :data:`MIN_MAX_SIDE`.
 
     Raises:
-        InputError: ``max_side`` < 0.
+        InputError: ``max_side`` < 0 or 0 < ``max_side`` < :data:`MIN_MAX_SIDE`.
     """
-    if max_side is not None and max_side < 0:
-        raise InputError(f"--max-size must be >= 0 (0 keeps the video's size); got {max_side}.")
+    if max_side is not None and (max_side < 0 or 0 < max_side < MIN_MAX_SIDE):
+        raise InputError(f"--max-size must be 0 (keep the video's size) or at least {MIN_MAX_SIDE} px (in smaller "
+                         f"frames a person is too few pixels to find); got {max_side}.")
 
 
 def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: int | None = None) -> Sequence:
@@ -232,7 +248,8 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
     mask_paths = None
     if mask_dir is not None:
         if not mask_dir.is_dir():
-            raise DataError(f"mask folder {mask_dir} does not exist.")
+            raise DataError(f"mask folder {mask_dir} " + ("is a file; give a folder of mask images, one per frame."
+                                                          if mask_dir.exists() else "does not exist."))
         mask_paths = list_images(mask_dir)
         if len(mask_paths) != len(frames):
             raise DataError(
@@ -247,8 +264,8 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
     if (root / "camera.json").exists():
         try:
             from flowmocap.geometry.camera import PinholeCamera  # here: it imports torch
-            camera = PinholeCamera.from_dict(json.loads((root / "camera.json").read_text()))
-        except (json.JSONDecodeError, InputError) as e:
+            camera = PinholeCamera.from_file(root / "camera.json")
+        except (DataError, InputError) as e:
             raise DataError(f"{root / 'camera.json'} is not a valid camera file: {e}") from e
         if (camera.width, camera.height) != size:
             raise DataError(f"camera.json is for {camera.width}x{camera.height} images but the frames are {size[0]}x{size[1]}.")

@@ -111,13 +111,7 @@ def read_camera_json(path, width: int | None = None, height: int | None = None) 
     elif isinstance(path, dict):
         cam = PinholeCamera.from_dict(path)
     else:
-        p = Path(path)
-        if not p.exists():
-            raise DataError(f"camera file not found: {p}")
-        try:
-            cam = PinholeCamera.from_dict(json.loads(p.read_text()))
-        except json.JSONDecodeError as e:
-            raise DataError(f"{p}:{e.lineno}: not valid JSON ({e.msg})") from None
+        cam = PinholeCamera.from_file(path)
     if width is not None and (cam.width, cam.height) != (width, height):
         raise InputError(
             f"the camera is {cam.width}x{cam.height} but the requested size is {width}x{height}; "
