@@ -184,3 +184,123 @@ def test_person_all_with_nobody_exits_as_a_single_run_would(tmp_path, capsys):
     src = _frames(tmp_path / "black", 3, 64, 48)
     assert main(["track", str(src), "--person", "all", "--out", str(tmp_path / "people"), "--quiet"]) == 2
     assert "flowmocap: error:" in capsys.readouterr().err
+
+
+# --- the readers of a result: the fifty-sixth session's audit of render, export, eval, view ---
+
+def _result(folder: Path, T: int = 4) -> Path:
+    """A small result folder as the tracker writes it (values need not be a real body's)."""
+    from flowmocap.io.results import write_motion, write_run
+
+    rng = np.random.default_rng(0)
+    cam = PinholeCamera.from_focal(64, 48, 60.0)
+    j3 = rng.normal(0, 0.3, (T, 24, 3)) + [0, 0, 4]
+    write_motion(folder, {
+        "poses": rng.normal(0, 0.1, (T, 72)).astype(np.float32), "trans": np.tile([0, 0, 4.0], (T, 1)),
+        "betas": np.zeros(10, np.float32), "gender": np.array("neutral"), "fps": np.array(30.0),
+        "camera": np.array(__import__("json").dumps(cam.to_dict())), "joints3d": j3, "joints2d": cam.project(j3),
+        "energies": np.ones((T, 1)), "energy_names": np.array(["total"]), "frame_index": np.arange(T)})
+    write_run(folder, {"input": "nowhere", "model": "default", "gender": "neutral"})
+    return folder
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda m, r: m.update(joints3d=np.full_like(m["joints3d"], np.nan)), "'joints3d' holds NaN"),
+    (lambda m, r: m.update(poses=m["poses"][:, :69]), "'poses' is .*expected \\(T, 72\\)"),
+    (lambda m, r: m.update(frame_index=m["frame_index"][:2]), "'frame_index' is"),
+    (lambda m, r: m.update(camera=np.array("{not json")), "'camera' is not the camera's JSON"),
+    (lambda m, r: m.update(fps=np.array(-1.0)), "'fps' is"),
+    (lambda m, r: m.update(trans=m["trans"] * 1e30), "from the camera"),
+    (lambda m, r: r.update(gaps=[[999, "x"]]), "'gaps' is not a list"),
+    (lambda m, r: r.update(camera_motion={"moving": True, "rotvecs": [[np.nan, 0, 0]]}), "'rotvecs' holds NaN"),
+])
+def test_a_damaged_result_is_a_data_error_for_every_reader(tmp_path, damage, match):
+    """eval read the result unchecked (tracebacks: an SVD of NaN, KeyError, reshape), and
+    export's checks left run.json's gaps and camera motion to crash deeper down."""
+    import json
+
+    from flowmocap.io.results import read_result, write_motion, write_run
+
+    res = _result(tmp_path / "r")
+    motion, run = read_result(res)
+    damage(motion, run)
+    write_motion(res, motion)
+    write_run(res, run)
+    with pytest.raises(DataError, match=match):
+        read_result(res)
+    assert json.loads((res / "run.json").read_text()) == json.loads(json.dumps(run))  # the folder is not changed
+    seq = _frames(tmp_path / "seq" / "frames", 4, 64, 48).parent
+    assert main(["eval", str(res), "--gt", str(seq), "--out", str(tmp_path / "e.json")]) == 2
+    assert main(["export", str(res), "--format", "json", "--out", str(tmp_path / "m.json"), "--quiet"]) == 2
+
+
+def test_progress_files_of_the_wrong_kind_are_data_errors(tmp_path):
+    from flowmocap.io.results import read_result
+
+    res = _result(tmp_path / "r")
+    (res / "progress.json").write_text('{"rows": "6", "events_bytes": 0, "state": {}, "header": {}}')
+    with pytest.raises(DataError, match="'rows' is '6', not a count"):
+        read_result(res)
+    (res / "progress.json").write_text('{"rows": 0, "events_bytes": 0, "state": {}, "header": {"fps": 30}}')
+    with pytest.raises(DataError, match="unreadable result \\(KeyError"):
+        read_result(res)
+
+
+def test_a_file_given_as_the_result_folder(tmp_path):
+    from flowmocap.io.results import read_result
+
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(DataError, match="is a file, not a result folder"):
+        read_result(tmp_path / "afile")
+    assert main(["export", str(tmp_path / "afile"), "--format", "bvh", "--quiet"]) == 2
+
+
+def test_eval_needs_the_results_joints_and_a_finite_ground_truth(tmp_path):
+    from flowmocap.eval.scoring import score_result
+    from flowmocap.io.results import read_result, write_motion
+
+    res = _result(tmp_path / "r")
+    seq = _frames(tmp_path / "seq" / "frames", 4, 64, 48).parent
+    np.savez(seq / "gt.npz", joints3d=np.full((4, 24, 3), np.nan))
+    with pytest.raises(DataError, match="gt.npz 'joints3d' holds NaN"):
+        score_result(res, seq)
+    motion, _ = read_result(res)
+    del motion["frame_index"]
+    write_motion(res, motion)
+    with pytest.raises(DataError, match="has no frame_index"):
+        score_result(res, seq)
+
+
+def test_writing_over_a_folder_is_bad_input_naming_it(tmp_path):
+    """An export's --out that is a folder used to fail with a message naming an internal
+    temporary file ("...o2.7_g824n9.tmp: Is a directory") and exit 5."""
+    from flowmocap.atomic import atomic_write
+
+    (tmp_path / "o2").mkdir()
+    with pytest.raises(InputError, match="o2 is a folder; give the path of the file"):
+        atomic_write(tmp_path / "o2", lambda tmp: Path(tmp).write_text("x"))
+    assert [p.name for p in tmp_path.iterdir()] == ["o2"]
+
+
+def test_a_c3d_cut_short_by_a_file_size_limit_fails_and_keeps_the_old_file(tmp_path):
+    """ezc3d does not report a failed write: a cut-off file with NaN markers used to replace
+    the good one, and export said it wrote it (exit 0). The file's length is now checked
+    against its header first (reading it back with ezc3d would crash the process)."""
+    import subprocess
+    import sys
+
+    target = tmp_path / "m.c3d"
+    target.write_bytes(b"the old file")
+    code = (f"import numpy as np; from flowmocap.export.markers import write_c3d\n"
+            f"j = np.random.default_rng(0).normal(0, 1, (400, 24, 3))\n"
+            f"write_c3d({str(target)!r}, j, [f'm{{k}}' for k in range(24)], 60.0)\n")
+    done = subprocess.run(["bash", "-c", f"ulimit -f 16; {sys.executable} -c \"$0\"", code],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "short of what it holds" in done.stderr, done.stderr[-500:]
+    assert target.read_bytes() == b"the old file"
+    assert [p.name for p in tmp_path.iterdir()] == ["m.c3d"]
+    # without the limit, the same file is written and read back whole
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-500:]
+    import ezc3d
+    assert ezc3d.c3d(str(target))["data"]["points"].shape == (4, 24, 400)

@@ -289,3 +289,62 @@ def test_the_side_view_shows_the_motion_with_the_cameras_turn_undone(demo, tmp_p
     assert np.abs(motion.joints() - turned).max() > 0.1  # the turn was undone: the path differs
     uv = cam.project(motion.joints().reshape(-1, 3))
     assert np.all((uv >= 0) & (uv <= [cam.width, cam.height]))
+
+
+def test_render_of_a_one_frame_result_leaves_out_only_the_figure(demo, tmp_path, capsys):
+    """Fig. 1 shows the flow from the frame before; a one-frame result has none. Asked for
+    every output, render used to stop with "choose a later frame", which there is not."""
+    root, seq, gt = demo
+    one = tmp_path / "one"
+    write_result(one, seq, load_fitted_camera(root / "exact"), {**gt, "poses": gt["poses"][:1], "trans": gt["trans"][:1]})
+    assert main(["render", str(one), "--quiet"]) == 0
+    assert sorted(p.name for p in (one / "render").iterdir()) == ["energies.png", "joint_traces.png", "overlay.mp4"]
+    assert "holds one frame: no Fig. 1" in capsys.readouterr().out
+    assert main(["render", str(one), "--figure1", str(tmp_path / "f.png"), "--quiet"]) == 2  # asked for: said why
+
+
+def load_fitted_camera(result):
+    from flowmocap.geometry.camera import PinholeCamera
+    from flowmocap.io.results import read_result
+
+    motion, _ = read_result(result)
+    return PinholeCamera.from_dict(json.loads(str(motion["camera"])))
+
+
+def test_render_says_when_the_input_is_not_the_one_tracked(demo, tmp_path, capsys):
+    """Another clip of the same size and length used to be drawn over without a word; the
+    input's digest in run.json's fingerprint tells them apart."""
+    from flowmocap.io.fingerprint import digest_input
+
+    root, seq, _ = demo
+    res = tmp_path / "res"
+    shutil.copytree(root / "exact", res, ignore=shutil.ignore_patterns("render"))
+    run = json.loads((res / "run.json").read_text())
+    write_run(res, {**run, "fingerprint": {"input": digest_input(seq)}})
+    other = tmp_path / "other"
+    synthesize("builtin:walk", other, frames=T, size=f"{W}x{H}", betas="random", seed=5)
+    assert main(["render", str(res), "--video", str(tmp_path / "a.mp4"), "--quiet"]) == 0
+    assert "not the input that was tracked" not in capsys.readouterr().out
+    assert main(["render", str(res), "--video", str(tmp_path / "b.mp4"), "--input", str(other), "--quiet"]) == 0
+    assert "not the input that was tracked" in capsys.readouterr().out
+
+
+def test_a_video_that_cannot_be_written_whole_leaves_nothing_under_its_name(tmp_path):
+    """A full disk or a file size limit (here ``ulimit -f``) used to leave a cut-off MP4
+    under the name, with a message that named no file."""
+    import subprocess
+    import sys
+
+    target = tmp_path / "v.mp4"
+    target.write_bytes(b"the old video")
+    code = (f"import numpy as np; from flowmocap.viz.video import VideoWriter\n"
+            f"rng = np.random.default_rng(0)\n"
+            f"with VideoWriter({str(target)!r}, 30, quality=0) as w:\n"
+            f"    for k in range(40): w.write(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))\n")
+    done = subprocess.run(["bash", "-c", f"ulimit -f 64; {sys.executable} -c \"$0\"", code],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    assert str(target) in done.stderr  # the error names the video
+    assert target.read_bytes() == b"the old video"
+    assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]  # no temporary file left
+

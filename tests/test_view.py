@@ -92,6 +92,9 @@ def test_server_routes(served):
     status, ctype, body = _get(url + "/static/three/three.module.js")
     assert status == 200 and ctype == "text/javascript" and b"REVISION" in _get(url + "/static/three/three.core.js")[2]
     assert _get(url + "/frame/99.jpg")[0] == 404
+    assert _get(url + "/frame/abc.jpg")[0] == 404  # not a frame number: a reply, not a dropped connection
+    assert _get(url + "/frame/-1.jpg")[0] == 404
+    assert _get(url + "/motion/x.glb")[0] == 404
     assert _get(url + "/static/../commands/view.py")[0] == 404
     assert _get(url + "/static/%2e%2e/commands/view.py")[0] == 404
     assert _get(url + "/nothing")[0] == 404

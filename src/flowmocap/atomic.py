@@ -15,6 +15,10 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     (created if needed), which then replaces ``path``; on any error the temporary file is
     removed and ``path`` is left as it was."""
     path = Path(path)
+    if path.is_dir():
+        from flowmocap.errors import InputError
+
+        raise InputError(f"{path} is a folder; give the path of the file to write.")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     os.close(fd)
@@ -31,3 +35,23 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def atomic_write_npz(path: str | Path, **arrays) -> None:
+    """Write ``arrays`` as an uncompressed ``.npz`` at ``path``, atomically (:func:`atomic_write`).
+
+    The archive is made in memory first: numpy's zip writer, left open when a write to the
+    disk fails (a full disk, a file size limit), complains again when it is collected, and
+    ``np.savez`` would add ``.npz`` to a temporary file's name.
+
+    Args:
+        path: the file to write.
+        **arrays: name -> array, as for ``np.savez``.
+    """
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(buf.getvalue()))

@@ -73,17 +73,25 @@ def run_render(args) -> int:
         return _render_people(args, wanted)
     if args.own_size:
         raise InputError(f"--own-size is for the folder of `track --person all`; {args.result} is one result.")
-    if all(v is None for v in wanted.values()):
+    every = all(v is None for v in wanted.values())
+    if every:
         wanted = {k: "" for k in OUTPUTS}
     out_dir = Path(args.out) if args.out else Path(args.result) / "render"
     paths = {k: Path(v) if v else out_dir / OUTPUTS[k] for k, v in wanted.items() if v is not None}
     scene = ResultScene(args.result, input=args.input, model=args.model)
+    if scene.input_differs:
+        print(f"note: {args.input or 'the input'} is not the input that was tracked (its content differs from the "
+              "one in run.json's fingerprint); the body is drawn over it all the same")
+    if every and scene.num_frames < 2:  # the figure's flow is between a frame and the one before it
+        del paths["figure1"]
+        print(f"{args.result} holds one frame: no Fig. 1 (its flow needs the frame before); the rest follows")
     frames = _frames(args.frames)
     written = []
 
-    def save(key, image):
-        paths[key].parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(paths[key], image)
+    def save(key, image):  # through a temporary file: never a cut-off image under the name
+        from flowmocap.atomic import atomic_write
+
+        atomic_write(paths[key], lambda tmp: iio.imwrite(tmp, image, extension=paths[key].suffix or ".png"))
         written.append(f"{paths[key]} ({image.shape[1]}x{image.shape[0]})")
 
     if "figure1" in paths:

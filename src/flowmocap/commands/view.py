@@ -336,12 +336,14 @@ class _Handler(BaseHTTPRequestHandler):
             if path == "/motion.glb":
                 return self._send(self.data.glb, "model/gltf-binary")
             if path.startswith("/motion/") and path.endswith(".glb"):
-                k = int(path[len("/motion/"):-len(".glb")])
+                number = path[len("/motion/"):-len(".glb")]
+                k = int(number) if number.isdigit() else -1
                 if not 0 <= k < len(self.data.people):
                     return self._send(b"no such person", "text/plain", 404)
                 return self._send(self.data.people[k]["glb"], "model/gltf-binary")
             if path.startswith("/frame/") and path.endswith(".jpg"):
-                k = int(path[len("/frame/"):-len(".jpg")])
+                number = path[len("/frame/"):-len(".jpg")]
+                k = int(number) if number.isdigit() else -1
                 if not 0 <= k < self.data.num_frames:
                     return self._send(b"no such frame", "text/plain", 404)
                 return self._send(self.data.frame_jpeg(k), "image/jpeg")

@@ -68,6 +68,10 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     from flowmocap.io.sequence import Sequence, load_sequence
 
     motion, run = read_result(result)
+    missing = [k for k in ("frame_index", "joints3d") if k not in motion]
+    if missing:
+        raise DataError(f"{result}'s motion has no {', '.join(missing)}; it is not a flowmocap result, or a damaged "
+                        "one: track the input again with --force.")
     if not isinstance(seq, Sequence):
         seq = load_sequence(seq)
     idx = np.asarray(motion["frame_index"], int)
@@ -91,6 +95,9 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     if "joints3d" in gt:
         pred = np.asarray(motion["joints3d"], np.float64)
         ref = np.asarray(gt["joints3d"], np.float64)[idx]
+        if not np.isfinite(ref).all():
+            raise DataError(f"{seq.root}/gt.npz 'joints3d' holds NaN or infinite values in the frames the result has; "
+                            "the ground truth is damaged: regenerate the sequence (flowmocap synth).")
         local = m.local_procrustes_error(pred, ref)
         out["local_cm"] = 100 * _mean(local)
         out["global_cm"] = 100 * _mean(m.global_procrustes_error(pred, ref))
@@ -103,6 +110,9 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     if seq.masks is not None:
         from flowmocap.body import load_body_model
 
+        if "camera" not in motion:
+            raise DataError(f"{result}'s motion records no camera, which the silhouettes need; it is not a flowmocap "
+                            "result, or a damaged one: track the input again with --force.")
         camera = PinholeCamera.from_dict(json.loads(str(motion["camera"])))
         if model is None:
             model = load_body_model("default", gender=str(motion.get("gender", "neutral")))

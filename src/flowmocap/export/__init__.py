@@ -111,20 +111,20 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
         "smoothed": motion.smoothed,
         "units": "metres, radians, pixels (joints2d); y up unless frame is 'world'",
     }
+    from flowmocap.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     # written frame by frame, one line each: a 10-minute motion never exists as one string
     head = json.dumps(doc, indent=1)
-    tmp = path.with_name(path.name + ".part")
-    try:
+
+    def write(tmp):  # an interrupted or failed write leaves no partial file under the name
         with open(tmp, "w") as f:
             f.write(head[:-2] + ',\n "frames": [')
             for k in range(motion.num_frames):
                 f.write(("\n  " if k == 0 else ",\n  ") + json.dumps(frame(k), separators=(",", ":")))
             f.write("\n ]\n}\n")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)  # an interrupted write leaves no partial file behind
+
+    atomic_write(path, write)
     return path
 
 

@@ -124,6 +124,41 @@ def contact_events(contacts: np.ndarray) -> list[tuple[int, str, str]]:
     return sorted(events)
 
 
+def _check_written_c3d(own: str, frames: int, points: int, path: Path) -> None:
+    """Check that a just-written C3D file holds all it should: ezc3d does not report a failed
+    write (a full disk, a file size limit) and would leave a cut-off file, and reading such a
+    file back with ezc3d crashes the process. So the file's own header is read (C3D's
+    512-byte header block, 16-bit little-endian words: 2 points per frame, 4-5 first and last
+    frame, 7-8 the scale, negative for float data, 9 the data's first 512-byte block) and the
+    file must be as long as the data it announces.
+
+    Args:
+        own: the written file.
+        frames, points: the frames and markers it must hold.
+        path: the name it is written for, for the message.
+
+    Raises:
+        OSError: naming ``path``, when the file is shorter or announces other data.
+    """
+    import errno
+    import struct
+
+    size = os.path.getsize(own)
+    whole = size >= 512
+    if whole:
+        with open(own, "rb") as f:
+            head = f.read(512)
+        words = struct.unpack("<256H", head)
+        scale = struct.unpack("<f", head[12:16])[0]
+        n_points, analog, first, last, data_block = words[1], words[2], words[3], words[4], words[8]
+        per_value = 4 if scale < 0 else 2
+        need = (data_block - 1) * 512 + (last - first + 1) * (4 * n_points + analog) * per_value
+        whole = n_points == points and last - first + 1 == frames and data_block >= 2 and size >= need
+    if not whole:
+        raise OSError(errno.EIO, f"the C3D file came out {size} bytes, short of what it holds (a full disk or a "
+                                 "file size limit?); nothing was put under the name", str(path))
+
+
 def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0,
               up: str = "y", contacts: np.ndarray | None = None) -> Path:
     """Write joint trajectories as a ``.c3d`` file (via ``ezc3d``), atomically.
@@ -184,6 +219,7 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
         own = tmp + ".c3d"  # ezc3d adds .c3d to a name without it
         try:
             c3d.write(own)
+            _check_written_c3d(own, T, M, path)
             os.replace(own, tmp)
         finally:
             if os.path.exists(own):

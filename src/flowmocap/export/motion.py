@@ -230,38 +230,6 @@ def up_rotation(camera) -> np.ndarray:
     return np.eye(3)
 
 
-def _checked_arrays(result_dir: Path, motion: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(poses (T, 72) radians, trans (T, 3) metres, betas (B,))`` float64 of a result's
-    motion arrays, checked: those shapes, one T, finite values.
-
-    Raises:
-        DataError: naming ``motion.npz`` and saying to track again, when they are not.
-    """
-    where = result_dir / "motion.npz"
-    redo = "the result is damaged: track the input again with --force."
-    arrays = {}
-    for key in ("poses", "trans", "betas"):
-        try:
-            arrays[key] = np.asarray(motion[key], np.float64)
-        except (TypeError, ValueError):
-            raise DataError(f"{where} '{key}' is not numeric (dtype {np.asarray(motion[key]).dtype}); {redo}") from None
-    poses, trans, betas = arrays["poses"], arrays["trans"], arrays["betas"].reshape(-1)
-    if poses.size == 0 and trans.size == 0:  # no frames yet: the caller says so
-        return poses.reshape(0, 72), trans.reshape(0, 3), betas
-    if poses.ndim != 2 or poses.shape[1] != 72:
-        raise DataError(f"{where} 'poses' is {poses.shape}, expected (T, 72); {redo}")
-    if trans.shape != (len(poses), 3):
-        raise DataError(f"{where} 'trans' is {trans.shape}, expected {(len(poses), 3)} (one per pose); {redo}")
-    if betas.size == 0:
-        raise DataError(f"{where} 'betas' is empty, expected the body's shape coefficients (10,); {redo}")
-    for key, a in (("poses", poses), ("trans", trans), ("betas", betas)):
-        if not np.isfinite(a).all():
-            bad = np.flatnonzero(~np.isfinite(a.reshape(len(a), -1)).all(1)) if key != "betas" else []
-            at = f" (first at row {int(bad[0])})" if len(bad) else ""
-            raise DataError(f"{where} '{key}' holds NaN or infinite values{at}; {redo}")
-    return poses, trans, betas
-
-
 def _model_for(run: dict, gender: str, model):
     import torch
 
@@ -316,19 +284,20 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
         InputError: unknown ``frame``.
     """
     from flowmocap.geometry.camera import PinholeCamera
-    from flowmocap.io.results import read_result
+    from flowmocap.io.results import checked_motion_arrays, read_result
 
     if frame not in FRAMES:
         raise InputError(f"unknown export frame {frame!r}; choose one of {', '.join(FRAMES)}.")
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
-        raise DataError(f"result folder {result_dir} does not exist; give the --out folder of "
+        raise DataError(f"result folder {result_dir} " + ("is a file" if result_dir.exists() else "does not exist")
+                        + "; give the --out folder of "
                         "`flowmocap track` or the result/ folder of `flowmocap demo`.")
     motion, run = read_result(result_dir)
     for key in ("poses", "trans", "betas"):
         if key not in motion:
             raise DataError(f"{result_dir / 'motion.npz'} has no {key!r}; it is not a flowmocap result.")
-    poses, trans, betas = _checked_arrays(result_dir, motion)
+    poses, trans, betas = checked_motion_arrays(result_dir, motion)
     if poses.shape[0] == 0:
         raise DataError(f"{result_dir} holds no tracked frames yet; run or resume the tracking first.")
     gender = str(motion["gender"]) if "gender" in motion else str(run.get("gender", "neutral"))

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowmocap.atomic import atomic_write
+from flowmocap.atomic import atomic_write_npz
 from flowmocap.errors import DataError
 from flowmocap.io.smpl_motion import SmplMotion, rotate_motion
 
@@ -53,15 +53,11 @@ def write_amass_npz(path: str | Path, poses: np.ndarray, trans: np.ndarray, beta
     smplh[:, :66] = p[:, :66]
     path = Path(path)
 
-    def write(tmp):  # through a temporary file: never a cut-off .npz under the final name
-        with open(tmp, "wb") as f:
-            np.savez(f, poses=smplh, trans=t, betas=np.asarray(betas, np.float64).reshape(-1),
+    atomic_write_npz(path, poses=smplh, trans=t, betas=np.asarray(betas, np.float64).reshape(-1),
                      gender=np.array(str(gender)), mocap_framerate=np.array(float(fps)),
                      mocap_frame_rate=np.array(float(fps)), root_orient=p[:, :3], pose_body=p[:, 3:66],
                      pose_hand=smplh[:, 66:], smpl_hand_pose=p[:, 66:72], surface_model_type=np.array("smpl"),
                      **extra)
-
-    atomic_write(path, write)
     return path
 
 

@@ -42,15 +42,15 @@ or was killed.
 
 from __future__ import annotations
 
-import io
 import json
+import math
 import os
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from flowmocap.atomic import atomic_write
+from flowmocap.atomic import atomic_write, atomic_write_npz
 from flowmocap.errors import DataError
 
 #: The files of a result folder that flowmocap writes (a folder holding other files is
@@ -63,13 +63,7 @@ FORMAT = 2
 def write_motion(out_dir: Path, arrays: dict) -> None:
     """Atomically write ``out_dir/motion.npz`` from a dict of arrays."""
 
-    buf = io.BytesIO()  # in memory first: a full disk then fails cleanly (see vision.flow._npz_bytes)
-    np.savez(buf, **arrays)
-
-    def write(tmp):
-        Path(tmp).write_bytes(buf.getvalue())
-
-    atomic_write(Path(out_dir) / "motion.npz", write)
+    atomic_write_npz(Path(out_dir) / "motion.npz", **arrays)
 
 
 def write_run(out_dir: Path, info: dict) -> None:
@@ -221,6 +215,9 @@ def read_progress(out_dir: str | Path) -> dict:
             raise ValueError("it holds no JSON object with a 'header' object")
         for key in ("rows", "events_bytes", "state", "header"):
             progress[key]
+        for key in ("rows", "events_bytes"):
+            if not isinstance(progress[key], int) or isinstance(progress[key], bool) or progress[key] < 0:
+                raise ValueError(f"its {key!r} is {progress[key]!r}, not a count")
     except FileNotFoundError:
         raise DataError(f"{out_dir} holds no run in progress ({path.name} is missing).") from None
     except (ValueError, KeyError, TypeError, OSError) as e:
@@ -266,7 +263,8 @@ def _motion(header: dict, recs: np.ndarray) -> dict:
         "betas": np.asarray(header["betas"], np.float32), "gender": np.array(header["gender"]),
         "fps": np.array(float(header["fps"])), "camera": np.array(json.dumps(header["camera"])),
         "joints3d": recs["joints3d"].reshape(-1, 24, 3), "joints2d": recs["joints2d"].reshape(-1, 24, 2),
-        "energies": recs["energies"].reshape(len(recs), -1), "energy_names": np.array(header["energy_names"]),
+        "energies": recs["energies"].reshape(len(recs), len(header["energy_names"])),
+        "energy_names": np.array(header["energy_names"]),
         "frame_index": recs["frame_index"].astype(np.int64),
     }
 
@@ -344,6 +342,151 @@ def people_results(root: str | Path) -> list[tuple[str, Path]]:
     return found
 
 
+#: The farthest a result's root may be from the camera, metres: further, the numbers are not
+#: a tracked person's but a damaged file's (and the floor's fit overflows).
+MAX_TRANS_M = 1.0e4
+
+
+def checked_motion_arrays(result_dir: str | Path, motion: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(poses (T, 72) radians, trans (T, 3) metres, betas (B,))`` float64 of a result's
+    motion arrays, checked: those shapes, one T, finite values, the root within
+    :data:`MAX_TRANS_M` of the camera.
+
+    Raises:
+        DataError: naming ``motion.npz`` and saying to track again, when they are not.
+    """
+    where = Path(result_dir) / "motion.npz"
+    redo = "the result is damaged: track the input again with --force."
+    arrays = {}
+    for key in ("poses", "trans", "betas"):
+        if key not in motion:
+            raise DataError(f"{where} has no {key!r}; it is not a flowmocap result.")
+        try:
+            arrays[key] = np.asarray(motion[key], np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{where} '{key}' is not numeric (dtype {np.asarray(motion[key]).dtype}); {redo}") from None
+    poses, trans, betas = arrays["poses"], arrays["trans"], arrays["betas"].reshape(-1)
+    if poses.size == 0 and trans.size == 0:  # no frames yet: the caller says so
+        return poses.reshape(0, 72), trans.reshape(0, 3), betas
+    if poses.ndim != 2 or poses.shape[1] != 72:
+        raise DataError(f"{where} 'poses' is {poses.shape}, expected (T, 72); {redo}")
+    if trans.shape != (len(poses), 3):
+        raise DataError(f"{where} 'trans' is {trans.shape}, expected {(len(poses), 3)} (one per pose); {redo}")
+    if betas.size == 0:
+        raise DataError(f"{where} 'betas' is empty, expected the body's shape coefficients (10,); {redo}")
+    for key, a in (("poses", poses), ("trans", trans), ("betas", betas)):
+        if not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a.reshape(len(a), -1)).all(1)) if key != "betas" else []
+            at = f" (first at row {int(bad[0])})" if len(bad) else ""
+            raise DataError(f"{where} '{key}' holds NaN or infinite values{at}; {redo}")
+    far = np.flatnonzero(np.linalg.norm(trans, axis=1) > MAX_TRANS_M)
+    if len(far):
+        raise DataError(f"{where} 'trans' puts the body {np.linalg.norm(trans[far[0]]):.3g} m from the camera at row "
+                        f"{int(far[0])}, more than {MAX_TRANS_M:g} m; {redo}")
+    return poses, trans, betas
+
+
+def check_motion(result_dir: str | Path, motion: dict) -> None:
+    """Check a result's motion arrays as every reader needs them (:func:`read_result`), each
+    where present: ``poses`` ``(T, 72)``, ``trans`` ``(T, 3)`` within :data:`MAX_TRANS_M` of
+    the camera and ``joints3d`` ``(T, 24, 3)`` finite; ``betas`` finite; ``joints2d``
+    ``(T, 24, 2)``; ``frame_index`` ``(T,)`` whole numbers; ``fps`` a positive number;
+    ``camera`` the camera's JSON. (What a reader needs present it asks for itself, e.g.
+    :func:`checked_motion_arrays` for the body's parameters.)
+
+    Raises:
+        DataError: naming ``motion.npz`` and saying to track again, when they are not so.
+    """
+    where = Path(result_dir) / "motion.npz"
+    redo = "the result is damaged: track the input again with --force."
+    shapes = {"poses": (72,), "trans": (3,), "joints3d": (24, 3), "joints2d": (24, 2), "frame_index": ()}
+    T = None
+    for key, tail in shapes.items():
+        if key not in motion:
+            continue
+        try:
+            a = np.asarray(motion[key], np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{where} '{key}' is not numeric (dtype {np.asarray(motion[key]).dtype}); {redo}") from None
+        if a.size == 0 and T in (None, 0):
+            T = 0
+            continue
+        first = T is None
+        if first:
+            T = len(a) if a.ndim else -1
+        if a.shape != (T, *tail):  # the first array present sets T; the others must match it
+            want = ("(T, " + ", ".join(map(str, tail)) + ")" if tail else "(T,)") if first else str((T, *tail))
+            raise DataError(f"{where} '{key}' is {a.shape}, expected {want} (one per frame); {redo}")
+        if key != "joints2d" and not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a.reshape(T, -1)).all(1))
+            raise DataError(f"{where} '{key}' holds NaN or infinite values (first at row {int(bad[0])}); {redo}")
+        if key == "frame_index" and not np.array_equal(a, np.round(a)):
+            raise DataError(f"{where} 'frame_index' holds numbers that are not frame numbers; {redo}")
+        if key == "trans":
+            far = np.flatnonzero(np.linalg.norm(a, axis=1) > MAX_TRANS_M)
+            if len(far):
+                raise DataError(f"{where} 'trans' puts the body {np.linalg.norm(a[far[0]]):.3g} m from the camera at "
+                                f"row {int(far[0])}, more than {MAX_TRANS_M:g} m; {redo}")
+    if "betas" in motion:
+        try:
+            betas = np.asarray(motion["betas"], np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{where} 'betas' is not numeric (dtype {np.asarray(motion['betas']).dtype}); "
+                            f"{redo}") from None
+        if not np.isfinite(betas).all():
+            raise DataError(f"{where} 'betas' holds NaN or infinite values; {redo}")
+    if "fps" in motion:
+        try:
+            fps = float(motion["fps"])
+        except (TypeError, ValueError):
+            fps = float("nan")
+        if not (math.isfinite(fps) and fps > 0):
+            raise DataError(f"{where} 'fps' is {motion['fps']!r}, not a frame rate; {redo}")
+    if "camera" in motion:
+        try:
+            cam = json.loads(str(motion["camera"]))
+        except ValueError as e:
+            raise DataError(f"{where} 'camera' is not the camera's JSON ({e}); {redo}") from None
+        if not isinstance(cam, dict):
+            raise DataError(f"{where} 'camera' is not the camera's JSON object; {redo}")
+
+
+def check_run(result_dir: str | Path, run: dict) -> None:
+    """Check the parts of a result's ``run.json`` that the readers compute with: ``gaps``
+    (a list of ``{"frames": [first, last], ...}``) and ``camera_motion``'s per-frame arrays
+    (``frames``, ``rotvecs``, ``floor_rotvecs``, ``shifts``, ``zooms``, ``floor_normal``: numbers,
+    finite).
+
+    Raises:
+        DataError: naming ``run.json`` and saying to track again, when they are not so.
+    """
+    where = Path(result_dir) / "run.json"
+    redo = "the result is damaged: track the input again with --force."
+    gaps = run.get("gaps")
+    if gaps is not None:
+        ok = isinstance(gaps, list)
+        for g in gaps if ok else []:
+            frames = g.get("frames") if isinstance(g, dict) else None
+            ok = ok and isinstance(frames, list) and len(frames) == 2 and all(
+                isinstance(f, int) and not isinstance(f, bool) for f in frames)
+        if not ok:
+            raise DataError(f"{where} 'gaps' is not a list of {{'frames': [first, last]}}; {redo}")
+    cm = run.get("camera_motion")
+    if cm is None:
+        return
+    if not isinstance(cm, dict):
+        raise DataError(f"{where} 'camera_motion' is not an object; {redo}")
+    for key in ("frames", "rotvecs", "floor_rotvecs", "shifts", "zooms", "floor_normal"):
+        if cm.get(key) is None:
+            continue
+        try:
+            a = np.asarray(cm[key], np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{where} 'camera_motion' '{key}' is not numbers; {redo}") from None
+        if not np.isfinite(a).all():
+            raise DataError(f"{where} 'camera_motion' '{key}' holds NaN or infinite values; {redo}")
+
+
 def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     """``(motion arrays, run info)`` of a result folder, finished or not: a run that is
     still going, or was killed, gives its committed frames and events (see the module
@@ -353,6 +496,8 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
         DataError: missing or unreadable files.
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise DataError(f"{out_dir} is a file, not a result folder; give the --out folder of `flowmocap track`.")
     try:
         run = json.loads((out_dir / "run.json").read_text())
         if not isinstance(run, dict):
@@ -381,9 +526,12 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
             hint = "; it holds a batch of results: give one of its result folders"
         raise DataError(f"{out_dir} is not a flowmocap result folder ({Path(e.filename).name} is missing){hint}."
                         ) from None
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:  # a truncated or empty motion.npz: the last two
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError, TypeError) as e:  # a truncated or empty
+        # motion.npz: the third and fourth; a progress file with a key missing or of the wrong kind: the last two
         raise DataError(f"{out_dir} holds an unreadable result ({type(e).__name__}: {e}); the result is damaged: "
                         "track the input again into this folder with --force (or into a new folder).") from None
+    check_motion(out_dir, motion)
+    check_run(out_dir, run)
     if run.get("status") in ("running", "preparing"):
         from flowmocap.io.lock import is_locked
 

@@ -483,7 +483,7 @@ def run_chunk(task: dict) -> None:
 def save_chunk(path: str | Path, key: str, a: int, b: int, got: list[list[Candidate]]) -> None:
     """Store the candidates ``got`` of frames ``a..b-1`` (one list per frame) atomically in
     ``path`` (``.npz``, no pickled objects), tagged with ``key``."""
-    from flowmocap.atomic import atomic_write
+    from flowmocap.atomic import atomic_write_npz
 
     rows = [(i, c) for i, cs in zip(range(a, b), got) for c in cs]
     K = len(KEYPOINT_NAMES)
@@ -505,11 +505,7 @@ def save_chunk(path: str | Path, key: str, a: int, b: int, got: list[list[Candid
         "mask_end": np.cumsum([len(x) for x in bits], dtype=np.int64),
         "mask_bits": np.concatenate(bits) if bits else np.zeros(0, np.uint8),
     }
-    def write(tmp: str) -> None:
-        with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to the temporary's name
-            np.savez(f, **arrays)
-
-    atomic_write(path, write)
+    atomic_write_npz(path, **arrays)
 
 
 class StoredMask(NamedTuple):
@@ -526,6 +522,7 @@ class StoredMask(NamedTuple):
     box: tuple
 
     def load(self) -> PackedMask:
+        """The mask's bits read from its stretch file (the file must still be there)."""
         return PackedMask(self.shape, self.box, _stored_bits(self.path)[self.start:self.end].copy())
 
 
@@ -737,16 +734,12 @@ def _detect_sequence(seq, out_dir: Path, passes, name: str, choice: tuple, reuse
                                                      if refound else ""))},
     }
     box_arr = np.array([b if b is not None else (np.nan,) * 4 for b in boxes], np.float64).reshape(T, 4)
-    from flowmocap.atomic import atomic_write
+    from flowmocap.atomic import atomic_write, atomic_write_npz
 
     arrays = dict(keypoints=kp.astype(np.float32), confidence=conf.astype(np.float32), found=found,
                   names=np.array(KEYPOINT_NAMES), box=box_arr, world=world.astype(np.float32))
 
-    def write_npz(tmp: str) -> None:
-        with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to the temporary's name
-            np.savez(f, **arrays)
-
-    atomic_write(d / "keypoints.npz", write_npz)
+    atomic_write_npz(d / "keypoints.npz", **arrays)
     atomic_write(d / "detections.json", lambda tmp: Path(tmp).write_text(json.dumps(info, indent=2)))
     if not found.any():
         raise NoPersonError(f"no person found in any of the {T} frames of {getattr(seq, 'root', 'the input')}; "
@@ -779,6 +772,7 @@ class PackedMask(NamedTuple):
 
     @classmethod
     def pack(cls, mask: np.ndarray) -> PackedMask:
+        """``mask`` ``(H, W)`` bool as the bits of its bounding box (an empty mask: no bits)."""
         m = np.asarray(mask, bool)
         rows, cols = np.nonzero(m.any(1))[0], np.nonzero(m.any(0))[0]
         if not len(rows):
@@ -1400,7 +1394,7 @@ def auto_init(track: PersonTrack, frame: int, min_confidence: float = 0.3, camer
     """An ``init.json`` dict (schema of :mod:`flowmocap.fit.init`) from frame ``frame``'s
     keypoints: the confident SMPL joints with their confidences, and the rough global
     orientation of :func:`facing_rotvec` (in the world's axes of a camera of rotation
-    ``camera_R``; None: the identity).
+    ``camera_R``, a ``(3, 3)`` world-to-camera rotation matrix; None: the identity).
 
     Raises:
         NoPersonError: the frame has fewer than 4 confident joints.

@@ -72,7 +72,11 @@ class ResultScene:
         self.motion = load_fitted_motion(self.result_dir, frame="world", model=model)
         self.arrays, self.run = read_result(self.result_dir)
         self.camera = self.motion.camera
-        self.seq = _open_input(self._find_input(input), self.camera)
+        source = self._find_input(input)
+        #: whether the input's content differs from the one tracked (``run.json``'s fingerprint):
+        #: the overlay is then drawn on other frames of the same size and length
+        self.input_differs = self._differs(source)
+        self.seq = _open_input(source, self.camera)
         if tuple(self.seq.size) != (self.camera.width, self.camera.height):
             raise DataError(f"the input frames are {self.seq.size[0]}x{self.seq.size[1]} but the result's camera "
                             f"is {self.camera.width}x{self.camera.height}; pass the input that was tracked.")
@@ -85,6 +89,14 @@ class ResultScene:
             self.gt = {}
         self.faces = prepare_faces(self.motion.model.faces_np)
         self._verts: dict[int, np.ndarray] = {}
+
+    def _differs(self, source: Path) -> bool:
+        """Whether ``source``'s content digest differs from the tracked input's (False where the
+        result records none)."""
+        from flowmocap.io.fingerprint import digest_input
+
+        recorded = (self.run.get("fingerprint") or {}).get("input")
+        return bool(recorded) and digest_input(source) != recorded
 
     def _find_input(self, given) -> Path:
         if given is not None:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import tempfile
 from fractions import Fraction
 from pathlib import Path
 
@@ -10,6 +14,10 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 
 __all__ = ["VideoWriter"]
+
+#: The container a video's name asks for (FFmpeg's muxer names); any other name gets MP4. The
+#: video is written under a temporary name first, so the name cannot tell FFmpeg.
+CONTAINERS = {".mp4": "mp4", ".m4v": "mp4", ".mov": "mov", ".mkv": "matroska", ".avi": "avi"}
 
 
 class VideoWriter:
@@ -32,14 +40,18 @@ class VideoWriter:
         self.quality = int(quality)
         self._container = None
         self._stream = None
+        self._tmp: str | None = None
         self.size: tuple[int, int] | None = None
         self.frames = 0
 
     def __enter__(self) -> "VideoWriter":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # a failed or interrupted video: nothing under its name
+            self.discard()
 
     def write(self, frame: np.ndarray) -> None:
         """Append one ``(H, W, 3)`` uint8 RGB frame (all frames of one size)."""
@@ -50,10 +62,15 @@ class VideoWriter:
             raise InputError(f"video frames must be (H, W, 3) RGB, got {f.shape}.")
         h, w = f.shape[:2]
         if self._container is None:
+            if self.path.is_dir():
+                raise InputError(f"{self.path} is a folder; give the path of the video file to write.")
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, self._tmp = tempfile.mkstemp(dir=self.path.parent, prefix=self.path.name + ".", suffix=".tmp")
+            os.close(fd)
             try:
-                self._container = av.open(str(self.path), mode="w")
+                self._container = av.open(self._tmp, mode="w", format=CONTAINERS.get(self.path.suffix.lower(), "mp4"))
             except Exception as e:  # noqa: BLE001 (PyAV raises many kinds)
+                self.discard()
                 raise DataError(f"cannot write video {self.path} ({e}).") from None
             rate = Fraction(self.fps).limit_denominator(1001)
             s = self._container.add_stream("libx264", rate=rate)
@@ -65,15 +82,45 @@ class VideoWriter:
         elif (w, h) != self.size:
             raise InputError(f"frame {self.frames} is {w}x{h} but the video is {self.size[0]}x{self.size[1]}.")
         vf = av.VideoFrame.from_ndarray(f, format="rgb24")
-        for packet in self._stream.encode(vf):
-            self._container.mux(packet)
+        with self._named():
+            for packet in self._stream.encode(vf):
+                self._container.mux(packet)
         self.frames += 1
 
     def close(self) -> None:
-        """Flush the encoder and close the file (idempotent)."""
+        """Flush the encoder, close the file and put it under its name (idempotent). Until
+        then the video is written to a temporary file beside it."""
         if self._container is None:
             return
-        for packet in self._stream.encode():
-            self._container.mux(packet)
-        self._container.close()
+        with self._named():
+            for packet in self._stream.encode():
+                self._container.mux(packet)
+            self._container.close()
         self._container = None
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self._tmp, 0o666 & ~umask)  # mkstemp makes 0600
+        os.replace(self._tmp, self.path)
+        self._tmp = None
+
+    def discard(self) -> None:
+        """Stop writing and remove the unfinished video (nothing is put under its name)."""
+        if self._container is not None:
+            try:
+                self._container.close()
+            except Exception:  # noqa: BLE001 (a failed stream may not close cleanly; it is removed anyway)
+                pass
+            self._container = None
+        if self._tmp is not None:
+            Path(self._tmp).unlink(missing_ok=True)
+            self._tmp = None
+
+    @contextlib.contextmanager
+    def _named(self):
+        """An ``OSError`` while writing (a full disk, a file size limit) names the video."""
+        try:
+            yield
+        except OSError as e:
+            if getattr(e, "filename", None) == str(self.path):
+                raise
+            raise OSError(e.errno or errno.EIO, e.strerror or str(e), str(self.path)) from e
