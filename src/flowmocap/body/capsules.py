@@ -133,7 +133,17 @@ def body_capsules(model: BodyModel, out: BodyOutput, rest: Capsules | None = Non
 
 
 def pose_capsules(rest: Capsules, transforms: torch.Tensor) -> Capsules:
-    """Move rest-pose capsules ``(B or 1, K, ...)`` by the bones' ``transforms (B, 24, 4, 4)``."""
+    """Move rest-pose capsules by the bones' transforms.
+
+    Args:
+        rest: :class:`Capsules` in the rest pose, batch ``B`` or 1 (end points ``(B, K, 3)``
+            metres, radii ``(B, K)`` metres).
+        transforms: ``(B, 24, 4, 4)`` each joint's rigid transform from the rest pose (metres
+            in the translation column), as :class:`~flowmocap.body.BodyOutput` holds them.
+
+    Returns:
+        :class:`Capsules` with ``(B, K, 3)`` posed end points and ``(B, K)`` radii, metres.
+    """
     Tb = transforms[:, _BONES.to(transforms.device)]  # (B,K,4,4)
     R, t = Tb[..., :3, :3], Tb[..., :3, 3]
     start = (R * rest.start[:, :, None, :]).sum(-1) + t
@@ -145,6 +155,14 @@ def rest_capsules(model: BodyModel, out: BodyOutput) -> Capsules:
     """Capsules of the shaped bodies of ``out`` in the rest pose (no translation).
 
     They depend on the shape only; :func:`body_capsules` poses them.
+
+    Args:
+        model: the body model whose vertex sets make the capsules.
+        out: a forward pass of ``model`` (its ``rest_vertices`` ``(B, V, 3)`` and
+            ``rest_joints`` ``(B, 24, 3)``, metres).
+
+    Returns:
+        :class:`Capsules`: ``(B, K, 3)`` end points and ``(B, K)`` radii, metres.
     """
     rest_v, rest_j = out.rest_vertices, out.rest_joints
     dt, dev = rest_v.dtype, rest_v.device

@@ -19,6 +19,7 @@ import numpy as np
 
 from flowmocap.atomic import atomic_write
 from flowmocap.errors import InputError
+from flowmocap.render.shade import vertex_normals  # the shading's: area-weighted, unit length
 
 __all__ = ["write_mesh_sequence_glb", "GltfBuffer", "vertex_normals", "save_glb"]
 
@@ -86,18 +87,6 @@ def save_glb(gltf, buffer: GltfBuffer, path: str | Path) -> Path:
     data = b"".join(gltf.save_to_bytes())
     atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))  # never a cut-off .glb under the final name
     return path
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``(V, 3)`` unit area-weighted vertex normals of a ``(V, 3)`` mesh with ``(F, 3)`` faces."""
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
-    fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    n = np.zeros_like(verts)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(length > 0, length, 1.0)
 
 
 def write_mesh_sequence_glb(path: str | Path, frames, faces: np.ndarray, fps: float, num_frames: int,

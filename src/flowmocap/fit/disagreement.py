@@ -79,7 +79,12 @@ def source_disagreement(first: np.ndarray, others: list[np.ndarray]) -> np.ndarr
 
 def to_body_joints(points13: np.ndarray, joints: int = 24) -> np.ndarray:
     """``(T, 13)`` values in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS` as
-    ``(T, joints)`` in the body's joint order, NaN for the joints not among the 13."""
+    ``(T, joints)`` in the body's joint order, NaN for the joints not among the 13.
+
+    Args:
+        points13: ``(T, 13)`` one value per scored joint and frame (any unit, kept).
+        joints: how many joints the body has (24 for SMPL's skeleton).
+    """
     points13 = np.asarray(points13, np.float64)
     if points13.ndim != 2 or points13.shape[1] != len(EVAL_JOINTS):
         raise InputError(f"points13 must be (T, {len(EVAL_JOINTS)}); got {points13.shape}.")

@@ -325,6 +325,10 @@ def refine_first_pair(scene: Scene, s0: FrameState, s1: FrameState, d0: FrameDat
     frame 1 and the silhouettes, which cannot tell a limb from its mirror image in depth,
     moved frame 0 away from the rough pose the user gave. ``joints_from_detector``: as
     in :func:`fit_to_joints`.
+
+    Returns:
+        ``(s0, s1)``: the refined :class:`FrameState` of frames 0 and 1 (``pose`` ``(72,)``
+        axis-angle radians, ``trans`` ``(3,)`` metres), detached.
     """
     p0, t0 = s0.pose.clone().requires_grad_(), s0.trans.clone().requires_grad_()
     p1, t1 = s1.pose.clone().requires_grad_(), s1.trans.clone().requires_grad_()

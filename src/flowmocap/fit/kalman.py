@@ -176,7 +176,7 @@ def so3_exp(rotvec: np.ndarray) -> np.ndarray:
     """Rotation vectors (radians, any angle) to rotation matrices (scipy's ``Rotation``).
 
     Args:
-        rotvec: ``(..., 3)``.
+        rotvec: ``(..., 3)`` axis-angle, radians.
 
     Returns:
         ``(..., 3, 3)`` float64 rotation matrices (acting on column vectors).
@@ -205,7 +205,7 @@ def so3_right_jacobian(rotvec: np.ndarray) -> np.ndarray:
     ``J_r(phi) = I - (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2``, ``K = hat(phi)``, exact at 0.
 
     Args:
-        rotvec: ``(..., 3)``.
+        rotvec: ``(..., 3)`` axis-angle, radians.
 
     Returns:
         ``(..., 3, 3)``.
@@ -250,8 +250,8 @@ def error_transition(omega: np.ndarray, dt: float = 1.0) -> np.ndarray:
     (body-frame angular velocity, see the module docstring).
 
     Args:
-        omega: ``(..., 3)`` angular velocity, rad per unit of ``dt``.
-        dt: time step.
+        omega: ``(..., 3)`` angular velocity, radians per unit of ``dt``.
+        dt: time step, in the unit ``omega`` is per (frames in the tracker's filters).
 
     Returns:
         ``(..., 6, 6)``.

@@ -100,7 +100,9 @@ class Scene:
         self.rig = make_rig(self.model, self.shaped)  # and pose it in one compiled pass (flowmocap.body.fused)
 
     def capsules(self, out) -> Capsules:
-        """Posed capsules of a forward pass with this scene's (fixed) shape."""
+        """Posed capsules of a forward pass ``out`` with this scene's (fixed) shape:
+        :class:`~flowmocap.body.capsules.Capsules` with ``(B, K, 3)`` end points and
+        ``(B, K)`` radii, metres, in the frame of ``out``'s joints."""
         return body_capsules(self.model, out, rest=self.rest_capsules)
 
     def forward(self, pose: torch.Tensor, trans: torch.Tensor):
@@ -169,6 +171,10 @@ def frame_data(mask: np.ndarray | None, flow: np.ndarray | None, cfg: TrackerCon
         unknown: ``(H, W)`` bool pixels where someone else may hide the person, or None
             (:func:`~flowmocap.fit.energies.silhouette_target`; used when
             ``cfg.occluders_unknown``).
+
+    Returns:
+        :class:`FrameData`: the silhouette target, the flow targets (pixels), the keypoints
+        and the person's size in pixels, ready for :func:`frame_energy`.
     """
     target = None
     pixels = fallback_pixels

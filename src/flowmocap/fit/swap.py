@@ -66,7 +66,12 @@ def detection_swapped(body_2d, j2d, conf, min_px: float) -> bool:
 
 
 def exchanged_2d(j2d, conf) -> tuple:
-    """``(j2d, conf)`` in SMPL joint order with left and right exchanged (same types)."""
+    """``(j2d, conf)`` in SMPL joint order with left and right exchanged (same types).
+
+    Args:
+        j2d: ``(24, 2)`` pixels, numpy or torch.
+        conf: ``(24,)`` confidences in [0, 1], the same type.
+    """
     m = list(MIRROR_JOINTS)
     return j2d[m], conf[m]
 

@@ -68,7 +68,24 @@ class FrameResult:
 def track_frame(scene: Scene, init: FrameState, data: FrameData, cfg: TrackerConfig,
                 prev: FrameState) -> tuple[FrameState, dict]:
     """Optimise one frame from ``init`` (the prediction, also ``E_theta``'s reference)
-    against the previous frame ``prev``. Returns the state and the energies at it."""
+    against the previous frame ``prev``.
+
+    Args:
+        scene: the body, camera and shape of the run (:class:`~flowmocap.fit.objective.Scene`).
+        init: the starting state: ``pose`` ``(72,)`` axis-angle radians, ``trans`` ``(3,)``
+            metres (world frame).
+        data: the frame's observations (:func:`~flowmocap.fit.objective.frame_data`).
+        cfg: the settings (stages, iterations, weights).
+        prev: the previous frame's state, same layout as ``init``: the rendered flow is
+            from it.
+
+    Returns:
+        ``(state, terms)``: the optimised :class:`FrameState` (detached) and the energy's terms
+        at it by name, floats (dimensionless weighted energies), ``"total"`` their sum.
+
+    Raises:
+        OptimizationError: the energy cannot be evaluated at the result, or turned non-finite.
+    """
     with torch.no_grad():
         _, prev_px, _ = scene.forward(prev.pose, prev.trans)
     pose = init.pose.detach().clone().requires_grad_()
