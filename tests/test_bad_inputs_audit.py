@@ -304,3 +304,170 @@ def test_a_c3d_cut_short_by_a_file_size_limit_fails_and_keeps_the_old_file(tmp_p
     assert done.returncode == 0, done.stderr[-500:]
     import ezc3d
     assert ezc3d.c3d(str(target))["data"]["points"].shape == (4, 24, 400)
+
+
+# --- synth, demo, body, bench and the Python API: the fifty-sixth session's third audit ---
+
+def _amass(path: Path, **arrays) -> Path:
+    base = {"poses": np.zeros((4, 72)), "trans": np.zeros((4, 3)), "mocap_framerate": np.array(30.0)}
+    base.update(arrays)
+    np.savez(path, **{k: v for k, v in base.items() if v is not None})
+    return path
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda p: p.write_bytes(b""), "cannot read .* as an AMASS .npz"),
+    (lambda p: p.write_bytes(b"PK\x03\x04 cut"), "cannot read .* as an AMASS .npz"),
+    (lambda p: _amass(p, poses=np.array([["a"] * 72] * 4)), "poses is not numbers"),
+    (lambda p: _amass(p, trans=np.zeros((3, 3))), "trans must be \\(T, 3\\) = \\(4, 3\\)"),
+    (lambda p: _amass(p, mocap_framerate=np.array([30.0, 60.0])), "must be one positive number"),
+    (lambda p: _amass(p, mocap_framerate=np.array(0.0)), "must be one positive number"),
+    (lambda p: _amass(p, mocap_framerate=np.array(np.nan)), "mocap_framerate holds NaN"),
+    (lambda p: _amass(p, poses=np.full((4, 72), np.nan)), "poses holds NaN"),
+])
+def test_a_damaged_amass_file_is_a_data_error(tmp_path, make, match):
+    """Each used to end in EOFError, BadZipFile, ValueError, TypeError or LinAlgError (exit 1),
+    or, for a NaN frame rate, in a sequence recorded at NaN fps."""
+    from flowmocap.io.amass import read_amass_npz
+
+    p = tmp_path / "m.npz"
+    make(p)
+    with pytest.raises(DataError, match=match):
+        read_amass_npz(p)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"seed": -1}, "seed must be a whole number >= 0"),
+    ({"frames": 10 ** 9}, "at most 20000 frames"),
+    ({"start": 10 ** 8, "frames": 3}, "is generated from its first frame"),
+    ({"fps": 1e5}, "frame rate of 1..1000 Hz"),
+    ({"fps": 1e-300}, "frame rate of 1..1000 Hz"),
+    ({"betas": "1e6"}, "within \\+-10"),
+    ({"distance": 1e12}, "px tall .* too small to see"),
+])
+def test_synth_refuses_what_it_cannot_make_before_any_work(tmp_path, kw, match):
+    from flowmocap.synth import synthesize
+
+    args = {"frames": 3, "size": "96x72", **kw}
+    with pytest.raises(InputError, match=match):
+        synthesize("builtin:walk", tmp_path / "s", **args)
+    assert not (tmp_path / "s").exists()
+
+
+def test_synth_into_an_empty_name_or_size(tmp_path, monkeypatch):
+    """`--out ""` wrote a sequence into the current folder; `--size ""` became 640x480."""
+    from flowmocap.synth import synthesize
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match="is empty"):
+        synthesize("builtin:walk", "", frames=3, size="96x72")
+    assert main(["synth", "builtin:walk", "--out", "s", "--num-frames", "3", "--size", ""]) == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_overwrite_drops_the_old_ground_truth_first(tmp_path):
+    """An overwrite cut short used to leave the new frames with the old gt.npz, meta.json and
+    camera.json, which load_sequence read as one sequence."""
+    from flowmocap.synth.sequence import _prepare_out
+
+    seq = _frames(tmp_path / "s" / "frames", 3, 32, 24).parent
+    for name in ("gt.npz", "meta.json", "camera.json"):
+        (seq / name).write_text("old")
+    _prepare_out(seq, overwrite=True)
+    assert sorted(p.name for p in seq.iterdir()) == ["frames", "masks"]
+    assert list((seq / "frames").iterdir()) == []
+
+
+def test_a_frame_synth_cannot_write_is_an_output_error(tmp_path, monkeypatch):
+    """It was a DataError (exit 2, "bad input") with no reason given."""
+    import flowmocap.synth.sequence as synth_sequence
+    from flowmocap.errors import OutputError
+
+    monkeypatch.setattr(synth_sequence.cv2, "imwrite", lambda *a, **k: False)
+    with pytest.raises(OutputError, match="full disk, a file size limit or no permission"):
+        synth_sequence.synthesize("builtin:walk", tmp_path / "s", frames=3, size="96x72", flow=False)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--num-frames", "1"], "tracks 2..20000 frames"),
+    (["--seed", "-1"], "seed must be a whole number"),
+    (["--size", "abc"], "size must look like"),
+])
+def test_demo_checks_its_arguments_before_writing(tmp_path, capsys, argv, match):
+    assert main(["demo", "--out", str(tmp_path / "d"), "--quiet", *argv]) == 2
+    assert match.split(" ")[0] in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+
+
+def test_demo_leaves_a_users_folder_alone(tmp_path, capsys):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "eval.json").write_text("my scores")
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    assert main(["demo", "--out", str(tmp_path / "mine"), "--quiet"]) == 2
+    assert "is not empty (notes.txt) and holds no flowmocap demo" in capsys.readouterr().err
+    assert (tmp_path / "mine" / "eval.json").read_text() == "my scores"
+    (tmp_path / "afile").write_text("x")
+    assert main(["demo", "--out", str(tmp_path / "afile"), "--quiet"]) == 2
+
+
+def test_demo_run_again_with_other_settings_makes_a_new_clip(tmp_path, capsys):
+    """The second run used to score the first run's 2-frame clip under the new settings; a
+    2-frame demo used to crash formatting its time per frame (None) after the work."""
+    import json
+
+    out = tmp_path / "d"
+    assert main(["demo", "--out", str(out), "--num-frames", "2", "--size", "96x72", "--quiet"]) == 0
+    assert "no time per frame" in capsys.readouterr().out
+    assert main(["demo", "--out", str(out), "--num-frames", "3", "--size", "80x64", "--seed", "1", "--quiet"]) == 0
+    scores = json.loads((out / "eval.json").read_text())
+    assert scores["frames"] == 3 and scores["size"] == [80, 64] and scores["seed"] == 1
+    meta = json.loads((out / "sequence" / "meta.json").read_text())
+    assert meta["num_frames"] == 3 and meta["seed"] == 1
+
+
+def test_body_refuses_a_name_it_cannot_write_without_touching_the_file(tmp_path):
+    """`body --out notes` emptied the file `notes` and crashed (unknown extension); a folder
+    gave exit 5 and a message about reading."""
+    (tmp_path / "notes").write_text("precious")
+    assert main(["body", "--out", str(tmp_path / "notes")]) == 2
+    assert (tmp_path / "notes").read_text() == "precious"
+    (tmp_path / "dir.png").mkdir()
+    assert main(["body", "--out", str(tmp_path / "dir.png")]) == 2
+    assert main(["body", "--out", str(tmp_path / "notes" / "x.png")]) == 2  # under a file
+
+
+def test_bench_into_a_file_and_no_command(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    assert main(["bench", "--suite", "quick", "--out", str(tmp_path / "afile")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert main([]) == 2  # no command: the usage, on stderr, as for any other usage error
+    assert "COMMAND" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"source": None}, "source must be a path"),
+    ({"source": 123}, "source must be a path"),
+    ({"out": None}, "out must be a path"),
+    ({"source": ""}, "source is empty"),
+    ({"init": 123}, "init must be 'auto'"),
+    ({"masks": 123}, "masks must be None"),
+    ({"model": None}, "model must be 'default'"),
+    ({"max_size": "big"}, "whole number of pixels"),
+    ({"max_size": float("nan")}, "whole number of pixels"),
+    ({"frames": (0.5, 2.7)}, "whole frame numbers"),
+])
+def test_the_api_refuses_arguments_of_the_wrong_kind(tmp_path, kw, match):
+    """Each used to be a bare TypeError (or was silently read another way)."""
+    args = {"source": _frames(tmp_path / "plain", 3, 64, 48), "out": tmp_path / "out", **kw}
+    with pytest.raises(InputError, match=match):
+        track(args.pop("source"), args.pop("out"), log=None, progress=False, **args)
+    assert not (tmp_path / "out").exists()
+
+
+def test_load_result_of_no_path_or_a_missing_one(tmp_path):
+    import flowmocap
+
+    with pytest.raises(InputError, match="a result folder is a path"):
+        flowmocap.load_result(None)
+    with pytest.raises(DataError, match="does not exist"):
+        flowmocap.load_result(tmp_path / "nope")

@@ -10,15 +10,31 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+def check_file_path(path: str | Path) -> None:
+    """Refuse a path to write a file at that is a folder, or lies under a file
+    (``InputError``: the user's mistake, not a failed write).
+
+    Args:
+        path: the file to be written.
+    """
+    from flowmocap.errors import InputError
+
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give the path of the file to write.")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"{parent} is a file, so {path} cannot be written under it; give another path.")
+            break
+
+
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     """Write ``path`` atomically: ``write(tmp)`` fills a temporary file in the same folder
     (created if needed), which then replaces ``path``; on any error the temporary file is
     removed and ``path`` is left as it was."""
     path = Path(path)
-    if path.is_dir():
-        from flowmocap.errors import InputError
-
-        raise InputError(f"{path} is a folder; give the path of the file to write.")
+    check_file_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     os.close(fd)

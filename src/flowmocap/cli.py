@@ -31,6 +31,7 @@ def _parse_betas(text: str | None) -> list[float]:
 
 
 def cmd_body(args) -> int:
+    _check_picture_path(Path(args.out))  # before the work
     image = render_body(
         model=args.model, gender=args.gender, betas=_parse_betas(args.betas),
         pose=args.pose, width=args.width, height=args.height, view=args.view,
@@ -41,6 +42,9 @@ def cmd_body(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    from flowmocap.eval.demo import check_demo
+
+    check_demo(args.out, args.num_frames, args.size, args.seed)  # before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _write_png(out / "default_body.png", body_sheet())
@@ -50,7 +54,9 @@ def cmd_demo(args) -> int:
     scores = run_demo(out, frames=args.num_frames, size=args.size, seed=args.seed, progress=not args.quiet)
     print(f"3D joint error on the paper's 13 joints: local (per-frame Procrustes) "
           f"{scores['local_cm']:.2f} cm, global (per-sequence Procrustes) {scores['global_cm']:.2f} cm, "
-          f"MPJPE {scores['mpjpe_cm']:.2f} cm; {scores['s_per_frame']:.2f} s per frame (median)")
+          f"MPJPE {scores['mpjpe_cm']:.2f} cm; "
+          + (f"{scores['s_per_frame']:.2f} s per frame (median)" if scores.get("s_per_frame") is not None
+             else "no frame past the start tracked, so no time per frame"))
     print("paper's targets (HumanEva walking): local <= 5.5 cm, global <= 7.6 cm; ours: <= 1 s per frame")
     print(f"wrote {out / 'eval.json'}, the sequence in {out / 'sequence'} and the result in {out / 'result'}")
     print(f"next: flowmocap render {out / 'result'} (overlay video, figures); "
@@ -174,7 +180,7 @@ def _export_all(result: str | Path, formats: list[str], quiet: bool, markers: st
 
 
 def cmd_synth(args) -> int:
-    size = args.size if args.size else (None if args.camera else "640x480")
+    size = args.size if args.size is not None else (None if args.camera else "640x480")
     res = synthesize(
         args.motion, args.out, fps=args.fps, start=args.start, frames=args.num_frames, size=size,
         focal=args.focal, distance=args.distance, azimuth=args.azimuth, elevation=args.elevation,
@@ -187,11 +193,30 @@ def cmd_synth(args) -> int:
     return 0
 
 
+#: The picture formats ``body`` and ``demo`` write, by the name's ending.
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def _check_picture_path(path: Path) -> None:
+    """Refuse a picture's path before the work: a folder, a path under a file, or a name
+    ending in none of :data:`PICTURE_SUFFIXES` (``InputError``)."""
+    from flowmocap.atomic import check_file_path
+
+    check_file_path(path)
+    if path.suffix.lower() not in PICTURE_SUFFIXES:
+        raise InputError(f"{path}: a picture is written as PNG or JPEG; give a name ending in "
+                         f"{' or '.join(PICTURE_SUFFIXES)}.")
+
+
 def _write_png(path: Path, image) -> None:
+    """Write ``image`` at ``path`` (PNG or JPEG by its name) through a temporary file: a failed
+    write leaves the old file, never a cut-off one."""
     import imageio.v3 as iio
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, image)
+    from flowmocap.atomic import atomic_write
+
+    _check_picture_path(path)
+    atomic_write(path, lambda tmp: iio.imwrite(tmp, image, extension=path.suffix.lower()))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -350,16 +375,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 0
+    if not getattr(args, "func", None):  # no command: say which there are, as for any other usage error
+        parser.print_help(sys.stderr)
+        return 2
     try:
         return args.func(args)
     except FlowMocapError as e:
         print(f"flowmocap: error: {e}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
-        print("flowmocap: interrupted; finished frames are kept (track --resume continues)", file=sys.stderr)
+        print("flowmocap: interrupted; finished frames are kept (track --resume continues)" if args.command == "track"
+              else "flowmocap: interrupted" + ("; the sequence is not finished: make it again with --overwrite"
+                                               if args.command == "synth" else ""), file=sys.stderr)
         return 130
     except OSError as e:  # a file the command writes outside the result folder's own handling
         where = f" ({e.filename})" if getattr(e, "filename", None) else ""

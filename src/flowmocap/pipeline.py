@@ -192,8 +192,11 @@ def parse_frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
     else:
         try:
             a, b = (int(v) for v in frames)
-        except (TypeError, ValueError):
+            whole = all(float(v) == int(v) for v in frames)
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"frames must be 'A:B' or a pair (A, B); got {frames!r}.") from None
+        if not whole:
+            raise InputError(f"frames must be whole frame numbers; got {frames!r}.")
     if not (0 <= a < b <= n) or b - a < 2:
         raise InputError(f"frames {a}:{b} do not select at least 2 of the {n} frames.")
     return a, b
@@ -295,8 +298,20 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             ``run.json`` says ``"failed"`` with the error, and ``resume=True`` continues.
     """
     say = log if log is not None else (lambda _msg: None)
+    for name, value in (("source", source), ("out", out)):
+        if not isinstance(value, (str, os.PathLike)):
+            raise InputError(f"{name} must be a path (a str or a Path); got {type(value).__name__}.")
+    if not str(source).strip():
+        raise InputError("source is empty; give a video file, a folder of frames or a sequence folder.")
     if not str(out).strip():
         raise InputError("the result folder (out, --out) is empty; give the path of a new folder.")
+    if not (init == "auto" or isinstance(init, (str, os.PathLike, dict, KnownStart))):
+        raise InputError(f"init must be 'auto', an init.json path or dict; got {type(init).__name__}.")
+    if not (masks is None or isinstance(masks, (str, os.PathLike))):
+        raise InputError(f"masks must be None, 'auto' or a folder of masks; got {type(masks).__name__}.")
+    if not isinstance(model, (str, os.PathLike, BodyModel)):
+        raise InputError(f"model must be 'default', a body model file or folder, or a BodyModel; got "
+                         f"{type(model).__name__}.")
     src, out = Path(source), Path(out)
     if not src.exists():
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")

@@ -43,6 +43,12 @@ def cmd_bench(args) -> int:
     from flowmocap.eval.bench import mocap_specs, run_bench, suite
     from flowmocap.errors import InputError
 
+    from pathlib import Path
+
+    if not str(args.out).strip():
+        raise InputError("the benchmark's folder (--out) is empty; give the path of a folder.")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError(f"{args.out} is a file; a benchmark writes into a folder: give a folder.")
     if args.num_frames is not None and args.num_frames < 3:
         raise InputError("--num-frames must be at least 3 (the acceleration error needs 3 frames).")
     if args.fast and args.suite != "real3d":

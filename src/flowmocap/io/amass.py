@@ -14,6 +14,7 @@ model's own shape coefficients (the real SMPL's only when tracking used SMPL).
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -88,13 +89,23 @@ def read_amass_npz(path: str | Path, model=None):
             data = {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise DataError(f"AMASS file {path} does not exist.") from None
-    except (OSError, ValueError) as e:
-        raise DataError(f"cannot read {path} as an AMASS .npz ({e}).") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:  # cut off or empty: the last two
+        raise DataError(f"cannot read {path} as an AMASS .npz ({type(e).__name__}: {e}).") from None
     missing = [k for k in ("poses", "trans") if k not in data]
     if missing:
         raise DataError(f"{path} lacks {', '.join(missing)}; an AMASS file has poses, trans, betas, "
                         "gender and mocap_framerate.")
-    poses = np.asarray(data["poses"], np.float64)
+
+    def numbers(key, default=None):
+        try:
+            a = np.asarray(data.get(key, default), np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: {key} is not numbers (dtype {np.asarray(data[key]).dtype}).") from None
+        if not np.isfinite(a).all():
+            raise DataError(f"{path}: {key} holds NaN or infinite values; the file is damaged.")
+        return a
+
+    poses = numbers("poses")
     if poses.ndim != 2 or poses.shape[1] not in (72, 156, 165):
         raise DataError(f"{path}: poses must be (T, 72), (T, 156) or (T, 165); got {poses.shape}.")
     T = poses.shape[0]
@@ -104,12 +115,17 @@ def read_amass_npz(path: str | Path, model=None):
     else:
         smpl[:, :66] = poses[:, :66]
         if "smpl_hand_pose" in data and np.shape(data["smpl_hand_pose"]) == (T, 6):
-            smpl[:, 66:] = data["smpl_hand_pose"]
-    trans = np.asarray(data["trans"], np.float64).reshape(T, 3)
-    betas = np.asarray(data.get("betas", np.zeros(10)), np.float64).reshape(-1)[:10]
+            smpl[:, 66:] = numbers("smpl_hand_pose")
+    trans = numbers("trans")
+    if trans.shape != (T, 3):
+        raise DataError(f"{path}: trans must be (T, 3) = ({T}, 3), one per pose; got {trans.shape}.")
+    betas = numbers("betas", np.zeros(10)).reshape(-1)[:10]
     gender = str(data.get("gender", "neutral"))
     gender = gender if gender in ("neutral", "male", "female") else "neutral"
-    fps = float(data.get("mocap_framerate", data.get("mocap_frame_rate", 30.0)))
+    rate = numbers("mocap_framerate" if "mocap_framerate" in data else "mocap_frame_rate", 30.0)
+    if rate.size != 1 or not rate.reshape(-1)[0] > 0:
+        raise DataError(f"{path}: the frame rate (mocap_framerate) must be one positive number; got {rate!r}.")
+    fps = float(rate.reshape(-1)[0])
     if model is None:
         model = load_body_model("default", gender=gender)
     with torch.no_grad():

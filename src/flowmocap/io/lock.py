@@ -34,8 +34,10 @@ class FolderLock:
     def __init__(self, out_dir: str | Path):
         self.out_dir = Path(out_dir)
         self._lock: filelock.BaseFileLock | None = None
+        self._made = False
 
     def __enter__(self) -> FolderLock:
+        self._made = not self.out_dir.exists()
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
         except FileExistsError:
@@ -65,6 +67,13 @@ class FolderLock:
             (self.out_dir / ".lock.json").unlink(missing_ok=True)
             self._lock.release()
             self._lock = None
+            if self._made and {p.name for p in self.out_dir.iterdir()} <= {".lock"}:
+                # a folder this lock made for a run that wrote nothing (refused at once): not left behind
+                (self.out_dir / ".lock").unlink(missing_ok=True)
+                try:
+                    self.out_dir.rmdir()
+                except OSError:  # something appeared in it meanwhile: it stays
+                    pass
 
 
 def is_locked(out_dir: str | Path) -> bool:

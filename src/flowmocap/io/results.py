@@ -495,8 +495,14 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     Raises:
         DataError: missing or unreadable files.
     """
+    if not isinstance(out_dir, (str, os.PathLike)):
+        from flowmocap.errors import InputError
+
+        raise InputError(f"a result folder is a path (a str or a Path); got {type(out_dir).__name__}.")
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
+    if not out_dir.exists():
+        raise DataError(f"result folder {out_dir} does not exist; give the --out folder of `flowmocap track`.")
+    if not out_dir.is_dir():
         raise DataError(f"{out_dir} is a file, not a result folder; give the --out folder of `flowmocap track`.")
     try:
         run = json.loads((out_dir / "run.json").read_text())

@@ -212,6 +212,12 @@ def check_max_side(max_side) -> None:
     Raises:
         InputError: ``max_side`` < 0 or 0 < ``max_side`` < :data:`MIN_MAX_SIDE`.
     """
+    try:
+        whole = max_side is None or (not isinstance(max_side, bool) and float(max_side) == int(max_side))
+    except (TypeError, ValueError, OverflowError):  # text, NaN, infinity
+        whole = False
+    if not whole:
+        raise InputError(f"--max-size must be a whole number of pixels (0 keeps the video's size); got {max_side!r}.")
     if max_side is not None and (max_side < 0 or 0 < max_side < MIN_MAX_SIDE):
         raise InputError(f"--max-size must be 0 (keep the video's size) or at least {MIN_MAX_SIDE} px (in smaller "
                          f"frames a person is too few pixels to find); got {max_side}.")

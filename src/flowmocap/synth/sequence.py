@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from flowmocap.version import __version__
-from flowmocap.errors import DataError, InputError
+from flowmocap.errors import DataError, InputError, OutputError
 from flowmocap.geometry import PinholeCamera
 from flowmocap.io.motion_source import load_motion
 from flowmocap.io.smpl_motion import SmplMotion
@@ -81,6 +81,19 @@ def parse_size(size) -> tuple[int, int]:
     return w, h
 
 
+#: The largest shape coefficient a synthetic body may have, in standard deviations (the
+#: shape space's people lie within about +-3; further out the body is no person's).
+MAX_ABS_BETA = 10.0
+
+#: The most frames a synthetic clip may have, and the highest and lowest frame rates: every
+#: frame's mesh is held in memory while the clip is made (about 0.17 MB a frame).
+MAX_SYNTH_FRAMES = 20000
+SYNTH_FPS_RANGE = (1.0, 1000.0)
+
+#: The least height, pixels, of the body in a synthetic clip's first frame.
+MIN_BODY_PIXELS = 8.0
+
+
 def parse_betas(betas, num_betas: int, rng: np.random.Generator) -> np.ndarray:
     """Body shape from None (mean), ``"random"`` (seeded, N(0, 0.7^2) clipped to +-2),
     a string of comma-separated numbers, or numbers (at most ``num_betas``; the rest 0).
@@ -101,6 +114,9 @@ def parse_betas(betas, num_betas: int, rng: np.random.Generator) -> np.ndarray:
     b = np.asarray(betas, dtype=np.float64).reshape(-1)
     if b.shape[0] > num_betas or not np.all(np.isfinite(b)):
         raise InputError(f"betas takes at most {num_betas} finite values, got {b.shape[0]}")
+    if np.abs(b).max(initial=0.0) > MAX_ABS_BETA:
+        raise InputError(f"betas are standard deviations of the body's shape, within +-{MAX_ABS_BETA:g} (people lie "
+                         f"within about +-3); got {np.abs(b).max():g}")
     return np.pad(b, (0, num_betas - b.shape[0]))
 
 
@@ -127,6 +143,10 @@ def _prepare_out(out_dir: Path, overwrite: bool) -> None:
     if any(p.exists() for p in existing):
         if not overwrite:
             raise InputError(f"{out_dir} already holds a sequence; choose another folder, or pass overwrite=True (--overwrite on the command line)")
+        # the old sequence's files that describe it go first: a new one cut short then reads as
+        # frames without ground truth, never as new frames with the old truth
+        for name in ("gt.npz", "meta.json", "camera.json"):
+            (out_dir / name).unlink(missing_ok=True)
         for sub in ("frames", "masks"):
             for f in (out_dir / sub).glob("*.png"):
                 f.unlink()
@@ -197,7 +217,13 @@ def synthesize(
     from flowmocap.body import load_body_model
 
     t0 = time.perf_counter()
+    if not str(out_dir).strip():
+        raise InputError("the sequence folder (out_dir, --out) is empty; give the path of a new folder.")
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"output path {out_dir} is a file; give a folder")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed must be a whole number >= 0; got {seed!r}")
     if camera is not None:
         cam_given = read_camera_json(camera, *(parse_size(size) if size is not None else (None, None)))
         width, height = cam_given.width, cam_given.height
@@ -206,12 +232,19 @@ def synthesize(
         if size is None:
             raise InputError("give an image size or a camera")
         width, height = parse_size(size)
-    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise InputError(f"fps must be a positive number, got {fps!r}")
+    lo, hi = SYNTH_FPS_RANGE
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and lo <= fps <= hi):
+        raise InputError(f"fps must be a frame rate of {lo:g}..{hi:g} Hz, got {fps!r}")
     if int(start) != start or start < 0:
         raise InputError(f"start must be a frame index >= 0, got {start!r}")
     if frames is not None and (int(frames) != frames or frames < 1):
         raise InputError(f"frames must be a positive number of frames, got {frames!r}")
+    if frames is not None and frames > MAX_SYNTH_FRAMES:
+        raise InputError(f"a synthetic clip holds at most {MAX_SYNTH_FRAMES} frames (each frame's mesh is kept in "
+                         f"memory while it is made); got {frames}: make several clips with --start")
+    if str(motion_source).startswith("builtin:") and start + (frames or 0) > 10 * MAX_SYNTH_FRAMES:
+        raise InputError(f"the built-in walk is generated from its first frame: frames {start}.. would need more "
+                         f"than {10 * MAX_SYNTH_FRAMES}; start nearer the beginning (it repeats every step cycle)")
     rng = np.random.default_rng(seed)
     body = load_body_model(model, gender=gender, dtype=torch.float64)
     b = parse_betas(betas, body.num_betas, rng)
@@ -226,6 +259,9 @@ def synthesize(
             n_builtin = start + (frames if frames is not None else int(round(4.0 * fps)))
         motion = load_motion(motion_source, body, betas=b, fps=fps, frames=n_builtin, asf=asf)
     stop = motion.num_frames if frames is None else start + int(frames)
+    if stop - start > MAX_SYNTH_FRAMES:
+        raise InputError(f"the motion has {motion.num_frames - start} frames from frame {start} at {motion.fps:g} fps; "
+                         f"a synthetic clip holds at most {MAX_SYNTH_FRAMES}: give --num-frames")
     if start >= motion.num_frames or stop > motion.num_frames:
         raise InputError(
             f"frames {start}..{stop - 1} requested but the motion has {motion.num_frames} frames at "
@@ -258,6 +294,10 @@ def synthesize(
     depth_all = verts @ cam.R[2] + cam.t[2]
     if depth_all.min() <= 0.05:
         raise InputError("the body passes behind or through the camera; move the camera further away")
+    tall = float(np.ptp(cam.project(verts[0])[:, 1]))
+    if tall < MIN_BODY_PIXELS:
+        raise InputError(f"the body would be {tall:.2g} px tall in the {width}x{height} image, too small to see; "
+                         "bring the camera nearer (--distance) or give it a longer focal length (--focal)")
     fwd = cam.R[2].copy()
     fwd[1] = 0.0
     fwd /= max(np.linalg.norm(fwd), 1e-9)
@@ -314,7 +354,8 @@ def synthesize(
 
 def _write_png(path: Path, image: np.ndarray) -> None:
     if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise DataError(f"could not write {path}")
+        raise OutputError(f"could not write {path} (a full disk, a file size limit or no permission?); the frames "
+                          "before it are written, the sequence is not finished: make it again with --overwrite")
 
 
 def _jsonable(x):
