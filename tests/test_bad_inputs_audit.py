@@ -471,3 +471,12 @@ def test_load_result_of_no_path_or_a_missing_one(tmp_path):
         flowmocap.load_result(None)
     with pytest.raises(DataError, match="does not exist"):
         flowmocap.load_result(tmp_path / "nope")
+
+
+def test_synth_refuses_a_focal_length_no_lens_has(tmp_path):
+    """--focal 1e-9 used to end in "the camera at distance 0.00 m is inside the body's path"."""
+    from flowmocap.synth import synthesize
+
+    for focal in (1e-9, 1e9):
+        with pytest.raises(InputError, match="field of view of .* outside 0.2..170"):
+            synthesize("builtin:walk", tmp_path / "s", frames=3, size="96x72", focal=focal)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from flowmocap.cli import main
-from flowmocap.errors import InputError
+from flowmocap.errors import DataError, InputError
 from flowmocap.eval import bench
 
 
@@ -116,6 +116,9 @@ def test_suites_and_errors(tmp_path):
         bench.suite("huge")
     with pytest.raises(InputError, match="does not exist"):
         bench.mocap_specs([str(tmp_path / "missing.bvh")])
+    (tmp_path / "garbage.bvh").write_text("garbage\n")  # read before any work: no empty --out left behind
+    with pytest.raises(DataError, match="starts with HIERARCHY"):
+        bench.mocap_specs([str(tmp_path / "garbage.bvh")])
     assert bench.commit()
 
 

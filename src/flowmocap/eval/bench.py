@@ -213,12 +213,17 @@ def tune_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0, data
 
 def mocap_specs(files: list[str], frames: int = 130, size: str = "640x480", fps: float = 60.0,
                 azimuths: tuple = (90.0, 45.0)) -> list:
-    """The full suite's protocol on user-given ASF/AMC or BVH clips, one entry per view."""
+    """The full suite's protocol on user-given ASF/AMC or BVH clips, one entry per view. Each
+    file is read once here, so a damaged one is refused (``DataError``) before any work."""
+    from flowmocap.io.amass import read_amass_npz
+    from flowmocap.io.mocap import read_mocap
+
     specs = []
     for f in files:
         p = Path(f)
         if not p.exists():
             raise InputError(f"mocap file {p} does not exist; give .amc (with its .asf beside it) or .bvh files.")
+        read_amass_npz(p) if p.suffix.lower() == ".npz" else read_mocap(p)
         for az in azimuths:
             specs.append(SyntheticSpec(f"{p.stem}-az{az:g}", str(p), frames, size, fps, float(az)))
     return specs

@@ -73,6 +73,10 @@ def place_camera(
     f = float(width) if focal is None else float(focal)
     if not f > 0:
         raise InputError(f"focal must be a positive number of pixels, got {focal}")
+    fov = math.degrees(2.0 * math.atan2(0.5 * float(width), f))
+    if not 0.2 <= fov <= 170.0:  # the field of view track accepts (flowmocap.pipeline.FIELD_OF_VIEW_DEG)
+        raise InputError(f"focal {f:g} px gives a field of view of {fov:.3g} degrees across the {width} px image, "
+                         "outside 0.2..170; the focal length is in pixels (the image width is a 53-degree view)")
     target = 0.5 * (pts.min(0) + pts.max(0))
 
     def camera_at(d):
