@@ -480,3 +480,37 @@ def test_synth_refuses_a_focal_length_no_lens_has(tmp_path):
     for focal in (1e-9, 1e9):
         with pytest.raises(InputError, match="field of view of .* outside 0.2..170"):
             synthesize("builtin:walk", tmp_path / "s", frames=3, size="96x72", focal=focal)
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_the_detector_process_ends_with_the_tracking_process(tmp_path):
+    """A tracking process killed outright (kill -9, SIGTERM) used to leave its detector
+    process running on, orphaned, writing into the result folder outside its lock."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    child = ("import os, sys, time; from flowmocap.vision import detect_worker as w; "
+             "os.environ[w.PARENT_ENV] = str(os.getppid()); w._end_with_parent(); time.sleep(60)")
+    parent = (f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', {child!r}]); "
+              "print(p.pid, flush=True); time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
+    worker = int(proc.stdout.readline())
+    time.sleep(1.5)  # the worker has set its death signal
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    for _ in range(50):
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+        try:  # reaped by init; a zombie reads as alive to kill(0) on some systems
+            if open(f"/proc/{worker}/stat").read().split()[2] == "Z":
+                break
+        except OSError:
+            break
+    else:
+        os.kill(worker, signal.SIGKILL)
+        pytest.fail("the worker outlived its parent")

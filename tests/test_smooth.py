@@ -407,14 +407,84 @@ def test_post_pending_says_which_steps_after_tracking_a_finished_run_lacks(tmp_p
     write_run(out, {"status": "finished", "events": []})
     cfg, off = TrackerConfig(), TrackerConfig(pose_smoothing_s=0.0, stance_depth_share=0.0)
     stance = TrackerConfig(pose_smoothing_s=0.0)  # the stance step alone
-    assert pipeline._post_pending(out, stance, "auto", {})  # not done
-    assert not pipeline._post_pending(out, stance, "auto", {"stance_depth": {"frames_in_stance": 0}})
-    assert pipeline._post_pending(out, cfg, "auto", {})  # not smoothed
-    assert not pipeline._post_pending(out, off, "auto", {})  # no detections: no refit to do either
+    ended = {"status": "finished", "body": {"stature_m": 1.7}}  # what a run whose steps all ended records
+    assert pipeline._post_pending(out, stance, "auto", ended)  # not done
+    assert not pipeline._post_pending(out, stance, "auto", {**ended, "stance_depth": {"frames_in_stance": 0}})
+    assert pipeline._post_pending(out, cfg, "auto", ended)  # not smoothed
+    assert not pipeline._post_pending(out, off, "auto", ended)  # no detections: no refit to do either
     (out / "detections").mkdir()
     (out / "detections" / "keypoints.npz").write_bytes(b"")
-    assert pipeline._post_pending(out, off, "auto", {})  # detections and no refit yet
-    assert not pipeline._post_pending(out, off, "off", {})  # the refit needs the 3D cues on
-    assert not pipeline._post_pending(out, off, "auto", {"lifter_refit": {"skipped": "too few frames"}})
+    assert pipeline._post_pending(out, off, "auto", ended)  # detections and no refit yet
+    assert not pipeline._post_pending(out, off, "off", ended)  # the refit needs the 3D cues on
+    assert not pipeline._post_pending(out, off, "auto", {**ended, "lifter_refit": {"skipped": "too few frames"}})
     write_motion(out, {**motion, "poses_tracked": motion["poses"], "poses_unsmoothed": motion["poses"]})
-    assert not pipeline._post_pending(out, cfg, "auto", {})  # both done
+    assert not pipeline._post_pending(out, cfg, "auto", ended)  # both done
+    # a run stopped before the end of its steps: its status, its body, or a record motion.npz
+    # holds and run.json lost (a stop between the two files)
+    assert pipeline._post_pending(out, cfg, "auto", {**ended, "status": "finishing"})
+    assert pipeline._post_pending(out, cfg, "auto", {"status": "finished"})
+    write_motion(out, {**motion, "poses_tracked": motion["poses"], "poses_unsmoothed": motion["poses"],
+                       "post_steps": np.array('{"pose_smoothing": {"seconds": 0.1}}')})
+    assert pipeline._post_pending(out, cfg, "auto", ended)
+    assert not pipeline._post_pending(out, cfg, "auto", {**ended, "pose_smoothing": {"seconds": 0.1}})
+
+
+def _finishing_result(out):
+    from flowmocap.io.results import write_motion, write_run
+
+    out.mkdir()
+    motion = {"poses": np.zeros((3, 72), np.float32), "trans": np.tile(np.float32([0, 0, 3]), (3, 1))}
+    write_motion(out, motion)
+    run = {"status": "finishing", "tracked": True, "events": []}
+    write_run(out, run)
+    return run
+
+
+def test_a_step_after_tracking_stopped_between_its_two_files_is_not_done_twice(tmp_path, monkeypatch):
+    """A kill after a step's motion.npz and before its run.json used to leave the step
+    unrecorded: --resume applied the stance step a second time (22 mm off the uninterrupted
+    run), and the refit's and smoothing's records were lost for good."""
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.io.results import read_result
+
+    out = tmp_path / "r"
+    run = _finishing_result(out)
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt
+
+    step = lambda m: ({**m, "trans": m["trans"] + np.float32([0, 0, 0.02])}, {"frames_in_stance": 3})  # noqa: E731
+    monkeypatch.setattr(pipeline, "write_run", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline._post_step(out, run, "stance_depth", step, lambda _m: None, lambda _i: "")
+    monkeypatch.undo()
+    motion, on_disk = read_result(out)
+    assert "stance_depth" not in on_disk  # run.json never heard of it ...
+    assert pipeline._steps_done(motion)["stance_depth"]["frames_in_stance"] == 3  # ... motion.npz did
+    assert on_disk["status"] == "interrupted"  # "finishing" and no process holds the folder
+    assert not pipeline._stance_pending(out, TrackerConfig(pose_smoothing_s=0.0), on_disk)  # not applied again
+    synced = pipeline._synced_steps(out, on_disk)
+    assert synced["stance_depth"]["frames_in_stance"] == 3 and read_result(out)[1]["stance_depth"] == synced["stance_depth"]
+    np.testing.assert_allclose(read_result(out)[0]["trans"][:, 2], 3.02, atol=1e-6)  # moved once
+
+
+def test_a_stop_during_the_steps_after_tracking_is_recorded(tmp_path, monkeypatch):
+    """run.json used to say "finished" before the steps after tracking ran, so a stop there
+    left an unfinished motion that export used without a word, and a batch skipped it."""
+    from flowmocap import pipeline
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.io.results import read_result
+
+    out = tmp_path / "r"
+    run = _finishing_result(out)
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_smooth_poses", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline._post_steps(out, None, None, TrackerConfig(stance_depth_share=0.0), run, "auto", lambda _m: None)
+    _, on_disk = read_result(out)
+    assert on_disk["status"] == "interrupted" and "in the steps after tracking" in on_disk["error"]
+    assert pipeline._post_pending(out, TrackerConfig(stance_depth_share=0.0), "auto", on_disk)  # --resume does them

@@ -57,6 +57,7 @@ from flowmocap.io.results import (
     FrameLog,
     has_result,
     is_result_folder,
+    json_default,
     read_result,
     write_json,
     write_motion,
@@ -812,7 +813,7 @@ def _resumable(out: Path, fingerprint: dict) -> Result | None:
     """Check that the run in ``out`` can be resumed with ``fingerprint``: None when it is
     to be continued, its :class:`Result` when it is finished already."""
     _, old = read_result(out)
-    if not (out / "progress.json").exists() and old.get("status") != "finished":
+    if not (out / "progress.json").exists() and old.get("status") != "finished" and not old.get("tracked"):
         raise InputError(f"cannot resume the run in {out}: it was written by an older flowmocap and holds no "
                          "tracker state; start a new result folder instead (or pass --force to start it over).")
     parts = differing(old.get("fingerprint"), fingerprint)
@@ -1137,7 +1138,8 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
         raise
     timings["total_s"] = float(timings.get("total_s", 0.0))
     run["tracker"] = tracker.state_dict()  # where it ended (the resume state lived in progress.json)
-    _record_end(out, run, log, timings, "finished", cfg=cfg)
+    run["tracked"] = True  # every frame tracked; "finished" once the steps after tracking are done too
+    _record_end(out, run, log, timings, FINISHING, cfg=cfg)
     log.close()
     return run
 
@@ -1153,16 +1155,69 @@ def _post_steps(out: Path, watch: PersonTrack | None, body: BodyModel, cfg: Trac
     ``--workers`` process with fewer threads)."""
     if not has_result(out):
         return run
-    with _torch_threads(cfg.torch_threads):
-        if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
-            run = _lifter_refit(out, watch, body, cfg, run, say)
-        if _inbetween_pending(out, run):
-            run = _inbetween(out, body, run, say)
-        if _stance_pending(out, cfg, run):
-            run = _stance_depth(out, cfg, run, say)
-        if cfg.pose_smoothing_s > 0:
-            run = _smooth_poses(out, body, cfg, run, say)
-    return _record_body(out, body, cfg, run, say)
+    try:
+        run = _synced_steps(out, run)
+        with _torch_threads(cfg.torch_threads):
+            if cfg.lifter_refit_weight > 0 and watch is not None and joints3d != "off":
+                run = _lifter_refit(out, watch, body, cfg, run, say)
+            if _inbetween_pending(out, run):
+                run = _inbetween(out, body, run, say)
+            if _stance_pending(out, cfg, run):
+                run = _stance_depth(out, cfg, run, say)
+            if cfg.pose_smoothing_s > 0:
+                run = _smooth_poses(out, body, cfg, run, say)
+        run = _record_body(out, body, cfg, run, say)
+    except BaseException as e:  # the steps done so far are in motion.npz; --resume does the rest
+        try:
+            run = {**json.loads((out / "run.json").read_text()),
+                   "status": "interrupted" if isinstance(e, KeyboardInterrupt) else "failed",
+                   "error": f"in the steps after tracking: {type(e).__name__}: {e}"}
+            write_run(out, run)
+        except Exception:  # noqa: BLE001 -- the original error is what the user must see
+            pass
+        raise
+    if run.get("status") != "finished":
+        run = {**run, "status": "finished"}
+        run.pop("error", None)
+        write_run(out, run)
+    return run
+
+
+#: ``run.json``'s status while the steps after tracking run (every frame tracked): a run
+#: killed then reads as ``"interrupted"`` (:func:`flowmocap.io.results.read_result`) and
+#: ``--resume`` does the steps left.
+FINISHING = "finishing"
+
+
+def _steps_done(motion: dict) -> dict:
+    """The steps after tracking applied to this ``motion.npz`` and their records
+    (its ``post_steps``, written with the motion they made: one atomic file), by ``run.json``
+    key (``lifter_refit``, ``unseen_inbetween``, ``stance_depth``, ``pose_smoothing``)."""
+    if "post_steps" not in motion:
+        return {}
+    try:
+        done = json.loads(str(motion["post_steps"]))
+    except ValueError:
+        return {}
+    return done if isinstance(done, dict) else {}
+
+
+def _with_step(new: dict, key: str, info: dict, before: dict) -> dict:
+    """The motion ``new`` a step made from ``before``, with the record of the steps done
+    (:func:`_steps_done`: ``before``'s, and ``key: info``)."""
+    done = {**_steps_done(before), **_steps_done(new), key: info}
+    return {**new, "post_steps": np.array(json.dumps(done, default=json_default))}
+
+
+def _synced_steps(out: Path, run: dict) -> dict:
+    """``run`` with the records of the steps ``motion.npz`` says were applied (a run stopped
+    between a step's ``motion.npz`` and its ``run.json`` lost them there), written back."""
+    motion, _ = read_result(out)
+    missing = {k: v for k, v in _steps_done(motion).items() if run.get(k) != v}
+    if missing:
+        run = {**run, **missing}
+        write_run(out, run)
+    return run
 
 
 def _camera_move_verdict(out: Path, run: dict, say) -> None:
@@ -1213,8 +1268,10 @@ def _post_pending(out: Path, cfg: TrackerConfig, joints3d: str, run: dict) -> bo
     motion, _ = read_result(out)
     refit = (cfg.lifter_refit_weight > 0 and joints3d != "off" and "poses_tracked" not in motion
              and "lifter_refit" not in run and (out / "detections" / "keypoints.npz").exists())
+    unrecorded = any(run.get(k) != v for k, v in _steps_done(motion).items())
     return (refit or _inbetween_pending(out, run) or _stance_pending(out, cfg, run)
-            or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion))
+            or (cfg.pose_smoothing_s > 0 and "poses_unsmoothed" not in motion)
+            or unrecorded or "body" not in run or run.get("status") != "finished")
 
 
 def _held_runs(run: dict) -> list[tuple[int, int]]:
@@ -1228,7 +1285,7 @@ def _inbetween_pending(out: Path, run: dict) -> bool:
     if not _held_runs(run) or "unseen_inbetween" in run:
         return False
     motion, _ = read_result(out)
-    return "poses_unsmoothed" not in motion
+    return "poses_unsmoothed" not in motion and "unseen_inbetween" not in _steps_done(motion)
 
 
 def _inbetween(out: Path, body: BodyModel, run: dict, say) -> dict:
@@ -1266,7 +1323,7 @@ def _stance_pending(out: Path, cfg: TrackerConfig, run: dict) -> bool:
     if cfg.stance_depth_share <= 0 or "stance_depth" in run:
         return False
     motion, _ = read_result(out)
-    return "poses_unsmoothed" not in motion
+    return "poses_unsmoothed" not in motion and "stance_depth" not in _steps_done(motion)
 
 
 def _reinit_frames(run: dict, include_eased: bool = False) -> list[int]:
@@ -1333,8 +1390,8 @@ def _lifter_refit(out: Path, track: PersonTrack, body: BodyModel, cfg: TrackerCo
         if tracked is not None:
             refit["trans_tracked"] = tracked  # the tracker's own translation, as before the refit
         info["depth_smoothed_s"] = cfg.depth_smoothing_s
-    write_motion(out, refit)
     info["seconds"] = round(time.perf_counter() - t0, 2)
+    write_motion(out, _with_step(refit, "lifter_refit", info, motion))  # the step and its record in one file
     run = {**run, "lifter_refit": info}
     write_run(out, run)
     say(f"refitted {info['frames_refit']} frames towards the lifter's 3D (share {cfg.lifter_refit_weight:g}, "
@@ -1408,8 +1465,8 @@ def _post_step(out: Path, run: dict, key: str, apply, say, describe, motion: dic
         motion, _ = read_result(out)
     t0 = time.perf_counter()
     new, info = apply(motion)
-    write_motion(out, new)
     info["seconds"] = round(time.perf_counter() - t0, 2)
+    write_motion(out, _with_step(new, key, info, motion))  # the step and its record in one file: done once
     run = {**run, key: info}
     write_run(out, run)
     say(describe(info))

@@ -4,8 +4,12 @@ readers see it.
 A result folder holds
 
 - ``run.json``: what ran (input, settings, camera, model, the run's fingerprint), its
-  ``status`` (``"preparing"``, ``"running"``, ``"finished"``, ``"failed"``) and, once the
-  run has ended, its events and timings. Written when the run starts and when it ends.
+  ``status`` (``"preparing"``, ``"running"``, ``"finishing"`` while the steps after tracking
+  run, ``"finished"``, ``"failed"``, ``"interrupted"``) and, once the run has ended, its
+  events and timings. Written when the run starts and when it ends. ``motion.npz``'s
+  ``post_steps`` records the steps after tracking applied to it, in the same file as the
+  motion they made, so none is applied twice or lost from ``run.json`` by a stop between
+  the two files.
 - while the run goes on, three files written frame by frame:
 
   - ``frames.bin``: one fixed-size binary record per tracked frame, appended (numpy
@@ -245,7 +249,8 @@ def _read_records(out_dir: Path, dtype: np.dtype, rows: int) -> np.ndarray:
     except (OSError, ValueError) as e:
         raise DataError(f"{path} is unreadable ({e}).") from None
     if len(recs) < rows:
-        raise DataError(f"{path} holds {len(recs)} frames but its last commit says {rows}.")
+        raise DataError(f"{path} holds {len(recs)} frames but its last commit says {rows}; the result is damaged: "
+                        "track the input again into this folder with --force (or into a new folder).")
     return recs
 
 
@@ -538,7 +543,7 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
                         "track the input again into this folder with --force (or into a new folder).") from None
     check_motion(out_dir, motion)
     check_run(out_dir, run)
-    if run.get("status") in ("running", "preparing"):
+    if run.get("status") in ("running", "preparing", "finishing"):  # "finishing": the steps after tracking
         from flowmocap.io.lock import is_locked
 
         if not is_locked(out_dir):

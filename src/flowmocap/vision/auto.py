@@ -587,6 +587,7 @@ def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
     env = dict(os.environ)  # the same flowmocap as this process, wherever it was imported from
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2])]
                                         + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    env["FLOWMOCAP_DETECT_PARENT"] = str(os.getpid())  # detect_worker.PARENT_ENV: it ends when this process does
     try:
         rc = subprocess.run([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env).returncode
     finally:

@@ -26,6 +26,7 @@ def main(argv: list[str]) -> int:
     from flowmocap.vision.auto import run_chunk
 
     job = Path(argv[0])
+    _end_with_parent()
     _native_logs_to_devnull()
     try:
         with open(job, "rb") as f:
@@ -38,6 +39,32 @@ def main(argv: list[str]) -> int:
     except KeyboardInterrupt:
         return 130
     return 0
+
+
+#: The environment variable the parent sets to its process id (:func:`_end_with_parent`).
+PARENT_ENV = "FLOWMOCAP_DETECT_PARENT"
+
+
+def _end_with_parent() -> None:
+    """Have the kernel stop this process when the one that started it ends (Linux's
+    ``PR_SET_PDEATHSIG``): a tracking process killed outright (``kill -9``, SIGTERM) used to
+    leave its detector running on, outside the result folder's lock. A parent already gone
+    by now (its id in :data:`PARENT_ENV` no longer this process's parent) ends it at once.
+    Elsewhere than Linux: nothing (the parent's Ctrl-C still reaches the process group)."""
+    import os
+    import signal
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    parent = os.environ.get(PARENT_ENV)
+    if parent and parent.isdigit() and os.getppid() != int(parent):
+        sys.exit(130)
 
 
 def _native_logs_to_devnull() -> None:
