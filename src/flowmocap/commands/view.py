@@ -336,14 +336,12 @@ class _Handler(BaseHTTPRequestHandler):
             if path == "/motion.glb":
                 return self._send(self.data.glb, "model/gltf-binary")
             if path.startswith("/motion/") and path.endswith(".glb"):
-                number = path[len("/motion/"):-len(".glb")]
-                k = int(number) if number.isdigit() else -1
+                k = _index(path[len("/motion/"):-len(".glb")])
                 if not 0 <= k < len(self.data.people):
                     return self._send(b"no such person", "text/plain", 404)
                 return self._send(self.data.people[k]["glb"], "model/gltf-binary")
             if path.startswith("/frame/") and path.endswith(".jpg"):
-                number = path[len("/frame/"):-len(".jpg")]
-                k = int(number) if number.isdigit() else -1
+                k = _index(path[len("/frame/"):-len(".jpg")])
                 if not 0 <= k < self.data.num_frames:
                     return self._send(b"no such frame", "text/plain", 404)
                 return self._send(self.data.frame_jpeg(k), "image/jpeg")
@@ -355,6 +353,11 @@ class _Handler(BaseHTTPRequestHandler):
         except (ValueError, BrokenPipeError, ConnectionResetError):
             return None
         return self._send(b"not found", "text/plain", 404)
+
+
+def _index(text: str) -> int:
+    """A URL's frame or person number, or -1 where it is not a number (the caller answers 404)."""
+    return int(text) if text.isdigit() else -1
 
 
 def make_server(data: ViewerData, port: int = 8765, quiet: bool = True) -> ThreadingHTTPServer:

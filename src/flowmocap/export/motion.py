@@ -293,10 +293,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
         raise DataError(f"result folder {result_dir} " + ("is a file" if result_dir.exists() else "does not exist")
                         + "; give the --out folder of "
                         "`flowmocap track` or the result/ folder of `flowmocap demo`.")
-    motion, run = read_result(result_dir)
-    for key in ("poses", "trans", "betas"):
-        if key not in motion:
-            raise DataError(f"{result_dir / 'motion.npz'} has no {key!r}; it is not a flowmocap result.")
+    motion, run = read_result(result_dir)  # its arrays' shapes and values checked (check_motion)
     poses, trans, betas = checked_motion_arrays(result_dir, motion)
     if poses.shape[0] == 0:
         raise DataError(f"{result_dir} holds no tracked frames yet; run or resume the tracking first.")
@@ -304,17 +301,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     fps = float(motion["fps"]) if "fps" in motion else 30.0
     T = poses.shape[0]
     index = np.asarray(motion.get("frame_index", np.arange(T)), np.int64)
-    if index.shape != (T,):
-        raise DataError(f"{result_dir / 'motion.npz'} 'frame_index' is {index.shape}, expected ({T},) (one per pose); "
-                        "the result is damaged: track the input again with --force.")
-    if "camera" in motion:
-        try:
-            cam_dict = json.loads(str(motion["camera"]))
-        except ValueError as e:
-            raise DataError(f"{result_dir / 'motion.npz'} 'camera' is not the camera's JSON ({e}); the result is "
-                            "damaged: track the input again with --force.") from None
-    else:
-        cam_dict = run.get("camera")
+    cam_dict = json.loads(str(motion["camera"])) if "camera" in motion else run.get("camera")
     if cam_dict is None:
         raise DataError(f"{result_dir} records no camera (motion.npz 'camera' or run.json 'camera').")
     camera = PinholeCamera.from_dict(cam_dict)

@@ -353,41 +353,23 @@ MAX_TRANS_M = 1.0e4
 
 
 def checked_motion_arrays(result_dir: str | Path, motion: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(poses (T, 72) radians, trans (T, 3) metres, betas (B,))`` float64 of a result's
-    motion arrays, checked: those shapes, one T, finite values, the root within
-    :data:`MAX_TRANS_M` of the camera.
+    """``(poses (T, 72) radians, trans (T, 3) metres, betas (B,))`` float64 of the motion
+    :func:`read_result` gave (whose shapes and values :func:`check_motion` has checked),
+    for readers that need the body's parameters: all three there, and ``betas`` not empty.
 
     Raises:
         DataError: naming ``motion.npz`` and saying to track again, when they are not.
     """
     where = Path(result_dir) / "motion.npz"
-    redo = "the result is damaged: track the input again with --force."
-    arrays = {}
     for key in ("poses", "trans", "betas"):
         if key not in motion:
             raise DataError(f"{where} has no {key!r}; it is not a flowmocap result.")
-        try:
-            arrays[key] = np.asarray(motion[key], np.float64)
-        except (TypeError, ValueError):
-            raise DataError(f"{where} '{key}' is not numeric (dtype {np.asarray(motion[key]).dtype}); {redo}") from None
-    poses, trans, betas = arrays["poses"], arrays["trans"], arrays["betas"].reshape(-1)
-    if poses.size == 0 and trans.size == 0:  # no frames yet: the caller says so
-        return poses.reshape(0, 72), trans.reshape(0, 3), betas
-    if poses.ndim != 2 or poses.shape[1] != 72:
-        raise DataError(f"{where} 'poses' is {poses.shape}, expected (T, 72); {redo}")
-    if trans.shape != (len(poses), 3):
-        raise DataError(f"{where} 'trans' is {trans.shape}, expected {(len(poses), 3)} (one per pose); {redo}")
+    poses = np.asarray(motion["poses"], np.float64).reshape(-1, 72)
+    trans = np.asarray(motion["trans"], np.float64).reshape(-1, 3)
+    betas = np.asarray(motion["betas"], np.float64).reshape(-1)
     if betas.size == 0:
-        raise DataError(f"{where} 'betas' is empty, expected the body's shape coefficients (10,); {redo}")
-    for key, a in (("poses", poses), ("trans", trans), ("betas", betas)):
-        if not np.isfinite(a).all():
-            bad = np.flatnonzero(~np.isfinite(a.reshape(len(a), -1)).all(1)) if key != "betas" else []
-            at = f" (first at row {int(bad[0])})" if len(bad) else ""
-            raise DataError(f"{where} '{key}' holds NaN or infinite values{at}; {redo}")
-    far = np.flatnonzero(np.linalg.norm(trans, axis=1) > MAX_TRANS_M)
-    if len(far):
-        raise DataError(f"{where} 'trans' puts the body {np.linalg.norm(trans[far[0]]):.3g} m from the camera at row "
-                        f"{int(far[0])}, more than {MAX_TRANS_M:g} m; {redo}")
+        raise DataError(f"{where} 'betas' is empty, expected the body's shape coefficients (10,); the result is "
+                        "damaged: track the input again with --force.")
     return poses, trans, betas
 
 

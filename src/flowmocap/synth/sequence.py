@@ -137,8 +137,7 @@ def read_camera_json(path, width: int | None = None, height: int | None = None) 
 
 
 def _prepare_out(out_dir: Path, overwrite: bool) -> None:
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"output path {out_dir} is a file; give a folder")
+    """Ready ``out_dir`` (not a file: :func:`synthesize` checked) for a new sequence."""
     existing = [out_dir / n for n in ("frames", "masks", "flow", "gt.npz", "meta.json", "camera.json")]
     if any(p.exists() for p in existing):
         if not overwrite:
