@@ -255,6 +255,29 @@ def test_a_file_given_as_the_result_folder(tmp_path):
     assert main(["export", str(tmp_path / "afile"), "--format", "bvh", "--quiet"]) == 2
 
 
+def test_eval_checks_its_out_path_first_and_writes_it_whole(tmp_path, monkeypatch):
+    """eval wrote its JSON straight to --out after scoring: a folder there gave an OSError
+    (exit 5) once the work was done, and a failed write cut an earlier eval.json short."""
+    import json
+
+    res = _result(tmp_path / "r")
+    seq = _frames(tmp_path / "seq" / "frames", 4, 64, 48).parent
+    (tmp_path / "afolder").mkdir()
+    assert main(["eval", str(res), "--gt", str(seq), "--out", str(tmp_path / "afolder")]) == 2
+    assert main(["eval", str(res), "--gt", str(seq)]) == 0
+    before = (res / "eval.json").read_text()
+    assert json.loads(before)["frames"] == 4
+
+    def full_disk(self, data, *a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    assert main(["eval", str(res), "--gt", str(seq)]) != 0
+    monkeypatch.undo()
+    assert (res / "eval.json").read_text() == before
+    assert not [p for p in res.iterdir() if p.name.endswith(".tmp")]
+
+
 def test_eval_needs_the_results_joints_and_a_finite_ground_truth(tmp_path):
     from flowmocap.eval.scoring import score_result
     from flowmocap.io.results import read_result, write_motion

@@ -17,21 +17,21 @@ def register(subparsers) -> None:
 
 
 def cmd_eval(args) -> int:
-    import json
     from pathlib import Path
 
+    from flowmocap.atomic import check_file_path
     from flowmocap.body import load_body_model
     from flowmocap.eval.scoring import format_scores, score_result
-    from flowmocap.io.results import read_result
+    from flowmocap.io.results import read_result, write_json
     from flowmocap.io.sequence import load_sequence
 
+    out = Path(args.out) if args.out else Path(args.result) / "eval.json"
+    check_file_path(out)  # before the scoring, which may take a while
     seq = load_sequence(args.gt, masks=args.masks)
     motion, _ = read_result(args.result)
     model = load_body_model(args.model, gender=str(motion.get("gender", "neutral")))
     scores = score_result(args.result, seq, model=model)
     print(format_scores(scores))
-    out = Path(args.out) if args.out else Path(args.result) / "eval.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(scores, indent=2))
+    write_json(out, scores)  # atomically: a failed write keeps an earlier eval.json whole
     print(f"wrote {out}")
     return 0
