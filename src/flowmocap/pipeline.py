@@ -566,7 +566,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
             turned = np.degrees(np.linalg.norm(Rotation.from_matrix(moved.floor_rotations).as_rotvec(), axis=1)).max()
             say(f"the floor about the person's feet shows the camera moving: its centre goes up to {moved.sideways:.1f} "
                 "times its height above the floor from where it is in the first frame, and it turns up to "
-                f"{turned:.0f} degrees. The body is tracked in the moving camera's "
+                f"{turned:.0f} degrees by the floor's fit ({notes['camera_motion']['turn_deg_max']:.0f} by the "
+                "background's, run.json's 'turn_deg_max'). The body is tracked in the moving camera's "
                 "frame; after tracking, the move is checked against the fitted body, and where the two agree, export "
                 "and view move each frame back into the world, scaled by the camera's height that the fitted feet "
                 "give (run.json 'camera_motion' holds the camera's turn and move per frame)." +
