@@ -9,8 +9,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from flowmocap.errors import DataError, InputError
-from flowmocap.io.video import (DEFAULT_FOCAL_FACTOR, decode_video, default_camera, focal_35mm_from_tags,
+from flowmocap.errors import DataError, InputError, NoPersonError
+from flowmocap.io.video import (DEFAULT_FOCAL_FACTOR, VideoReader, decode_video, default_camera, focal_35mm_from_tags,
                                 load_video)
 
 
@@ -121,6 +121,80 @@ def test_truncated_video_keeps_decoded_frames(tmp_path):
     cut.write_bytes(data[: int(len(data) * 0.6)])
     frames, _ = decode_video(cut)
     assert 1 <= len(frames) < 20
+
+
+def test_a_cut_off_video_says_so(tmp_path):
+    """A file cut short in a download decoded a few frames without an error and was tracked
+    as a shorter clip with nothing said. The container's frame count (an MP4 with its index
+    first) or duration (MKV) shows what is missing; a whole file says nothing."""
+    import av
+
+    whole = tmp_path / "whole.mp4"
+    with av.open(str(whole), "w", options={"movflags": "faststart"}) as c:
+        s = c.add_stream("mpeg4", rate=30)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        for img in _frames(30):
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    assert VideoReader(whole).info["cut_short"] is None
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    r = VideoReader(cut)
+    assert 1 <= len(r) < 30
+    assert r.info["cut_short"]["declared_frames"] == 30 and r.info["cut_short"]["decoded_frames"] == len(r)
+    mkv = write_video(tmp_path / "whole.mkv", _frames(20))
+    assert VideoReader(mkv).info["cut_short"] is None
+    cut_mkv = tmp_path / "cut.mkv"
+    cut_mkv.write_bytes(mkv.read_bytes()[: int(mkv.stat().st_size * 0.6)])
+    info = VideoReader(cut_mkv).info["cut_short"]
+    assert info["declared_seconds"] == pytest.approx(20 / 30, abs=0.01) and info["decoded_seconds"] < 0.5
+
+
+def test_track_says_a_video_is_cut_off(tmp_path):
+    """Before any work, in the log and in the mask-count error (masks made for the whole file)."""
+    import av
+    import cv2
+
+    from flowmocap.pipeline import track
+
+    whole = tmp_path / "whole.mp4"
+    with av.open(str(whole), "w", options={"movflags": "faststart"}) as c:
+        s = c.add_stream("mpeg4", rate=30)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        s.codec_context.gop_size = 1  # every frame decodes on its own: the cut file keeps several
+        for img in _frames(30):
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(whole.read_bytes()[: int(whole.stat().st_size * 0.6)])
+    n = len(VideoReader(cut))
+    assert 2 <= n < 30
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for i in range(30):
+        cv2.imwrite(str(masks / f"{i:06d}.png"), np.zeros((48, 64), np.uint8))
+    with pytest.raises(DataError, match=rf"30 masks .* but {n} frames .*the file is cut off: {n} frames decode "
+                                        r"\([\d.]+ s\), but the file says it holds 30 frames; get it again"):
+        track(cut, tmp_path / "r", masks=masks, log=None, progress=False)
+    said = []
+    with pytest.raises(NoPersonError):  # the empty masks are refused next, after the warning
+        track(cut, tmp_path / "r2", masks=_first(masks, n, tmp_path), log=said.append, progress=False)
+    assert any(m.startswith(f"warning: {cut} is cut off: {n} frames decode") for m in said), said
+
+
+def _first(masks, n, tmp_path):
+    import shutil
+
+    some = tmp_path / "some_masks"
+    some.mkdir()
+    for p in sorted(masks.iterdir())[:n]:
+        shutil.copy(p, some / p.name)
+    return some
 
 
 def test_default_camera_and_metadata():

@@ -64,7 +64,7 @@ from flowmocap.io.results import (
     write_run,
 )
 from flowmocap.io.sequence import Sequence, check_max_side, load_sequence, read_image
-from flowmocap.io.video import VIDEO_SUFFIXES, default_camera, load_video
+from flowmocap.io.video import VIDEO_SUFFIXES, cut_short_words, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
 from flowmocap.vision import FlowCache, flow_region
@@ -376,6 +376,10 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if len(seq) < 2:
         raise InputError(f"{src} holds only {len(seq)} frame; tracking needs at least 2 frames "
                          "(the flow is measured between neighbouring frames).")
+    if is_video and seq.meta.get("cut_short"):
+        say(f"warning: {src} is cut off: {cut_short_words(seq.meta['cut_short'])}; only the frames that decode are "
+            "tracked (run.json 'video' 'cut_short'). If the file was cut short in a download or copy, get it again "
+            "and track it with --force.")
     _check_person_point(choice, seq, src)
     auto_masks = masks == "auto" or seq.masks is None
     if not auto_masks:
@@ -481,6 +485,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
                                                    "scale", "focal_35mm", "timestamps") if k in seq.meta}
         notes["video"]["max_side"] = max_size or None
+        if seq.meta.get("cut_short"):
+            notes["video"]["cut_short"] = seq.meta["cut_short"]
     elif seq.source_size is not None:  # a folder of frames scaled like a video's
         notes["frames_scaled"] = {"size": list(seq.size), "source_size": list(seq.source_size),
                                   "scale": seq.meta["scale"], "max_side": max_size}

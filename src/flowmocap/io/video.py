@@ -73,13 +73,17 @@ class VideoReader:
             stream's display matrix), ``decoded_size`` and ``size`` (``[W, H]`` before and
             after scaling), ``scale`` (size / decoded size), ``focal_35mm`` (35
             mm-equivalent focal length in mm from the metadata, or None), ``metadata``
-            (container and stream tags).
+            (container and stream tags), ``cut_short`` (None, or for a file that stops
+            early -- decoding fails part of the way, or fewer frames or seconds decode
+            than the container says it holds -- ``decoded_frames``, ``declared_frames``,
+            ``declared_seconds``, ``decoded_seconds`` (None where unknown) and ``error``
+            (the decoder's, or None)).
 
     Thread-safe: the tracker reads the next frame on a second thread.
 
     Raises:
         DataError: missing file, a file that cannot be decoded, or no frames. A truncated
-        file keeps the frames that decode.
+        file keeps the frames that decode, and says so in ``info["cut_short"]``.
     """
 
     #: Frames kept decoded (the tracker reads each frame and the one before it).
@@ -141,6 +145,7 @@ class VideoReader:
         tags: dict = {}
         rate = None
         decoded = size = (0, 0)
+        declared, stopped, duration = 0, None, None
         try:
             with av.open(str(self.path)) as container:
                 if not container.streams.video:
@@ -149,6 +154,9 @@ class VideoReader:
                 tags = {**{f"container:{k}": v for k, v in container.metadata.items()},
                         **{k: v for k, v in stream.metadata.items()}}
                 rate = float(stream.average_rate) if stream.average_rate else None
+                declared = int(stream.frames or 0)  # what the container says it holds (0: unknown)
+                if container.duration:  # in microseconds (av.time_base)
+                    duration = container.duration / 1e6
                 for frame in container.decode(stream):
                     if not times:
                         rot = int(round(getattr(frame, "rotation", 0) or 0))
@@ -169,8 +177,19 @@ class VideoReader:
             if not times:  # a truncated file keeps the frames that decoded
                 raise DataError(f"cannot decode video {self.path} ({type(e).__name__}: {e}); check the file, "
                                 "or extract its frames into a folder and pass that instead.") from None
+            stopped = f"{type(e).__name__}: {e}"
         if not times:
             raise DataError(f"video {self.path} holds no frames.")
+        # a file cut off (a download or copy stopped part of the way) keeps what decodes, and says so
+        step = 1.0 / (rate or 30.0)
+        span = (times[-1] - times[0] + step) if np.isfinite([times[0], times[-1]]).all() else None
+        short_count = declared - len(times) > max(2, 0.01 * declared)
+        short_time = duration is not None and span is not None and duration - span > max(3 * step, 0.01 * duration)
+        cut_short = None
+        if stopped is not None or short_count or short_time:
+            cut_short = {"decoded_frames": len(times), "declared_frames": declared or None,
+                         "declared_seconds": round(duration, 3) if duration else None,
+                         "decoded_seconds": round(span, 3) if span is not None else None, "error": stopped}
         t = np.asarray(times, np.float64)
         if not np.isfinite(t).all() or (len(t) > 1 and (np.diff(t) <= 0).any()):
             t = np.arange(len(times)) * (1.0 / (rate or 30.0))
@@ -188,6 +207,7 @@ class VideoReader:
             "fps": float(fps), "timestamps": t.round(6).tolist(), "variable_frame_rate": vfr,
             "rotation": rotation, "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
             "focal_35mm": focal_35mm_from_tags(tags), "metadata": {k: str(v) for k, v in tags.items()},
+            "cut_short": cut_short,
         }
         usable = None not in pts and len(set(pts)) == len(pts)
         return info, (pts if usable else None)
@@ -277,6 +297,21 @@ def focal_35mm_from_tags(tags: dict) -> float | None:
     return None
 
 
+def cut_short_words(cut: dict) -> str:
+    """What :attr:`VideoReader.info`'s ``cut_short`` says, in words (``"4 frames decode
+    (0.13 s), but the file says it holds 30 frames"``)."""
+    said = (f"the file says it holds {cut['declared_frames']} frames" if cut.get("declared_frames") else
+            f"the file says it lasts {cut['declared_seconds']:.2f} s" if cut.get("declared_seconds") else
+            "decoding stops with an error")
+    text = f"{cut['decoded_frames']} frames decode"
+    if cut.get("decoded_seconds"):
+        text += f" ({cut['decoded_seconds']:.2f} s)"
+    text += f", but {said}"
+    if cut.get("error"):
+        text += f" ({cut['error']})"
+    return text
+
+
 def default_camera(width: int, height: int, focal_35mm: float | None = None) -> tuple[PinholeCamera, str]:
     """The camera to assume for a video without a known focal length.
 
@@ -356,8 +391,10 @@ def load_video(path: str | Path, masks: str | Path | None = None, max_side: int 
             raise DataError(f"mask folder {mask_dir} does not exist.")
         mask_paths = list_images(mask_dir)
         if len(mask_paths) != len(reader):
-            raise DataError(f"{len(mask_paths)} masks in {mask_dir} but {len(reader)} frames in {path}; "
-                            "give one mask per frame, in the same order.")
+            cut = reader.info["cut_short"]
+            raise DataError(f"{len(mask_paths)} masks in {mask_dir} but {len(reader)} frames in {path}"
+                            + (f" (the file is cut off: {cut_short_words(cut)}; get it again)" if cut else "")
+                            + "; give one mask per frame, in the same order.")
         decoded = tuple(reader.info["decoded_size"])
         check_images(mask_paths, (decoded, size) if decoded != size else size, "mask")
     return VideoSequence(path, reader, mask_paths)
