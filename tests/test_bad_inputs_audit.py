@@ -537,3 +537,40 @@ def test_the_detector_process_ends_with_the_tracking_process(tmp_path):
     else:
         os.kill(worker, signal.SIGKILL)
         pytest.fail("the worker outlived its parent")
+
+
+# --- the fifty-seventh session's audit: the viewer, batches, people and two runs at once ---
+
+@pytest.mark.parametrize("status, words", [
+    ("running", "is still going: this is the 4 frames tracked so far"),
+    ("finishing", "is still doing the steps after tracking"),
+    ("interrupted", "is interrupted: this is the 4 frames tracked before it stopped"),
+    ("failed", "is failed (boom): this is the 4 frames"),
+])
+def test_export_and_render_say_when_the_run_has_not_finished(tmp_path, capsys, status, words):
+    """A BVH of 27 of 90 frames, without the refit and smoothing, came out of a run still
+    going, with exit 0 and not a word; so did render's video and the viewer's page."""
+    import json
+
+    from flowmocap.io.lock import FolderLock
+    from flowmocap.io.results import unfinished_words
+
+    res = _result(tmp_path / "r")
+    run = json.loads((res / "run.json").read_text())
+    assert unfinished_words(res, run, 4) is None
+    (res / "run.json").write_text(json.dumps({**run, "status": status, "error": "boom"}))
+    frames = _frames(tmp_path / "frames", 4, 64, 48)
+    with FolderLock(res) if status in ("running", "finishing") else _nothing():  # a run going on holds the folder
+        assert main(["export", str(res), "--format", "json", "--out", str(tmp_path / "m.json"), "--quiet"]) == 0
+        said = capsys.readouterr().out
+        assert said.startswith(f"note: the run in {res} {words}"), said
+        assert main(["render", str(res), "--input", str(frames), "--traces", str(tmp_path / "t.png")]) == 0
+        assert f"note: the run in {res} {words}" in capsys.readouterr().out
+    if status in ("interrupted", "failed"):
+        assert "--resume` finishes it" in said
+
+
+def _nothing():
+    import contextlib
+
+    return contextlib.nullcontext()

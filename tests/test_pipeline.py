@@ -344,3 +344,21 @@ def test_track_export_writes_the_formats_after_tracking_and_refuses_unknown_ones
     direct = np.loadtxt(export_result(out, "trc", tmp_path / "direct.trc", markers="halpe26"), skiprows=6)
     np.testing.assert_allclose(np.loadtxt(out / "export" / "motion.trc", skiprows=6), direct, atol=2e-6)
     assert "-0.000000" not in (out / "export" / "motion.trc").read_text()
+
+
+def test_force_starts_over_without_the_old_results_exports(seq_dir, tmp_path):
+    """--force started the result over but left export/motion.bvh, render/ and eval.json
+    made from the old input beside it; what a user keeps in export/ stays."""
+    args = ["track", str(seq_dir), "--init", str(seq_dir.parent / "init.json"), "--config",
+            str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet", "--out", str(tmp_path / "o")]
+    out = tmp_path / "o"
+    assert main([*args, "--export", "bvh,obj"]) == 0
+    assert (out / "export" / "motion.bvh").is_file() and any((out / "export" / "obj").iterdir())
+    (out / "render").mkdir()
+    (out / "render" / "joint_traces.png").write_bytes(b"old")
+    (out / "eval.json").write_text("{}")
+    (out / "export" / "notes.txt").write_text("mine")
+    assert main([*args, "--force"]) == 0
+    assert sorted(p.name for p in (out / "export").iterdir()) == ["notes.txt"]
+    assert not (out / "render").exists() and not (out / "eval.json").exists()
+    assert (out / "motion.npz").is_file()

@@ -13,6 +13,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -409,3 +410,82 @@ def test_the_page_says_where_the_person_was_not_seen(result, tmp_path):
             assert 'data-ready="1"' in dom.stdout and "data-error" not in dom.stdout, dom.stderr[-2000:]
             assert f'data-unseen="{want}"' in dom.stdout
             assert (words in dom.stdout) if words else "not seen (" not in dom.stdout
+
+
+def _raw(url: str, request: bytes) -> bytes:
+    """Send ``request`` as it is to the server at ``url``; the reply's bytes ("" when the
+    connection is dropped without one)."""
+    import socket
+
+    host, port = url.rsplit("/", 1)[1].rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=30) as s:
+        s.sendall(request)
+        chunks = []
+        while chunk := s.recv(65536):
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def test_odd_requests_get_an_answer_not_a_dropped_connection(served):
+    """A frame number int() refuses (5000 digits, a superscript digit that str.isdigit takes),
+    a NUL or a too-long name in a static path: each was a dropped connection, some with a
+    traceback on the server's terminal."""
+    data, url = served
+    assert _get(url + "/frame/" + "9" * 5000 + ".jpg")[0] == 404
+    assert _get(url + "/static/" + "a" * 300)[0] == 404
+    for path in (b"/frame/\xb2.jpg", b"/static/a\x00b", b"/frame/\xd9\xa1.jpg"):
+        reply = _raw(url, b"GET " + path + b" HTTP/1.0\r\n\r\n")
+        assert reply.startswith(b"HTTP/1.0 404"), (path, reply[:60])
+    head = _raw(url, b"HEAD /motion.glb HTTP/1.0\r\n\r\n")  # curl -I: the GET's headers, no body
+    assert head.startswith(b"HTTP/1.0 200") and head.endswith(b"\r\n\r\n")
+    assert f"Content-Length: {len(data.glb)}".encode() in head
+
+
+def test_a_page_elsewhere_cannot_read_the_viewer_through_its_own_name(served):
+    """DNS rebinding: a page the user visits points its own name at 127.0.0.1 and reads the
+    user's frames; the viewer answers only requests that name this machine."""
+    data, url = served
+    port = url.rsplit(":", 1)[1]
+    for host in (b"evil.example", b"evil.example:" + port.encode(), b"127.0.0.1.evil.example"):
+        reply = _raw(url, b"GET /frame/0.jpg HTTP/1.1\r\nHost: " + host + b"\r\nConnection: close\r\n\r\n")
+        assert reply.startswith(b"HTTP/1.0 403") and b"\xff\xd8" not in reply, host
+    for host in (b"127.0.0.1:" + port.encode(), b"localhost:" + port.encode(), b"LOCALHOST", b"[::1]:" + port.encode()):
+        reply = _raw(url, b"GET /frame/0.jpg HTTP/1.1\r\nHost: " + host + b"\r\nConnection: close\r\n\r\n")
+        assert reply.startswith(b"HTTP/1.0 200"), host
+
+
+def test_an_input_that_goes_away_while_serving_is_a_500_with_the_reason(served):
+    data, url = served
+
+    class Gone:  # the input was deleted after the viewer started: the frames it has not sent fail
+        def frame(self, i):
+            raise DataError("cannot read image seq/frames/000003.png")
+
+    seq, cached = data.seq, dict(data._jpeg)
+    data.seq, data._jpeg = Gone(), {}
+    try:
+        status, ctype, body = _get(url + "/frame/3.jpg")
+    finally:
+        data.seq, data._jpeg = seq, cached
+    assert status == 500 and b"cannot read image seq/frames/000003.png" in body
+
+
+def test_view_says_when_the_run_is_not_finished_or_the_input_not_the_tracked_one(result, tmp_path):
+    import shutil
+
+    copy = tmp_path / "result"
+    shutil.copytree(result, copy)
+    run = json.loads((copy / "run.json").read_text())
+    assert ViewerData(copy).notes == []
+    (copy / "run.json").write_text(json.dumps({**run, "status": "interrupted"}))
+    notes = ViewerData(copy).notes
+    assert len(notes) == 1 and "is interrupted" in notes[0] and "--resume" in notes[0]
+    (copy / "run.json").write_text(json.dumps(run))
+    data = ViewerData(copy)
+    frames = tmp_path / "other"  # another clip of the result's size and length
+    frames.mkdir()
+    for i in range(int(data.frame_index.max()) + 1):
+        cv2.imwrite(str(frames / f"{i:06d}.png"), np.full((240, 320, 3), 30 + i, np.uint8))
+    (copy / "run.json").write_text(json.dumps({**run, "fingerprint": {"input": "0" * 16}}))
+    notes = ViewerData(copy, input=frames).notes
+    assert len(notes) == 1 and "is not the input that was tracked" in notes[0]

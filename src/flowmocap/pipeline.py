@@ -64,6 +64,7 @@ from flowmocap.io.results import (
     write_run,
 )
 from flowmocap.io.sequence import Sequence, check_max_side, load_sequence, read_image
+from flowmocap.export.world import WORLD_FILE
 from flowmocap.io.video import VIDEO_SUFFIXES, cut_short_words, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
@@ -433,8 +434,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
             return done
     elif has_result(out) or (out / "run.json").exists():  # force, or a run that failed before its first frame
         for name in ("motion.npz", "progress.json", "frames.bin", "events.jsonl", "run.json", "input.json",
-                     "init_auto.json"):
+                     "init_auto.json", "eval.json", WORLD_FILE):
             (out / name).unlink(missing_ok=True)
+        _drop_old_outputs(out)
     if not has_result(out):
         write_run(out, {"flowmocap": __version__, "status": "preparing", "input": str(src.resolve()),
                         "fingerprint": fingerprint})
@@ -610,6 +612,28 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if "frame_range" in notes:
         say(notes["frame_range"])
     return load_result(out)
+
+
+def _drop_old_outputs(out: Path) -> None:
+    """Remove what ``export`` and ``render`` wrote of a result in ``out`` at their default
+    places (``export/``, ``render/``), so a result started over does not sit beside files
+    made from the old one. Only the names they write are removed, and the folders when that
+    empties them: anything else a user keeps there stays."""
+    from flowmocap.commands.render import OUTPUTS
+    from flowmocap.export import FORMATS
+
+    for folder, names in (("export", FORMATS.values()), ("render", OUTPUTS.values())):
+        d = out / folder
+        if not d.is_dir() or d.is_symlink():
+            continue
+        for name in names:
+            p = d / name
+            if p.is_file() and not p.is_symlink():
+                p.unlink()
+            elif p.is_dir() and not p.is_symlink() and all(f.suffix in (".obj", ".mtl") for f in p.iterdir()):
+                shutil.rmtree(p)  # export's obj/: one OBJ a frame
+        if not any(d.iterdir()):
+            d.rmdir()
 
 
 def _check_person_point(choice: tuple, seq: Sequence, src: Path) -> None:

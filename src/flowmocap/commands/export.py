@@ -73,8 +73,13 @@ def run_export(args) -> int:
 
     from flowmocap.errors import InputError
     from flowmocap.export import export_people, export_result
-    from flowmocap.io.results import PEOPLE_MANIFEST
+    from flowmocap.io.results import PEOPLE_MANIFEST, people_results, read_result, unfinished_words
 
+    for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
+        motion, run = read_result(folder)
+        note = unfinished_words(folder, run, len(motion["poses"]))
+        if note:
+            print(note)
     if (Path(args.result) / PEOPLE_MANIFEST).exists():
         paths = export_people(args.result, args.fmt, out=args.out, frame=args.frame, model=args.model,
                               units_per_metre=100.0 if args.bvh_unit == "cm" else 1.0, progress=not args.quiet,

@@ -79,6 +79,11 @@ def run_render(args) -> int:
     out_dir = Path(args.out) if args.out else Path(args.result) / "render"
     paths = {k: Path(v) if v else out_dir / OUTPUTS[k] for k, v in wanted.items() if v is not None}
     scene = ResultScene(args.result, input=args.input, model=args.model)
+    from flowmocap.io.results import unfinished_words
+
+    note = unfinished_words(args.result, scene.run, scene.num_frames)
+    if note:
+        print(note)
     if scene.input_differs:
         print(f"note: {args.input or 'the input'} is not the input that was tracked (its content differs from the "
               "one in run.json's fingerprint); the body is drawn over it all the same")

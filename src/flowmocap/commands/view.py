@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.errors import FlowMocapError
+
 THREE_VERSION = "0.187.0"
 STATIC = Path(__file__).resolve().parents[1] / "viewer"
 _TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".md": "text/plain",
@@ -84,7 +86,7 @@ class ViewerData:
     def __init__(self, result_dir, input=None, model=None, smooth: bool | dict = False, floor: bool = True):
         from flowmocap.export import load_fitted_motion, motion_in_frame_of, write_motion_glb
         from flowmocap.export.floor import floor_owner, people_floor, scaled_about_camera
-        from flowmocap.io.results import people_results
+        from flowmocap.io.results import people_results, unfinished_words
         from flowmocap.viz.overlay import PEOPLE_RGB
 
         self.result_dir = Path(result_dir)
@@ -122,6 +124,9 @@ class ViewerData:
                                 "rows": [where.get(int(i), -1) for i in self.frame_index],
                                 "colour": None if not folders else list(PEOPLE_RGB[k % len(PEOPLE_RGB)])})
         self.glb = self.people[0]["glb"]
+        #: what the page's user should know: runs not finished, an input that is not the tracked one
+        self.notes = [n for n in (unfinished_words(d, m.run, m.num_frames)
+                                  for d, m in zip([d for _, d in folders] or [self.result_dir], motions)) if n]
         self.seq = self._open_input(input)
         self._jpeg: dict[int, bytes] = {}
         self._lock = threading.Lock()
@@ -153,6 +158,12 @@ class ViewerData:
                     raise DataError(f"--input {given} cannot be read: {e}") from None
                 return None
             if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.frame_index.max()):
+                from flowmocap.io.fingerprint import digest_input
+
+                recorded_digest = (self.motion.run.get("fingerprint") or {}).get("input")
+                if recorded_digest and digest_input(p) != recorded_digest:
+                    self.notes.append(f"note: {p} is not the input that was tracked (its content differs from the one "
+                                      "in run.json's fingerprint); the body is drawn over it all the same")
                 return seq
             if given:
                 raise DataError(f"{p} has {len(seq)} frames of {seq.size[0]}x{seq.size[1]} but the result is "
@@ -324,40 +335,63 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
         self.end_headers()
-        self.wfile.write(body)
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _host_is_local(self) -> bool:
+        """Whether the request names this machine (or no host, as HTTP/1.0 may): a page
+        elsewhere that points its own name at 127.0.0.1 (DNS rebinding) is refused."""
+        host = self.headers.get("Host")
+        if host is None:
+            return True
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        return name.strip().lower() in ("127.0.0.1", "localhost", "[::1]")
+
+    def do_HEAD(self):  # noqa: N802 (http.server's name)
+        self.do_GET()
 
     def do_GET(self):  # noqa: N802 (http.server's name)
         path = self.path.split("?", 1)[0]
+        if not self._host_is_local():
+            return self._send(b"this viewer answers only http://127.0.0.1 and http://localhost", "text/plain", 403)
         try:
-            if path in ("/", "/index.html"):
-                return self._send((STATIC / "index.html").read_bytes(), "text/html; charset=utf-8")
-            if path == "/api/meta.json":
-                return self._send(json.dumps(self.data.meta()).encode(), "application/json")
-            if path == "/motion.glb":
-                return self._send(self.data.glb, "model/gltf-binary")
-            if path.startswith("/motion/") and path.endswith(".glb"):
-                k = _index(path[len("/motion/"):-len(".glb")])
-                if not 0 <= k < len(self.data.people):
-                    return self._send(b"no such person", "text/plain", 404)
-                return self._send(self.data.people[k]["glb"], "model/gltf-binary")
-            if path.startswith("/frame/") and path.endswith(".jpg"):
-                k = _index(path[len("/frame/"):-len(".jpg")])
-                if not 0 <= k < self.data.num_frames:
-                    return self._send(b"no such frame", "text/plain", 404)
-                return self._send(self.data.frame_jpeg(k), "image/jpeg")
-            if path.startswith("/static/"):
-                f = (STATIC / path[len("/static/"):]).resolve()
-                if STATIC in f.parents and f.is_file():
-                    ctype = _TYPES.get(f.suffix, mimetypes.guess_type(f.name)[0] or "application/octet-stream")
-                    return self._send(f.read_bytes(), ctype)
-        except (ValueError, BrokenPipeError, ConnectionResetError):
+            return self._answer(path)
+        except (BrokenPipeError, ConnectionResetError):
             return None
+        except (ValueError, OSError):  # a path no file can have (too long, a NUL): not found
+            return self._send(b"not found", "text/plain", 404)
+        except FlowMocapError as e:  # the input cannot be read (moved, deleted, damaged since the start)
+            return self._send(str(e).encode(), "text/plain; charset=utf-8", 500)
+
+    def _answer(self, path: str):
+        if path in ("/", "/index.html"):
+            return self._send((STATIC / "index.html").read_bytes(), "text/html; charset=utf-8")
+        if path == "/api/meta.json":
+            return self._send(json.dumps(self.data.meta()).encode(), "application/json")
+        if path == "/motion.glb":
+            return self._send(self.data.glb, "model/gltf-binary")
+        if path.startswith("/motion/") and path.endswith(".glb"):
+            k = _index(path[len("/motion/"):-len(".glb")])
+            if not 0 <= k < len(self.data.people):
+                return self._send(b"no such person", "text/plain", 404)
+            return self._send(self.data.people[k]["glb"], "model/gltf-binary")
+        if path.startswith("/frame/") and path.endswith(".jpg"):
+            k = _index(path[len("/frame/"):-len(".jpg")])
+            if not 0 <= k < self.data.num_frames:
+                return self._send(b"no such frame", "text/plain", 404)
+            return self._send(self.data.frame_jpeg(k), "image/jpeg")
+        if path.startswith("/static/"):
+            f = (STATIC / path[len("/static/"):]).resolve()
+            if STATIC in f.parents and f.is_file():
+                ctype = _TYPES.get(f.suffix, mimetypes.guess_type(f.name)[0] or "application/octet-stream")
+                return self._send(f.read_bytes(), ctype)
         return self._send(b"not found", "text/plain", 404)
 
 
 def _index(text: str) -> int:
-    """A URL's frame or person number, or -1 where it is not a number (the caller answers 404)."""
-    return int(text) if text.isdigit() else -1
+    """A URL's frame or person number (ASCII digits, at most nine of them), or -1 where it is
+    not one (the caller answers 404)."""
+    return int(text) if text.isascii() and text.isdigit() and len(text) <= 9 else -1
 
 
 def make_server(data: ViewerData, port: int = 8765, quiet: bool = True) -> ThreadingHTTPServer:
@@ -427,6 +461,8 @@ def run_view(args) -> int:
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     who = f"; {', '.join(p['name'] for p in data.people)}" if len(data.people) > 1 else ""
     print(f"flowmocap view: {url}  ({data.num_frames} frames{who}; Ctrl-C to stop)", flush=True)
+    for note in data.notes:
+        print(note, flush=True)
     if data.seq is None:
         print("the tracked input was not found: frames are grey (pass --input VIDEO_OR_FOLDER)", flush=True)
     if not args.no_browser:

@@ -292,6 +292,35 @@ def is_result_folder(out_dir: str | Path) -> bool:
     return isinstance(run, dict) and "flowmocap" in run
 
 
+def unfinished_words(out_dir: str | Path, run: dict, frames: int) -> str | None:
+    """What a reader of a result (``export``, ``render``, ``view``) should say when its run
+    has not finished, or None when it has.
+
+    Args:
+        out_dir: the result folder, for the message.
+        run: its ``run.json`` as :func:`read_result` gives it (a stopped run reads
+            ``"interrupted"``).
+        frames: how many frames the reader got.
+
+    Returns:
+        a sentence starting ``"note: "``, or None for a finished run (or one that records no
+        status).
+    """
+    status = run.get("status")
+    if status in (None, "finished"):
+        return None
+    steps = "the steps after tracking (the lifter refit, the smoothing)"
+    if status in ("running", "preparing"):
+        return (f"note: the run in {out_dir} is still going: this is the {frames} frames tracked so far, without "
+                f"{steps}; read it again once the run has finished.")
+    if status == "finishing":
+        return (f"note: the run in {out_dir} is still doing {steps}: this {frames}-frame motion may lack some of "
+                "them; read it again once the run has finished.")
+    why = f" ({run['error']})" if status == "failed" and run.get("error") else ""
+    return (f"note: the run in {out_dir} is {status}{why}: this is the {frames} frames tracked before it stopped, "
+            f"without {steps} where they did not run; `flowmocap track INPUT --out {out_dir} --resume` finishes it.")
+
+
 #: The file of a ``track --person all`` folder (:func:`flowmocap.batch.track_people`) that
 #: lists the people found and each one's result folder (``person0``, ``person1``, ...).
 PEOPLE_MANIFEST = "people.json"
