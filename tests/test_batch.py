@@ -296,3 +296,38 @@ def test_a_batch_export_that_fails_for_one_result_exports_the_others_and_says_so
     assert main(_args(clips, out, "--export", "trc")) == BATCH_FAILED
     assert f"export of {out / NAMES[1]} failed: " in capsys.readouterr().err
     assert [(out / n / "export" / "motion.trc").exists() for n in NAMES] == [True, False, True]
+
+
+def test_a_second_batch_into_the_same_folder_waits_its_turn_and_says_so(clips, one_by_one, tmp_path, capsys):
+    """Two batches into one --out both ran, both rewrote batch.json, and one reported an input
+    the other had tracked as 'tracked, 4 new'. The batch folder is now held by one batch at a
+    time; an input finished by another run after the plan is reported skipped."""
+    from flowmocap.batch import BatchItem, _track_one
+    from flowmocap.errors import FolderBusyError
+    from flowmocap.io.lock import FolderLock
+
+    out = tmp_path / "results"
+    shutil.copytree(one_by_one, out)
+    with FolderLock(out):  # another batch is running here
+        with pytest.raises(FolderBusyError, match="in use by another flowmocap run"):
+            track_many([clips / n for n in NAMES], out, log=None, progress=False)
+        assert main(_args(clips, out)) == 4
+    assert "in use by another flowmocap run" in capsys.readouterr().err
+    planned_new = BatchItem(input=str(clips / NAMES[0]), name=NAMES[0], out=out / NAMES[0], status="new")
+    res = _track_one(planned_new, {"init": str(clips / "init.json"), "config": str(clips / "quick.json"),
+                                   "joints3d": "off"}, log=None)
+    assert (res.status, res.frames, res.new_frames) == ("skipped", 4, 0)
+
+
+def test_one_input_into_a_batch_folder_is_told_its_own_folder(clips, one_by_one, tmp_path):
+    """It was told to pass --force, which put a single result into the batch's folder and
+    stopped every later batch there; --force does not do that now either."""
+    import flowmocap
+
+    for force in (False, True):
+        with pytest.raises(InputError, match=rf"holds a batch of results .*this input's result is "
+                                             rf"{one_by_one / NAMES[1]}: give --out"):
+            flowmocap.track(clips / NAMES[1], one_by_one, force=force, log=None, progress=False)
+    with pytest.raises(InputError, match="holds a batch of results .*give several inputs"):
+        flowmocap.track(clips / "init.json", one_by_one, log=None, progress=False)
+    assert not (one_by_one / "motion.npz").exists() and not (one_by_one / "run.json").exists()

@@ -341,3 +341,22 @@ def test_track_with_export_writes_everyone_in_one_frame_and_says_how_they_share_
     # one line per person on how they stand on one floor (4 frames: nobody's foot stands, no floor)
     assert "person0: kept the size of its own fit" in said and "person1: kept the size of its own fit" in said
     assert floor["people"]["person1"]["scale"] is None and "nobody's floor" in floor["people"]["person1"]["why"]
+
+
+def test_a_people_folder_whose_first_run_failed_at_once_takes_the_corrected_input(clip, tmp_path, monkeypatch):
+    """A mistyped or broken input for --person all left people.json alone in the folder, and
+    every other input was refused there, even with --force; a folder holding another input's
+    tracked people is still refused, and says how to reuse it."""
+    fake = FakeDetections(clip)
+    monkeypatch.setattr(batch, "track", fake)
+    out = tmp_path / "people"
+    items = track_people(tmp_path / "typo.mp4", out, log=None, progress=False)
+    assert [it.status for it in items] == ["failed"] and (out / PEOPLE_MANIFEST).exists()
+    items = track_people(clip / "walk", out, log=None, progress=False)
+    assert [it.status for it in items] == ["tracked", "tracked"]
+    manifest = json.loads((out / PEOPLE_MANIFEST).read_text())
+    assert manifest["input"] == str((clip / "walk").resolve()) and "typo" not in json.dumps(manifest)
+    with pytest.raises(InputError, match=r"holds the people of another input .*person0, person1.*delete the folder"):
+        track_people(tmp_path / "typo.mp4", out, log=None, progress=False)
+    with pytest.raises(InputError, match=r"holds the people of `track --person all` .*pass --person all"):
+        flowmocap.track(clip / "walk", out, force=True, log=None, progress=False)

@@ -33,6 +33,7 @@ from flowmocap.body.stature import check_height, stature, with_stature
 from flowmocap.errors import DataError, InputError, ModelFileError, NoPersonError, OutputError
 from flowmocap.fit.config import FAST_SETTINGS, NETWORK_SETTINGS, PROFILES, TrackerConfig
 from flowmocap.fit.init import InitSpec, initialise, parse_init
+from flowmocap.export.world import WORLD_FILE
 from flowmocap.fit.objective import (
     ENERGY_NAMES,
     FrameState,
@@ -53,6 +54,7 @@ from flowmocap.io.fingerprint import (
 )
 from flowmocap.io.lock import FolderLock
 from flowmocap.io.results import (
+    PEOPLE_MANIFEST,
     RESULT_FILES,
     FrameLog,
     has_result,
@@ -64,7 +66,6 @@ from flowmocap.io.results import (
     write_run,
 )
 from flowmocap.io.sequence import Sequence, check_max_side, load_sequence, read_image
-from flowmocap.export.world import WORLD_FILE
 from flowmocap.io.video import VIDEO_SUFFIXES, cut_short_words, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
@@ -328,7 +329,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         check_height(height)
     if detector is not None:
         check_model(detector)
-    _check_out(out, force)
+    _check_out(out, force, src)
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
@@ -669,15 +670,32 @@ def _check_masks_not_all_empty(paths: list[Path], given) -> None:
                         "pass masks='auto' (--masks auto) to have the detector find the person.")
 
 
-def _check_out(out: Path, force: bool) -> None:
-    """Refuse an ``out`` that is a file, or a non-empty folder flowmocap did not make
-    (unless ``force``), before anything is written."""
+def _check_out(out: Path, force: bool, src: Path | None = None) -> None:
+    """Refuse an ``out`` that is a file, a batch's or ``--person all``'s folder (even with
+    ``force``: one result written there would stop the batch), or a non-empty folder
+    flowmocap did not make (unless ``force``), before anything is written; ``src`` (the
+    input) names its result folder inside a batch's."""
     if out.is_symlink() and not out.exists():
         raise InputError(f"{out} is a symbolic link to {os.readlink(out)}, which does not exist; give a new folder, "
                          "or make the folder the link points to.")
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} is a file; the result goes into a folder: give a new folder, or one that holds a "
                          "flowmocap result.")
+    if out.is_dir() and (out / "batch.json").is_file():  # flowmocap.batch.MANIFEST
+        mine = None
+        try:
+            results = json.loads((out / "batch.json").read_text())["results"]
+            mine = next((name for name, r in results.items()
+                         if src is not None and r.get("input") == str(src.resolve())), None)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            pass
+        where = (f"; this input's result is {out / mine}: give --out {out / mine} to go on with it" if mine else
+                 "; give several inputs to track them into it as a batch")
+        raise InputError(f"{out} holds a batch of results (batch.json), not one result{where}, or give another "
+                         "--out folder.")
+    if out.is_dir() and (out / PEOPLE_MANIFEST).is_file():
+        raise InputError(f"{out} holds the people of `track --person all` ({PEOPLE_MANIFEST}); pass --person all to go "
+                         f"on with them, give one person's folder ({out / 'person0'}, ...), or another --out folder.")
     if out.is_dir() and not force and not is_result_folder(out):
         # the lock and flowmocap's own caches (e.g. detections run before tracking) are ours
         # and so are the half-written files of a run killed while it wrote its first ones
