@@ -269,6 +269,7 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
         InputError: bad ``workers``, ``ray`` and ``workers`` together, Ray not installed or
             its cluster not reachable, ``track_kwargs`` naming an argument this function
             sets itself, or an ``out_root`` that is a single result folder.
+        FolderBusyError: another batch holds ``out_root`` (one at a time writes it).
     """
     kwargs = _checked_kwargs("track_many", _OWN_ARGS, track_kwargs, workers, ray, force)
     _refuse_single_result(Path(out_root))  # before the lock makes a folder
@@ -416,6 +417,7 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
     Raises:
         InputError: bad arguments (as :func:`track_many`), own masks or init, or an
             ``out_root`` that is a single result folder or a batch's folder.
+        FolderBusyError: another run holds ``out_root``.
     """
     say = log if log is not None else (lambda _msg: None)
     kwargs = _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
@@ -507,6 +509,7 @@ def track_people_many(inputs: Sequence[str | Path], out_root: str | Path, min_sh
 
     Raises:
         InputError: as :func:`track_people`, before anything runs.
+        FolderBusyError: another run holds ``out_root``.
     """
     say = log if log is not None else (lambda _msg: None)
     _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
