@@ -371,6 +371,30 @@ def test_a_failed_write_is_a_clear_error_that_keeps_the_finished_frames(clip, re
     _assert_same(out, reference[0])
 
 
+def test_a_full_disk_at_the_first_commit_then_resume_starts_it_over(clip, reference, tmp_path, monkeypatch):
+    """frames.bin was written, progress.json was not: the log counted the frames as committed
+    all the same, so motion.npz was written of them without a progress.json, and --resume,
+    as the error advised, refused ('written by an older flowmocap')."""
+    from flowmocap.io import results
+
+    out = tmp_path / "r"
+    original = results.write_json
+
+    def full(path, info):
+        if Path(path).name == "progress.json":
+            raise OSError(27, "File too large", str(path))
+        return original(path, info)
+
+    monkeypatch.setattr(results, "write_json", full)
+    with pytest.raises(OutputError, match="File too large.*--resume"):
+        flowmocap.track(clip, out, **_kw(clip))
+    assert json.loads((out / "run.json").read_text())["status"] == "failed"
+    assert not (out / "motion.npz").exists()  # no frame was committed
+    monkeypatch.setattr(results, "write_json", original)
+    flowmocap.track(clip, out, resume=True, **_kw(clip))
+    _assert_same(out, reference[0])
+
+
 def test_a_file_size_limit_ends_the_command_with_one_line(clip, tmp_path):
     """``ulimit -f``: writes fail with EFBIG (Python ignores SIGXFSZ); the command ends with
     ``flowmocap: error:`` and exit status 5, not a traceback."""

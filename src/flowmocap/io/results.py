@@ -172,6 +172,9 @@ class FrameLog:
         """Write the queued records and events, then ``progress.json`` with ``state`` (the
         tracker's state after the last queued frame, JSON-serialisable): the frames are
         final once this returns."""
+        # the counts move on only once progress.json says so: a failed write (a full disk)
+        # leaves this log at its last commit, as a reader or --resume sees the folder
+        rows, events_bytes = self.rows + len(self.pending), self.events_bytes
         if self.pending:
             with open(self.out_dir / "frames.bin", "ab") as f:
                 f.write(np.stack(self.pending).tobytes())
@@ -183,12 +186,11 @@ class FrameLog:
                 f.write(text)
                 f.flush()
                 os.fsync(f.fileno())
-            self.events_bytes += len(text)
-        self.rows += len(self.pending)
+            events_bytes += len(text)
+        write_json(self.out_dir / "progress.json", {"format": FORMAT, "rows": rows, "events_bytes": events_bytes,
+                                                    "state": state, "header": self.header})
+        self.rows, self.events_bytes = rows, events_bytes
         self.pending, self.pending_events = [], []
-        write_json(self.out_dir / "progress.json", {"format": FORMAT, "rows": self.rows,
-                                                    "events_bytes": self.events_bytes, "state": state,
-                                                    "header": self.header})
 
     def records(self) -> np.ndarray:
         """The committed records, ``(rows,)`` of :attr:`dtype`."""
