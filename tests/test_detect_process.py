@@ -313,3 +313,42 @@ def test_choosing_another_person_in_detector_processes(tmp_path, monkeypatch):
     boxes = lambda t, i: tuple(np.concatenate([t.keypoints[i][t.confidence[i] > 0.5].min(0),  # noqa: E731
                                                t.keypoints[i][t.confidence[i] > 0.5].max(0)]))
     assert both.sum() >= 9 and all(box_iou(boxes(cut, i), boxes(apart, i)) > 0.5 for i in np.nonzero(both)[0])
+
+
+def test_a_full_disk_in_the_detector_process_is_an_output_error_not_a_crash(tmp_path, monkeypatch):
+    """A write that failed in the detector's process (a full disk, ulimit -f) came out as its
+    traceback, then 'the detector process failed with exit status 1' (exit 7) and 'the frames
+    before 0 are kept'; now the process says what failed and the run ends as a full disk does
+    elsewhere (OutputError, exit 5)."""
+    import json
+    import pickle
+
+    from flowmocap.errors import OutputError
+    from flowmocap.vision import detect_worker
+
+    def full(task):
+        raise OSError(27, "File too large", str(tmp_path / "chunks" / "000000.npz"))
+
+    monkeypatch.setattr(auto, "run_chunk", full)
+    monkeypatch.setattr(detect_worker, "_end_with_parent", lambda: None)
+    monkeypatch.setattr(detect_worker, "_native_logs_to_devnull", lambda: None)
+    job = tmp_path / "task-000000.pkl"
+    job.write_bytes(pickle.dumps({}))
+    assert detect_worker.main([str(job)]) == detect_worker.WRITE_FAILED
+    said = json.loads((tmp_path / "task-000000.error.json").read_text())
+    assert said["type"] == "OutputError" and "File too large" in said["message"]
+
+    def process(rc, message=None):  # what the parent sees of a worker that ended so
+        def run(cmd, env=None):
+            if message is not None:
+                (tmp_path / "w" / "task-000000.error.json").write_text(json.dumps(message))
+            return subprocess.CompletedProcess(cmd, rc)
+        return run
+
+    monkeypatch.setattr(subprocess, "run", process(5, said))
+    with pytest.raises(OutputError, match=r"File too large.*free space .*run again \(--resume\) to start it again"):
+        auto._run_detector_process({}, tmp_path / "w", 0, 8)
+    monkeypatch.setattr(subprocess, "run", process(5))  # the disk too full even for the error's file
+    with pytest.raises(OutputError, match=r"frames 8-15 could not write .*free space, then the frames before 8 are "
+                                          r"kept"):
+        auto._run_detector_process({}, tmp_path / "w", 8, 16)

@@ -592,22 +592,31 @@ def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
         rc = subprocess.run([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env).returncode
     finally:
         job.unlink(missing_ok=True)
+    from flowmocap.vision.detect_worker import WRITE_FAILED
+
+    kept = (f"the frames before {a} are kept in {folder}: run again (--resume) to go on from frame {a}" if a > 0
+            else "run again (--resume) to start it again")
     if failed.exists():
         err = json.loads(failed.read_text())
         failed.unlink()
         cls = getattr(errors, err.get("type", ""), None)
         if not (isinstance(cls, type) and issubclass(cls, errors.FlowMocapError)):
             cls = errors.DetectorError
-        raise cls(err.get("message", "the person detector failed"))
+        message = err.get("message", "the person detector failed")
+        if rc == WRITE_FAILED:
+            message += f"; free space (or raise the file size limit), then {kept}."
+        raise cls(message)
     if rc != 0:
         import signal
 
         if rc in (130, -signal.SIGINT):
             raise KeyboardInterrupt
+        if rc == WRITE_FAILED:
+            raise errors.OutputError(f"the person detector's process for frames {a}-{b - 1} could not write its "
+                                     f"detections (the disk is full?); free space, then {kept}.")
         how = (f"was killed by signal {-rc}{' (SIGKILL: out of memory?)' if rc == -signal.SIGKILL else ''}"
                if rc < 0 else f"failed with exit status {rc}")
-        raise errors.DetectorError(f"the person detector's process for frames {a}-{b - 1} {how}; the frames before "
-                                   f"{a} are kept in {folder}: run again (--resume) to go on from frame {a}.")
+        raise errors.DetectorError(f"the person detector's process for frames {a}-{b - 1} {how}; {kept}.")
 
 
 def _choice_suffix(choice: tuple, search: bool) -> str:

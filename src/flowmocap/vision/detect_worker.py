@@ -36,9 +36,21 @@ def main(argv: list[str]) -> int:
         job.with_name(job.name[: -len(".pkl")] + ".error.json").write_text(
             json.dumps({"type": type(e).__name__, "message": str(e)}))
         return 3
+    except OSError as e:  # a full disk or a file size limit while the stretch's detections are written
+        try:
+            job.with_name(job.name[: -len(".pkl")] + ".error.json").write_text(json.dumps(
+                {"type": "OutputError", "message": f"could not write the detections ({e.filename or 'a file'}: "
+                 f"{e.strerror or e})"}))
+        except OSError:  # the disk is too full even for that: the exit status says it
+            pass
+        return WRITE_FAILED
     except KeyboardInterrupt:
         return 130
     return 0
+
+
+#: The exit status of a detector process whose writes failed (a full disk, a file size limit).
+WRITE_FAILED = 5
 
 
 #: The environment variable the parent sets to its process id (:func:`_end_with_parent`).
