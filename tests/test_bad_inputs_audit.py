@@ -574,3 +574,35 @@ def _nothing():
     import contextlib
 
     return contextlib.nullcontext()
+
+
+def test_eval_scores_the_silhouettes_with_the_body_the_result_was_tracked_with(tmp_path, monkeypatch):
+    """eval drew the silhouettes of the bundled body whatever run.json said (IoU 0.64 where
+    the tracked body's was 0.81); export, render and view used the recorded one."""
+    import json
+
+    from flowmocap.eval import scoring
+
+    from importlib import resources
+
+    with np.load(resources.files("flowmocap.body") / "data" / "default_neutral.npz") as z:
+        arrays = dict(z)
+    arrays["v_template"] = arrays["v_template"] * 1.15
+    big = tmp_path / "big_neutral.npz"
+    np.savez(big, **arrays)
+    res = _result(tmp_path / "r")
+    run = json.loads((res / "run.json").read_text())
+    (res / "run.json").write_text(json.dumps({**run, "model": str(big)}))
+    seq = _frames(tmp_path / "seq" / "frames", 4, 64, 48).parent
+    masks = seq / "masks"
+    masks.mkdir()
+    for k in range(4):
+        cv2.imwrite(str(masks / f"{k:06d}.png"), np.full((48, 64), 255, np.uint8))
+    drawn = []
+    real = scoring.m.render_silhouettes
+    monkeypatch.setattr(scoring.m, "render_silhouettes", lambda model, *a: drawn.append(model) or real(model, *a))
+    assert main(["eval", str(res), "--gt", str(seq)]) == 0
+    template = drawn[-1].v_template.detach().cpu().numpy()
+    np.testing.assert_allclose(template, arrays["v_template"], rtol=1e-5)
+    big.unlink()
+    assert main(["eval", str(res), "--gt", str(seq)]) == 2  # the recorded model is gone: said, not swapped

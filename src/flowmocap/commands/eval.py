@@ -11,7 +11,8 @@ def register(subparsers) -> None:
     e.add_argument("result", help="result folder (motion.npz, run.json)")
     e.add_argument("--gt", required=True, metavar="SEQ", help="sequence folder (gt.npz and/or masks/)")
     e.add_argument("--masks", default=None, help="mask folder overriding SEQ/masks")
-    e.add_argument("--model", default="default", help="body model of the result (for the silhouettes)")
+    e.add_argument("--model", default=None, help="body model of the result, for the silhouettes (default: the one "
+                   "it was tracked with, from run.json)")
     e.add_argument("--out", default=None, help="JSON file to write (default: RESULT/eval.json)")
     e.set_defaults(func=cmd_eval)
 
@@ -29,7 +30,7 @@ def cmd_eval(args) -> int:
     check_file_path(out)  # before the scoring, which may take a while
     seq = load_sequence(args.gt, masks=args.masks)
     motion, _ = read_result(args.result)
-    model = load_body_model(args.model, gender=str(motion.get("gender", "neutral")))
+    model = None if args.model is None else load_body_model(args.model, gender=str(motion.get("gender", "neutral")))
     scores = score_result(args.result, seq, model=model)
     print(format_scores(scores))
     write_json(out, scores)  # atomically: a failed write keeps an earlier eval.json whole

@@ -50,8 +50,8 @@ def score_result(result: str | Path, seq, model=None) -> dict:
             :mod:`flowmocap.io.results`).
         seq: a :class:`~flowmocap.io.sequence.Sequence` (or its folder) with ``gt.npz``
             and/or masks.
-        model: the body model of the result, for the silhouettes (default: the bundled
-            default body of the result's gender).
+        model: the body model of the result, for the silhouettes (default: the one
+            ``run.json`` records, as ``export`` and ``render`` use).
 
     Returns:
         dict with ``frames``, ``local_cm``, ``global_cm``, ``mpjpe_cm``, ``accel_mm``
@@ -114,8 +114,11 @@ def score_result(result: str | Path, seq, model=None) -> dict:
             raise DataError(f"{result}'s motion records no camera, which the silhouettes need; it is not a flowmocap "
                             "result, or a damaged one: track the input again with --force.")
         camera = PinholeCamera.from_dict(json.loads(str(motion["camera"])))
-        if model is None:
-            model = load_body_model("default", gender=str(motion.get("gender", "neutral")))
+        if model is None:  # the one the result was fitted with
+            from flowmocap.export.motion import recorded_model
+
+            gender = str(motion.get("gender", "neutral"))
+            model = load_body_model(recorded_model(run, gender), gender=gender)
         sil = m.render_silhouettes(model, motion["poses"], motion["trans"], motion["betas"], camera)
         masks = np.stack([seq.mask(int(i)) for i in idx])
         if masks.shape[1:] != sil.shape[1:]:

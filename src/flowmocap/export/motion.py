@@ -239,20 +239,31 @@ def _model_for(run: dict, gender: str, model):
         import copy
 
         return copy.deepcopy(model).to(torch.float64)  # .to() is in place; leave the caller's model alone
-    name = model
-    if name is None:
-        from flowmocap.body.files import read_model_arrays
-        from flowmocap.errors import DataError
-
-        recorded = str(run.get("model", "default"))
-        if recorded == "default" or recorded == read_model_arrays("default", gender).source:
-            name = "default"
-        elif Path(recorded).exists():
-            name = recorded
-        else:
-            raise DataError(f"the result was fitted with the body model {recorded!r}, which is not there any more; "
-                            "pass the model file (--model PATH).")
+    name = model if model is not None else recorded_model(run, gender)
     return load_body_model(name, gender=gender, dtype=torch.float64)
+
+
+def recorded_model(run: dict, gender: str) -> str:
+    """The body model a result was fitted with, as :func:`flowmocap.body.load_body_model`
+    takes it: ``"default"`` for the bundled one, else the model file ``run.json`` names.
+
+    Args:
+        run: the result's ``run.json``.
+        gender: the result's gender (the bundled model's file differs by it).
+
+    Raises:
+        DataError: the recorded model file is not there any more.
+    """
+    from flowmocap.body.files import read_model_arrays
+    from flowmocap.errors import DataError
+
+    recorded = str(run.get("model", "default"))
+    if recorded == "default" or recorded == read_model_arrays("default", gender).source:
+        return "default"
+    if Path(recorded).exists():
+        return recorded
+    raise DataError(f"the result was fitted with the body model {recorded!r}, which is not there any more; "
+                    "pass the model file (--model PATH).")
 
 
 def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None, smooth: bool | dict = False,
