@@ -348,3 +348,29 @@ def test_a_video_that_cannot_be_written_whole_leaves_nothing_under_its_name(tmp_
     assert target.read_bytes() == b"the old video"
     assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]  # no temporary file left
 
+
+
+def test_a_video_whose_last_packets_cannot_be_written_leaves_no_temporary_file(tmp_path):
+    """When the write failed in the encoder's flush at the end (a full disk), the temporary
+    file was left beside the video, one more each try, holding the space to be freed."""
+    import numpy as np
+
+    from flowmocap.viz.video import VideoWriter
+
+    class FullAtTheEnd:  # the container, whose writes fail from the flush on
+        def __init__(self, real):
+            self.real = real
+
+        def mux(self, packet):
+            raise OSError(27, "File too large")
+
+        def close(self):
+            self.real.close()
+
+    target = tmp_path / "v.mp4"
+    with pytest.raises(OSError, match="File too large"):
+        with VideoWriter(target, 30) as w:
+            for k in range(3):
+                w.write(np.full((48, 64, 3), 40 * k, np.uint8))
+            w._container = FullAtTheEnd(w._container)
+    assert list(tmp_path.iterdir()) == []

@@ -49,7 +49,11 @@ class VideoWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self.close()
+            try:
+                self.close()
+            except BaseException:  # the last packets or the file's end could not be written (a full disk)
+                self.discard()
+                raise
         else:  # a failed or interrupted video: nothing under its name
             self.discard()
 
