@@ -477,6 +477,13 @@ def test_the_reinit_monitor_state_round_trips(tmp_path):
     ({"flow_weight": -1.0}, "'flow_weight' must be a number >= 0"),
     ({"silhouette_weight": "5"}, "'silhouette_weight' must be a finite number"),
     ({"no_such_setting": 1}, "unknown config settings"),
+    # these passed the checks and failed after tracking (seconds x fps overflowed to infinity),
+    # in the first frame (numba's thread pool out of memory) or after detection (the pyramid)
+    ({"pose_smoothing_s": 1e308}, "'pose_smoothing_s' must be a number in \\[0, 86400\\]"),
+    ({"stance_min_s": 1e308}, "'stance_min_s' must be a number in \\[0, 86400\\]"),
+    ({"lifter_refit_bridge_s": 1e308}, "'lifter_refit_bridge_s' must be"),
+    ({"torch_threads": 100000}, "'torch_threads' must be an integer in \\[1, 1024\\]"),
+    ({"levels": 40, "stages": [[39], [0]]}, "'levels' must be an integer in \\[1, 16\\]"),
 ])
 def test_bad_settings_are_refused_before_any_work(clip, tmp_path, config, match):
     out = tmp_path / "o"

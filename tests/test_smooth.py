@@ -84,6 +84,9 @@ def test_smooth_motion_shapes_windows_and_errors():
     assert np.abs(p5 - poses[:5]).max() > 1e-3
     with pytest.raises(InputError, match="seconds"):
         smooth_motion(poses, trans, 30.0, window_s=0.0)
+    # a window of 1e308 s (export --smooth 1e308) overflowed seconds x fps to infinity: now the whole clip
+    huge, _ = smooth_motion(poses, trans, 30.0, window_s=1e308)
+    np.testing.assert_allclose(huge, smooth_motion(poses, trans, 30.0, window_s=1e6)[0])
     with pytest.raises(InputError, match=r"\(T, 72\)"):
         smooth_motion(poses[:, :70], trans, 30.0)
     with pytest.raises(InputError, match="NaN"):

@@ -89,17 +89,23 @@ def profile_names() -> list[str]:
 # What each number setting must satisfy (checked in TrackerConfig.__post_init__).
 _AT_LEAST_0, _ABOVE_0, _UNIT, _AT_LEAST_1 = ">= 0", "> 0", "in [0, 1]", ">= 1"
 _HEIGHT = "0 (not known) or a height in metres in [0.5, 2.5]"
+_SECONDS = "in [0, 86400] (seconds; a day at most)"
+_LEVELS = "in [1, 16] (the flow's pyramid levels)"
+_THREADS = "in [1, 1024]"
 _RANGE_OK = {
     _AT_LEAST_0: lambda v: v >= 0,
     _ABOVE_0: lambda v: v > 0,
     _UNIT: lambda v: 0 <= v <= 1,
     _AT_LEAST_1: lambda v: v >= 1,
     _HEIGHT: lambda v: v == 0 or 0.5 <= v <= 2.5,  # flowmocap.body.stature.STATURE_RANGE_M
+    _SECONDS: lambda v: 0 <= v <= 86400,  # beyond, frames = seconds x fps overflows to infinity
+    _LEVELS: lambda v: 1 <= v <= 16,  # flowmocap.render.flow's pyramid
+    _THREADS: lambda v: 1 <= v <= 1024,
 }
 _RANGES: dict[str, str] = {
     "flow_weight": _AT_LEAST_0, "silhouette_weight": _AT_LEAST_0, "silhouette_a": _UNIT,
     "limit_weight": _AT_LEAST_0, "penetration_weight": _AT_LEAST_0, "temporal_weight": _AT_LEAST_0,
-    "anchor_weight": _AT_LEAST_0, "levels": _AT_LEAST_1, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
+    "anchor_weight": _AT_LEAST_0, "levels": _LEVELS, "iterations": _AT_LEAST_1, "rel_tolerance": _AT_LEAST_0,
     "uncovered_prior_weight": _AT_LEAST_0,
     "keypoint_weight": _AT_LEAST_0, "keypoint_sigma": _ABOVE_0, "keypoint_min_confidence": _UNIT,
     "keypoint_confidence_floor": _UNIT,
@@ -112,16 +118,16 @@ _RANGES: dict[str, str] = {
     "reinit_3d_insist": _AT_LEAST_0,
     "reinit_max_wait": _AT_LEAST_1, "reinit_iou_per_joint_error": _AT_LEAST_0,
     "pose_prior_weight": _AT_LEAST_0, "init_learned_prior_weight": _AT_LEAST_0,
-    "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _AT_LEAST_0, "lifter_refit_weight": _UNIT,
-    "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _AT_LEAST_0, "lifter_refit_iterations": _AT_LEAST_1,
-    "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _AT_LEAST_0,
-    "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _AT_LEAST_0,
+    "depth_temporal_weight": _AT_LEAST_0, "depth_smoothing_s": _SECONDS, "lifter_refit_weight": _UNIT,
+    "lifter_refit_pixel_sigma": _AT_LEAST_0, "pose_smoothing_s": _SECONDS, "lifter_refit_iterations": _AT_LEAST_1,
+    "lifter_refit_vote_frames": _AT_LEAST_0, "lifter_refit_vote_reach": _AT_LEAST_0, "lifter_refit_seam_s": _SECONDS,
+    "lifter_refit_shape_share": _UNIT, "lifter_refit_shape_girth": _AT_LEAST_0, "lifter_refit_bridge_s": _SECONDS,
     "lifter_refit_min_confidence": _UNIT,
     "lifter_refit_hidden_share": _UNIT, "detector3d_ray_share": _UNIT,
-    "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _AT_LEAST_0, "stance_window_s": _AT_LEAST_0,
+    "stance_depth_share": _UNIT, "stance_speed": _ABOVE_0, "stance_min_s": _SECONDS, "stance_window_s": _SECONDS,
     "reinit_min_iou": _UNIT, "reinit_max_joint_error": _ABOVE_0, "reinit_patience": _AT_LEAST_1,
     "reinit_iterations": _AT_LEAST_1, "reinit_depth_weight": _AT_LEAST_0,
-    "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _AT_LEAST_1,
+    "kalman_rot_accel_noise": _ABOVE_0, "torch_threads": _THREADS,
     "init_keypoint_weight": _AT_LEAST_0, "init_keypoint_sigma": _ABOVE_0,
     "init_pose_prior_weight": _AT_LEAST_0, "init_rough_pose_weight": _AT_LEAST_0,
     "init_shape_share": _UNIT, "init_shape_girth": _AT_LEAST_0, "body_height_m": _HEIGHT,

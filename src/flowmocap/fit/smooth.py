@@ -55,7 +55,7 @@ def window_frames(window_s: float, fps: float, order: int = DEFAULT_ORDER) -> in
         raise InputError(f"the smoothing window must be a positive number of seconds, got {window_s}.")
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"fps must be positive, got {fps}.")
-    n = int(round(window_s * fps))
+    n = int(round(min(window_s * fps, 1e9)))  # a window longer than any clip is cut to the clip later
     n = n + 1 if n % 2 == 0 else n
     m = order + 2 if (order + 2) % 2 == 1 else order + 3
     return max(n, m)
