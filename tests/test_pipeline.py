@@ -196,9 +196,14 @@ def test_frame_ranges():
     assert parse_frame_range(None, 10) == (0, 10)
     assert parse_frame_range("2:", 10) == (2, 10) and parse_frame_range(":5", 10) == (0, 5)
     assert parse_frame_range((3, 6), 10) == (3, 6)
+    assert parse_frame_range(" 1 : 4 ", 10) == (1, 4)
     for bad in ("5:4", "0:1", "a:b", "0:11", (1,), "x"):
         with pytest.raises(InputError):
             parse_frame_range(bad, 10)
+    with pytest.raises(InputError, match=r"A:B, frames A to B - 1 .*2: from frame 2 to the end"):
+        parse_frame_range("2", 10)  # was read as 2: (frame 2 to the end), where 2 frames may be meant
+    with pytest.raises(InputError, match=r"0 <= A < B <= 10"):
+        parse_frame_range("0:100", 10)
 
 
 DAVIS = SHARED_DATA / "video" / "davis-dance-twirl" / "JPEGImages"

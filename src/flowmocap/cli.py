@@ -300,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the settings' flow_method)")
     t.add_argument("--config", help="JSON file of tracker settings over the profile's (fields of "
                    "flowmocap.fit.config.TrackerConfig; see docs/settings.md)")
-    t.add_argument("--frames", help="A:B, the frames to track (default: all with the person)")
+    t.add_argument("--frames", help="A:B, the frames to track: A to B - 1 (2: from frame 2 on, :50 the first 50; default: all with the "
+                   "person)")
     t.add_argument("--height", type=float, default=None, metavar="METRES",
                    help="the person's standing height in metres, if known (e.g. 1.78): the body is given that "
                    "height and placed at the depth that goes with it, so lengths, speeds and positions come out in "

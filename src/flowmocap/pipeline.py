@@ -182,16 +182,20 @@ def load_result(path: str | Path) -> Result:
 
 def parse_frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
     """``(a, b)`` from ``"A:B"`` (either side may be empty), ``(A, B)`` or None (all ``n``
-    frames); at least 2 frames. Raises InputError otherwise."""
+    frames): frames ``a`` to ``b - 1``, at least 2 of them. Raises InputError otherwise (also
+    for a number without a colon)."""
     if frames is None:
         return 0, n
     if isinstance(frames, str):
+        if ":" not in frames:  # "2" read as "2:" tracked from frame 2 to the end, where 2 frames may be meant
+            raise InputError(f"frames must look like A:B, frames A to B - 1 (e.g. 0:100; 2: from frame 2 to the "
+                             f"end, :50 the first 50); got {frames!r}.")
         try:
             a, _, b = frames.partition(":")
-            a = int(a) if a else 0
-            b = int(b) if b else n
+            a = int(a) if a.strip() else 0
+            b = int(b) if b.strip() else n
         except ValueError:
-            raise InputError(f"frames must look like A:B (e.g. 0:100); got {frames!r}.") from None
+            raise InputError(f"frames must look like A:B, frames A to B - 1 (e.g. 0:100); got {frames!r}.") from None
     else:
         try:
             a, b = (int(v) for v in frames)
@@ -201,7 +205,8 @@ def parse_frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
         if not whole:
             raise InputError(f"frames must be whole frame numbers; got {frames!r}.")
     if not (0 <= a < b <= n) or b - a < 2:
-        raise InputError(f"frames {a}:{b} do not select at least 2 of the {n} frames.")
+        raise InputError(f"frames {a}:{b} do not select at least 2 of the {n} frames (frames A to B - 1, with "
+                         f"0 <= A < B <= {n}).")
     return a, b
 
 
