@@ -255,7 +255,7 @@ def test_a_file_given_as_the_result_folder(tmp_path):
     assert main(["export", str(tmp_path / "afile"), "--format", "bvh", "--quiet"]) == 2
 
 
-def test_eval_checks_its_out_path_first_and_writes_it_whole(tmp_path, monkeypatch):
+def test_eval_checks_its_out_path_first_and_writes_it_whole(tmp_path, monkeypatch, capsys):
     """eval wrote its JSON straight to --out after scoring: a folder there gave an OSError
     (exit 5) once the work was done, and a failed write cut an earlier eval.json short."""
     import json
@@ -272,7 +272,8 @@ def test_eval_checks_its_out_path_first_and_writes_it_whole(tmp_path, monkeypatc
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(Path, "write_text", full_disk)
-    assert main(["eval", str(res), "--gt", str(seq)]) != 0
+    assert main(["eval", str(res), "--gt", str(seq)]) == 5
+    assert "No space left on device; free space (or raise the file size limit)" in capsys.readouterr().err
     monkeypatch.undo()
     assert (res / "eval.json").read_text() == before
     assert not [p for p in res.iterdir() if p.name.endswith(".tmp")]

@@ -367,3 +367,38 @@ def test_force_starts_over_without_the_old_results_exports(seq_dir, tmp_path):
     assert sorted(p.name for p in (out / "export").iterdir()) == ["notes.txt"]
     assert not (out / "render").exists() and not (out / "eval.json").exists()
     assert (out / "motion.npz").is_file()
+
+
+def test_repeated_and_conflicting_options_are_not_dropped_without_a_word(seq_dir, tmp_path, capsys, monkeypatch):
+    """--export given twice kept the last; export -f twice wrote the last format alone;
+    --camera with --focal dropped --focal; body --betas 1e6 drew a mangled body; a format that
+    failed after a good tracking stopped the others and hid that the tracking had finished."""
+    args = ["track", str(seq_dir), "--init", str(seq_dir.parent / "init.json"), "--config",
+            str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet"]
+    out = tmp_path / "o"
+    assert main([*args, "--out", str(out), "--export", "bvh", "--export", "json"]) == 0
+    assert sorted(p.name for p in (out / "export").iterdir()) == ["motion.bvh", "motion.json"]
+    capsys.readouterr()
+    assert main(["export", str(out), "-f", "bvh", "-f", "json"]) == 2
+    assert "export writes one format at a time; got bvh, json" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "c"), "--camera", str(seq_dir / "camera.json"), "--focal", "100"]) == 2
+    assert "give --camera" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    assert main(["body", "--betas", "1e6", "--out", str(tmp_path / "b.png")]) == 2
+    assert "within +-10" in capsys.readouterr().err and not (tmp_path / "b.png").exists()
+    assert main(["synth", "builtin:walk", "--out", str(tmp_path / "s"), "--camera", str(seq_dir / "camera.json"),
+                 "--azimuth", "90"]) == 2
+    assert "leave out --azimuth" in capsys.readouterr().err
+    from flowmocap import export as export_module
+
+    real = export_module.export_result
+
+    def glb_full(result, fmt, *a, **k):
+        if fmt == "glb":
+            raise OSError(27, "File too large", str(out / "export" / "motion.glb"))
+        return real(result, fmt, *a, **k)
+
+    monkeypatch.setattr(export_module, "export_result", glb_full)
+    assert main([*args, "--out", str(out), "--resume", "--export", "glb,trc"]) == 5
+    err = capsys.readouterr().err
+    assert f"{out} is tracked and finished, but its export to glb failed" in err and "once there is space" in err
+    assert (out / "export" / "motion.trc").is_file()  # the format after the failed one is written

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -27,6 +28,11 @@ def _parse_betas(text: str | None) -> list[float]:
         raise InputError(f"--betas must be numbers separated by commas; got {text!r}.") from e
     if len(values) > 10:
         raise InputError(f"--betas takes at most 10 values; got {len(values)}.")
+    from flowmocap.synth.sequence import MAX_ABS_BETA
+
+    if not all(math.isfinite(v) and abs(v) <= MAX_ABS_BETA for v in values):
+        raise InputError(f"--betas are standard deviations of the body's shape, finite and within +-{MAX_ABS_BETA:g} "
+                         f"(people lie within about +-3); got {text!r}.")
     return values + [0.0] * (10 - len(values))
 
 
@@ -66,6 +72,9 @@ def cmd_demo(args) -> int:
 
 
 def cmd_track(args) -> int:
+    if args.camera and args.focal is not None:
+        raise InputError(f"give --camera ({args.camera}) or --focal ({args.focal:g}), not both: the camera file holds "
+                         "its own focal length.")
     settings = {"init": args.init or "auto", "masks": args.masks, "camera": args.camera or args.focal,
                 "config": args.config, "frames": args.frames, "profile": args.profile, "model": args.model,
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
@@ -80,7 +89,7 @@ def cmd_track(args) -> int:
     if args.ray and Path(args.ray).exists():
         raise InputError(f"--ray took {args.ray!r} for the Ray cluster's address; put --ray after the inputs, or "
                          "write --ray=ADDRESS.")
-    formats = _export_formats(args.export, args.export_markers)
+    formats = _export_formats(None if args.export is None else ",".join(args.export), args.export_markers)
     ray = False if args.ray is None else (args.ray or True)
     if str(args.person).strip().lower() == "all":
         del settings["person"]
@@ -170,20 +179,40 @@ def _export_formats(text: str | None, markers: str = "joints") -> list[str]:
 
 def _export_all(result: str | Path, formats: list[str], quiet: bool, markers: str = "joints") -> None:
     """Export a finished result in each format, to ``RESULT/export/`` (as ``flowmocap export``),
-    the trc and c3d files with the ``markers`` set."""
+    the trc and c3d files with the ``markers`` set. A format that fails does not stop the
+    others; then the first failure's kind of error (an ``OSError``: ``OutputError``) says that
+    the result is finished and which formats to export again."""
     from flowmocap.export import export_result
 
+    failed: list[tuple[str, BaseException]] = []
     for fmt in formats:
-        path = export_result(result, fmt, progress=not quiet,
-                             markers=markers if fmt in ("trc", "c3d") else "joints")
+        try:
+            path = export_result(result, fmt, progress=not quiet,
+                                 markers=markers if fmt in ("trc", "c3d") else "joints")
+        except (FlowMocapError, OSError) as e:
+            failed.append((fmt, e))
+            continue
         print(f"wrote {path} ({fmt})")
+    if failed:
+        fmt, first = failed[0]
+        cls = type(first) if isinstance(first, FlowMocapError) else OutputError
+        reason = (f"{first.strerror} ({first.filename})" if isinstance(first, OSError) and first.strerror
+                  else str(first))
+        names = ", ".join(f for f, _ in failed)
+        raise cls(f"{result} is tracked and finished, but its export to {names} failed ({fmt}: {reason}); "
+                  f"export it again with `flowmocap export {result} -f FMT`"
+                  + (" once there is space" if isinstance(first, OSError) else "") + ".")
 
 
 def cmd_synth(args) -> int:
+    placed = [f"--{k}" for k in ("focal", "distance", "azimuth", "elevation") if getattr(args, k) is not None]
+    if args.camera and placed:
+        raise InputError(f"--camera places the camera; leave out {', '.join(placed)} (they place it otherwise).")
     size = args.size if args.size is not None else (None if args.camera else "640x480")
     res = synthesize(
         args.motion, args.out, fps=args.fps, start=args.start, frames=args.num_frames, size=size,
-        focal=args.focal, distance=args.distance, azimuth=args.azimuth, elevation=args.elevation,
+        focal=args.focal, distance=args.distance, azimuth=60.0 if args.azimuth is None else args.azimuth,
+        elevation=8.0 if args.elevation is None else args.elevation,
         camera=args.camera, betas=args.betas, gender=args.gender, seed=args.seed,
         model=args.model, asf=args.asf, flow=not args.no_flow, overwrite=args.overwrite,
     )
@@ -324,7 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "mask augmentation (docs/settings.md has the measurements)")
     t.add_argument("--force", action="store_true", help="write into --out even if it is a non-empty folder that "
                    "holds no flowmocap result, or start the result in it over")
-    t.add_argument("--export", metavar="FMT[,FMT...]", help="after tracking, also export each finished result "
+    t.add_argument("--export", metavar="FMT[,FMT...]", action="append", help="after tracking, also export each "
+                   "finished result "
                    "into OUT/export/ as `flowmocap export` does with its defaults (ground frame): any of bvh, glb, "
                    "glb-frames, obj, json, npz, trc, c3d")
     t.add_argument("--export-markers", default="joints", choices=list(MARKER_SETS),
@@ -357,8 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", help="WxH in pixels (default 640x480, or the camera's)")
     s.add_argument("--focal", type=float, help="focal length in pixels")
     s.add_argument("--distance", type=float, help="camera distance in metres (default: frame the whole path)")
-    s.add_argument("--azimuth", type=float, default=60.0, help="degrees; 0 = in front of the body's start facing")
-    s.add_argument("--elevation", type=float, default=8.0, help="degrees above the horizon")
+    s.add_argument("--azimuth", type=float, help="degrees; 0 = in front of the body's start facing (default 60)")
+    s.add_argument("--elevation", type=float, help="degrees above the horizon (default 8)")
     s.add_argument("--camera", help="camera.json to use instead of the placement options")
     s.add_argument("--betas", help="'random' or up to 10 comma-separated shape values")
     s.add_argument("--gender", choices=["neutral", "male", "female"], default="neutral", help="body gender")
@@ -390,8 +420,13 @@ def main(argv: list[str] | None = None) -> int:
                                                if args.command == "synth" else ""), file=sys.stderr)
         return 130
     except OSError as e:  # a file the command writes outside the result folder's own handling
+        import errno
+
         where = f" ({e.filename})" if getattr(e, "filename", None) else ""
-        print(f"flowmocap: error: could not read or write a file{where}: {e.strerror or e}", file=sys.stderr)
+        full = e.errno in (errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC))
+        print(f"flowmocap: error: could not read or write a file{where}: {e.strerror or e}"
+              + ("; free space (or raise the file size limit) and run the command again" if full else ""),
+              file=sys.stderr)
         return OutputError.exit_code
 
 

@@ -29,7 +29,7 @@ def register(subparsers) -> None:
         "everyone is stood on), so the files line up. Formats: "
         + "; ".join(f"{k}: {v}" for k, v in FORMAT_HELP.items()) + ".")
     p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder")
-    p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT",
+    p.add_argument("--format", "-f", required=True, dest="fmt", metavar="FMT", action="append",
                    help="one of: " + ", ".join(FORMAT_HELP))
     p.add_argument("--out", "-o", help="output file (a folder for obj); default RESULT/export/motion.<ext> (motion_frames.glb, "
                    "motion_amass.npz, obj/ for glb-frames, npz, obj)")
@@ -74,6 +74,11 @@ def run_export(args) -> int:
     from flowmocap.errors import InputError
     from flowmocap.export import export_people, export_result
     from flowmocap.io.results import PEOPLE_MANIFEST, people_results, read_result, unfinished_words
+
+    if len(args.fmt) > 1:  # -f bvh -f json wrote json alone
+        raise InputError(f"export writes one format at a time; got {', '.join(args.fmt)}: run it once for each (or "
+                         "give them all to track --export, which writes each into RESULT/export/).")
+    args.fmt = args.fmt[0]
 
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
         motion, run = read_result(folder)
