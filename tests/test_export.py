@@ -411,3 +411,28 @@ def test_an_interrupted_export_leaves_the_old_file_and_no_partial_one(posed_resu
     monkeypatch.undo()
     assert old.read_text() == "old"
     assert sorted(p.name for p in old.parent.iterdir()) == [old.name]
+
+
+def test_names_of_the_wrong_kind_are_refused_before_the_work(posed_result, tmp_path, capsys):
+    """export -f glb --out x.bvh wrote a glb under a BVH's name; an obj export into an
+    existing file failed as a full disk would (exit 5, 'File exists'), and into a folder of an
+    earlier export left its frames beside the new ones (a mix of two motions)."""
+    from flowmocap.cli import main
+
+    folder, _ = posed_result
+    with pytest.raises(InputError, match=r"a glb export is a \.glb file; give a name ending in \.glb \(e\.g\. x\.glb\)"):
+        export_result(folder, "glb", tmp_path / "x.bvh")
+    assert not (tmp_path / "x.bvh").exists()
+    export_result(folder, "bvh", tmp_path / "UPPER.BVH")  # the ending's case does not matter
+    (tmp_path / "afile").write_text("mine")
+    assert main(["export", str(folder), "-f", "obj", "--out", str(tmp_path / "afile"), "--quiet"]) == 2
+    assert "is a file; the obj export writes a folder" in capsys.readouterr().err
+    objs = tmp_path / "objs"
+    objs.mkdir()
+    (objs / "frame_999999.obj").write_text("an earlier export's frame")
+    (objs / "notes.txt").write_text("mine")
+    written = export_result(folder, "obj", objs)
+    names = sorted(p.name for p in objs.iterdir())
+    assert "frame_999999.obj" not in names and "notes.txt" in names
+    assert len(names) == len(list(written.glob("frame_*.obj"))) + 1
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]

@@ -167,6 +167,15 @@ def test_render_errors_tell_what_to_do(demo, tmp_path, capsys):
     assert main(["render", str(root / "exact"), "--video", str(tmp_path / "v.mp4"), "--alpha", "2"]) == 2
     assert main(["render", str(root / "exact"), "--traces", str(tmp_path / "t.png"), "--history", "-3"]) == 2
     assert "--history" in capsys.readouterr().err
+    # names of the wrong kind: refused before any drawing (p.xyz failed after the work as a full disk
+    # would, exit 5, naming a temporary file; v.png got an MP4 under a picture's name)
+    for option, name, kind in (("--plot", "p.xyz", "a picture"), ("--video", "v.png", "a video"),
+                               ("--traces", "t", "a picture")):
+        assert main(["render", str(root / "exact"), option, str(tmp_path / name), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"{option} {tmp_path / name}: give a name ending in" in err and f"({kind})" in err
+        assert not (tmp_path / name).exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
 
 
 def test_the_energy_plot_gains_a_panel_for_the_sources_disagreement():

@@ -78,6 +78,7 @@ def run_render(args) -> int:
         wanted = {k: "" for k in OUTPUTS}
     out_dir = Path(args.out) if args.out else Path(args.result) / "render"
     paths = {k: Path(v) if v else out_dir / OUTPUTS[k] for k, v in wanted.items() if v is not None}
+    _check_output_names(paths)  # before the work
     scene = ResultScene(args.result, input=args.input, model=args.model)
     from flowmocap.io.results import unfinished_words
 
@@ -114,6 +115,33 @@ def run_render(args) -> int:
     return 0
 
 
+#: The picture files ``render`` writes, by the name's ending (imageio's writers for them).
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def _check_output_names(paths: dict) -> None:
+    """Refuse, before any drawing, an output whose name's ending is not a picture's (a
+    video's for ``video``) or that is a folder: a ``.xyz`` failed after the work as if the
+    disk were full, and ``v.png`` for the video got an MP4 under a picture's name.
+
+    Args:
+        paths: output key (:data:`OUTPUTS`) -> the file to write.
+
+    Raises:
+        InputError: a name of the wrong kind, or a folder.
+    """
+    from flowmocap.atomic import check_file_path
+    from flowmocap.errors import InputError
+    from flowmocap.viz.video import CONTAINERS
+
+    for key, path in paths.items():
+        check_file_path(path)
+        ok = CONTAINERS if key == "video" else PICTURE_SUFFIXES
+        if path.suffix.lower() not in ok:
+            raise InputError(f"--{key} {path}: give a name ending in {', '.join(ok)} "
+                             f"({'a video' if key == 'video' else 'a picture'}).")
+
+
 def _render_people(args, wanted: dict) -> int:
     """``flowmocap render DIR`` on a ``track --person all`` folder: the people's overlay video."""
     from flowmocap.errors import InputError
@@ -125,6 +153,9 @@ def _render_people(args, wanted: dict) -> int:
     if others:
         raise InputError(f"{root} holds several people's results ({PEOPLE_MANIFEST}); {', '.join(others)} draw one "
                          f"result: render a person's folder ({root / 'person0'}, ...) for them.")
+    path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
+        OUTPUTS["video"]
+    _check_output_names({"video": path})
     scenes, names = [], []
     folders = people_results(root)
     for name, folder in folders:
@@ -139,8 +170,6 @@ def _render_people(args, wanted: dict) -> int:
             print(fit.describe(names[k], names[owner]))
             if k != owner and fit.scale is not None:
                 scenes[k].motion = scaled_about_camera(scenes[k].motion, fit.scale)
-    path = Path(wanted["video"]) if wanted.get("video") else (Path(args.out) if args.out else root / "render") / \
-        OUTPUTS["video"]
     path.parent.mkdir(parents=True, exist_ok=True)
     people_overlay_video(scenes, path, names=names, alpha=args.alpha, progress=not args.quiet)
     first = min(int(sc.motion.frame_index.min()) for sc in scenes)

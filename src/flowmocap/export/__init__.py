@@ -193,8 +193,9 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         The path written (file or folder).
 
     Raises:
-        InputError: unknown format, frame or marker set, or a marker set for a format without
-            markers. DataError: not a result folder.
+        InputError: unknown format, frame or marker set, a marker set for a format without
+            markers, or an ``out`` whose ending is not the format's (``.bvh``, ...) or, for
+            ``obj``, that is a file. DataError: not a result folder.
     """
     from flowmocap.export.marker_sets import marker_names
 
@@ -203,6 +204,10 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
     if markers != "joints" and fmt not in ("trc", "c3d"):
         raise InputError(f"a marker set ({markers!r}) is for the trc and c3d formats; {fmt!r} holds the body itself.")
     out = Path(out) if out is not None else default_output(result_dir, fmt)
+    ending = Path(FORMATS[fmt]).suffix
+    if ending and out.suffix.lower() != ending:  # a .glb under a .bvh name opens in nothing
+        raise InputError(f"{out}: a {fmt} export is a {ending} file; give a name ending in {ending} "
+                         f"(e.g. {out.with_suffix(ending).name}).")
     if scale is not None and frame_of is None:
         raise InputError("a scale moves a person onto another's floor: give the other's motion too (frame_of).")
     if frame_of is not None:  # loaded in its own ground frame for its foot contacts, then moved

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +40,8 @@ def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, comment
 
 def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numbers, num_frames: int,
                        progress: bool = False) -> list[Path]:
-    """Write ``frame_<number>.obj`` per frame into ``folder``.
+    """Write ``frame_<number>.obj`` per frame into ``folder``, in place of the
+    ``frame_*.obj`` of an earlier export there (written beside it first, then moved in).
 
     Args:
         folder: output folder (created).
@@ -49,14 +53,35 @@ def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numb
 
     Returns:
         The paths written, in order.
+
+    Raises:
+        InputError: ``folder`` is a file.
     """
     from tqdm import tqdm
 
+    from flowmocap.errors import InputError
+
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for verts, n in zip(tqdm(frames, total=num_frames, disable=not progress, unit="frame", desc="obj"),
-                        frame_numbers):
-        paths.append(write_obj(folder / f"frame_{int(n):06d}.obj", verts, faces,
-                               comment=f"flowmocap frame {int(n)}, metres"))
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{folder} is a file; the obj export writes a folder of OBJ files (one a frame): give a "
+                         "folder's path.")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    # every frame into a folder of its own beside this one first: a stop or a full disk part of
+    # the way leaves the earlier export as it was, never a mix of two motions
+    staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=folder.name + ".", suffix=".tmp"))
+    try:
+        made = []
+        for verts, n in zip(tqdm(frames, total=num_frames, disable=not progress, unit="frame", desc="obj"),
+                            frame_numbers):
+            made.append(write_obj(staging / f"frame_{int(n):06d}.obj", verts, faces,
+                                  comment=f"flowmocap frame {int(n)}, metres"))
+        folder.mkdir(exist_ok=True)
+        for old in folder.glob("frame_*.obj"):  # the earlier export's frames
+            old.unlink()
+        paths = []
+        for p in made:
+            os.replace(p, folder / p.name)
+            paths.append(folder / p.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return paths
