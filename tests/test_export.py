@@ -436,3 +436,11 @@ def test_names_of_the_wrong_kind_are_refused_before_the_work(posed_result, tmp_p
     assert "frame_999999.obj" not in names and "notes.txt" in names
     assert len(names) == len(list(written.glob("frame_*.obj"))) + 1
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+    # options that were ignored without a word
+    capsys.readouterr()
+    assert main(["export", str(folder), "-f", "json", "--out", str(tmp_path / "m.json"), "--bvh-unit", "cm"]) == 2
+    assert "--bvh-unit sets the BVH's length unit" in capsys.readouterr().err
+    assert main(["export", str(folder), "-f", "json", "--out", str(tmp_path / "m.json"), "--smooth-order", "3"]) == 2
+    assert "give --smooth too" in capsys.readouterr().err
+    assert main(["export", str(folder), "-f", "bvh", "--out", str(tmp_path / "m.bvh"), "--bvh-unit", "cm",
+                 "--smooth", "0.2", "--smooth-order", "3", "--quiet"]) == 0

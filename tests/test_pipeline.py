@@ -402,3 +402,6 @@ def test_repeated_and_conflicting_options_are_not_dropped_without_a_word(seq_dir
     err = capsys.readouterr().err
     assert f"{out} is tracked and finished, but its export to glb failed" in err and "once there is space" in err
     assert (out / "export" / "motion.trc").is_file()  # the format after the failed one is written
+    monkeypatch.undo()
+    assert main([*args, "--out", str(tmp_path / "nf"), "--no-keep-flow"]) == 0  # a frame folder on a small disk
+    assert (tmp_path / "o" / "flow_cache").is_dir() and not (tmp_path / "nf" / "flow_cache").exists()

@@ -340,9 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "in render, view and export")
     t.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same input and "
                    "set-up only; it ends exactly as an uninterrupted run would)")
-    t.add_argument("--keep-flow", action="store_true", default=None, help="store the observed flows in "
-                   "OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for videos: "
-                   "about 2.5 MB a frame at 640x480)")
+    t.add_argument("--keep-flow", action=argparse.BooleanOptionalAction, default=None, help="store the observed "
+                   "flows in OUT/flow_cache for a resume or render to reuse (default: for frame folders, not for "
+                   "videos: about 2.5 MB a frame at 640x480; --no-keep-flow for a frame folder on a small disk)")
     t.add_argument("--detector", default=None, choices=["full", "heavy"],
                    help="MediaPipe's landmark model for the 2D and 3D joints: 'heavy' (the default: nearer the "
                         "truth, about 0.03 s more a frame) or 'full' (MediaPipe's own wheel's; --fast's), each with the "

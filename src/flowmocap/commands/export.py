@@ -38,14 +38,14 @@ def register(subparsers) -> None:
     p.add_argument("--smooth", nargs="?", const="default", default=None, metavar="SECONDS",
                    help="smooth the motion offline first (Savitzky-Golay on SO(3), flowmocap.fit.smooth); "
                    "optional window length in seconds (default 0.3)")
-    p.add_argument("--smooth-order", type=int, default=2, help="polynomial degree of --smooth (default 2)")
+    p.add_argument("--smooth-order", type=int, default=None, help="polynomial degree of --smooth (default 2)")
     p.add_argument("--model", default=None,
                    help="body model (default: the one recorded in run.json, else the bundled default)")
     p.add_argument("--markers", default="joints", choices=list(MARKER_SETS),
                    help="trc and c3d: joints (the 24 joint centres, named pelvis, left_hip, ...; default) or "
                    "halpe26 (Pose2Sim's HALPE_26 keypoints Hip, RHip, ..., RHeel, as its OpenSim model "
                    "Model_Pose2Sim_Halpe26 names them: where a detector puts them on the fitted body)")
-    p.add_argument("--bvh-unit", default="m", choices=["m", "cm"], help="BVH length unit (default m)")
+    p.add_argument("--bvh-unit", default=None, choices=["m", "cm"], help="BVH length unit (default m)")
     p.add_argument("--own-size", action="store_true",
                    help="a `track --person all` folder: each person keeps the size and distance of their own fit "
                         "(by default everyone after the first is scaled about the camera to stand on the first "
@@ -79,6 +79,11 @@ def run_export(args) -> int:
         raise InputError(f"export writes one format at a time; got {', '.join(args.fmt)}: run it once for each (or "
                          "give them all to track --export, which writes each into RESULT/export/).")
     args.fmt = args.fmt[0]
+    if args.bvh_unit is not None and args.fmt != "bvh":  # was ignored without a word
+        raise InputError(f"--bvh-unit sets the BVH's length unit; the {args.fmt} export is in metres.")
+    if args.smooth_order is not None and args.smooth is None:
+        raise InputError("--smooth-order is the degree of --smooth's polynomial; give --smooth too.")
+    args.smooth_order = 2 if args.smooth_order is None else args.smooth_order
 
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
         motion, run = read_result(folder)
