@@ -18,7 +18,7 @@ def register(subparsers) -> None:
                    "of motion (100 frames each, 640x480, 60 fps, random body and azimuth; ~30 min); tune: the same "
                    "protocol on 16 train clips of 8 kinds, for choosing settings; real3d: the four-camera "
                    "pose2sim recording, both people tracked from every view, scored against points triangulated "
-                   "from the other three views (~20 min)")
+                   "from the other three views (~20 min). Default: quick")
     g.add_argument("--mocap", action="append", metavar="FILE",
                    help="ASF/AMC or BVH clip to run the full protocol on (repeatable)")
     b.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
