@@ -16,6 +16,7 @@ from flowmocap.eval.demo import run_demo
 from flowmocap.pipeline import track
 from flowmocap.synth import synthesize
 from flowmocap.version import __version__
+from flowmocap.vision.flow import FLOW_METHODS
 from flowmocap.viz.body_figure import POSES, body_sheet, render_body
 
 
@@ -325,8 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--model", default="default", help="'default' or an SMPL .pkl/.npz or folder")
     t.add_argument("--gender", default="neutral", choices=["neutral", "male", "female"],
                    help="which body of the model file (default neutral)")
-    t.add_argument("--flow", default=None, help="observed flow: dis, dis-fine, deepflow, tvl1, rlof, farneback "
-                   "(default: the settings' flow_method)")
+    t.add_argument("--flow", default=None, choices=list(FLOW_METHODS), help="observed flow (default: the "
+                   "settings' flow_method)")
     t.add_argument("--config", help="JSON file of tracker settings over the profile's (fields of "
                    "flowmocap.fit.config.TrackerConfig; see docs/settings.md)")
     t.add_argument("--frames", help="A:B, the frames to track: A to B - 1 (2: from frame 2 on, :50 the first 50; default: all with the "
