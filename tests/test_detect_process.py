@@ -334,7 +334,7 @@ def test_a_full_disk_in_the_detector_process_is_an_output_error_not_a_crash(tmp_
     monkeypatch.setattr(detect_worker, "_native_logs_to_devnull", lambda: None)
     job = tmp_path / "task-000000.pkl"
     job.write_bytes(pickle.dumps({}))
-    assert detect_worker.main([str(job)]) == detect_worker.WRITE_FAILED
+    assert detect_worker.main([str(job)]) == auto.WRITE_FAILED
     said = json.loads((tmp_path / "task-000000.error.json").read_text())
     assert said["type"] == "OutputError" and "File too large" in said["message"]
 

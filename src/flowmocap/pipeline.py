@@ -55,6 +55,7 @@ from flowmocap.io.fingerprint import (
 from flowmocap.io.lock import FolderLock
 from flowmocap.io.results import (
     PEOPLE_MANIFEST,
+    RENDER_OUTPUTS,
     RESULT_FILES,
     FrameLog,
     has_result,
@@ -625,10 +626,9 @@ def _drop_old_outputs(out: Path) -> None:
     places (``export/``, ``render/``), so a result started over does not sit beside files
     made from the old one. Only the names they write are removed, and the folders when that
     empties them: anything else a user keeps there stays."""
-    from flowmocap.commands.render import OUTPUTS
     from flowmocap.export import FORMATS
 
-    for folder, names in (("export", FORMATS.values()), ("render", OUTPUTS.values())):
+    for folder, names in (("export", FORMATS.values()), ("render", RENDER_OUTPUTS.values())):
         d = out / folder
         if not d.is_dir() or d.is_symlink():
             continue

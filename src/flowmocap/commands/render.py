@@ -4,12 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-OUTPUTS = {
-    "video": "overlay.mp4",
-    "figure1": "figure1.png",
-    "traces": "joint_traces.png",
-    "plot": "energies.png",
-}
+from flowmocap.io.results import RENDER_OUTPUTS as OUTPUTS  # the names render writes
 
 
 def register(subparsers) -> None:

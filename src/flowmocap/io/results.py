@@ -323,6 +323,15 @@ def unfinished_words(out_dir: str | Path, run: dict, frames: int) -> str | None:
             f"without {steps} where they did not run; `flowmocap track INPUT --out {out_dir} --resume` finishes it.")
 
 
+#: What ``flowmocap render`` writes into ``RESULT/render/`` by default: output -> file name.
+RENDER_OUTPUTS = {
+    "video": "overlay.mp4",
+    "figure1": "figure1.png",
+    "traces": "joint_traces.png",
+    "plot": "energies.png",
+}
+
+
 #: The file of a ``track --person all`` folder (:func:`flowmocap.batch.track_people`) that
 #: lists the people found and each one's result folder (``person0``, ``person1``, ...).
 PEOPLE_MANIFEST = "people.json"

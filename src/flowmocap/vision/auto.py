@@ -564,6 +564,11 @@ def load_chunk(path: str | Path, key: str, a: int, b: int, masks: bool = True) -
     return got
 
 
+#: The exit status of a detector process (:mod:`flowmocap.vision.detect_worker`) whose
+#: writes failed (a full disk, a file size limit).
+WRITE_FAILED = 5
+
+
 def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
     """Run one stretch's ``task`` in a fresh ``python -m flowmocap.vision.detect_worker``
     and wait for it; its error (one of the project's) is raised here.
@@ -592,8 +597,6 @@ def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
         rc = subprocess.run([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env).returncode
     finally:
         job.unlink(missing_ok=True)
-    from flowmocap.vision.detect_worker import WRITE_FAILED
-
     kept = (f"the frames before {a} are kept in {folder}: run again (--resume) to go on from frame {a}" if a > 0
             else "run again (--resume) to start it again")
     if failed.exists():

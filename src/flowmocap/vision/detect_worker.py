@@ -23,7 +23,7 @@ from pathlib import Path
 
 def main(argv: list[str]) -> int:
     from flowmocap.errors import FlowMocapError
-    from flowmocap.vision.auto import run_chunk
+    from flowmocap.vision.auto import WRITE_FAILED, run_chunk
 
     job = Path(argv[0])
     _end_with_parent()
@@ -48,9 +48,6 @@ def main(argv: list[str]) -> int:
         return 130
     return 0
 
-
-#: The exit status of a detector process whose writes failed (a full disk, a file size limit).
-WRITE_FAILED = 5
 
 
 #: The environment variable the parent sets to its process id (:func:`_end_with_parent`).
