@@ -395,6 +395,19 @@ def test_a_full_disk_at_the_first_commit_then_resume_starts_it_over(clip, refere
     _assert_same(out, reference[0])
 
 
+def test_a_resume_of_a_finished_run_tidies_what_a_kill_while_it_finished_left(clip, reference, tmp_path):
+    """A kill inside the frame log's close (or an atomic write) can leave frames.bin,
+    events.jsonl or a result file's temporary beside the finished motion.npz."""
+    out = tmp_path / "r"
+    flowmocap.track(clip, out, **_kw(clip))
+    for name in ("frames.bin", "events.jsonl", "motion.npz.k2j3h4.tmp", "notes.txt"):
+        (out / name).write_bytes(b"left")
+    flowmocap.track(clip, out, resume=True, **_kw(clip))
+    left = {p.name for p in out.iterdir()}
+    assert not {"frames.bin", "events.jsonl", "motion.npz.k2j3h4.tmp"} & left and "notes.txt" in left
+    _assert_same(out, reference[0])
+
+
 def test_a_file_size_limit_ends_the_command_with_one_line(clip, tmp_path):
     """``ulimit -f``: writes fail with EFBIG (Python ignores SIGXFSZ); the command ends with
     ``flowmocap: error:`` and exit status 5, not a traceback."""

@@ -436,7 +436,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         if done is not None:
             if _post_pending(out, cfg, joints3d, done.run):  # stopped after tracking, before the steps after it
                 _post_steps(out, load_detections(out), body, cfg, done.run, joints3d, say)
+                _drop_leftovers(out)
                 return load_result(out)
+            _drop_leftovers(out)
             say(f"{out} holds the finished run of this input and set-up; nothing to do")
             return done
     elif has_result(out) or (out / "run.json").exists():  # force, or a run that failed before its first frame
@@ -710,6 +712,19 @@ def _check_out(out: Path, force: bool, src: Path | None = None) -> None:
             shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
             raise InputError(f"{out} is not empty ({shown}) and holds no flowmocap result; give a new or empty "
                              "folder, or pass force=True (--force) to write the result into it anyway.")
+
+
+def _drop_leftovers(out: Path) -> None:
+    """Remove what a run killed while it finished can leave beside its ``motion.npz``: the
+    frame log (``frames.bin``, ``events.jsonl``) once ``progress.json`` is gone, and the
+    temporaries of its result files (:func:`_is_half_written`). No reader uses them."""
+    if (out / "progress.json").exists() or not (out / "motion.npz").exists():
+        return
+    for name in ("frames.bin", "events.jsonl"):
+        (out / name).unlink(missing_ok=True)
+    for p in out.iterdir():
+        if p.is_file() and _is_half_written(p.name):
+            p.unlink(missing_ok=True)
 
 
 def _is_half_written(name: str) -> bool:
