@@ -114,12 +114,16 @@ class Result:
 
     @property
     def joints3d(self) -> np.ndarray:
-        """``(T, 24, 3)`` joint positions, metres."""
+        """``(T, 24, 3)`` joint positions, metres, in the camera's world frame (as :attr:`trans`:
+        the camera's own frame for a video; the frame of ``camera.json``'s ``R``, ``t`` where one
+        was given)."""
         return self.motion["joints3d"]
 
     @property
     def joints2d(self) -> np.ndarray:
-        """``(T, 24, 2)`` projected joints, pixels."""
+        """``(T, 24, 2)`` projected joints, pixels of the tracked frames (:attr:`camera`'s: a
+        video scaled by ``max_size`` was tracked at that size: divide by ``input.json``'s
+        ``video.scale`` for the video's own pixels)."""
         return self.motion["joints2d"]
 
     @property
@@ -148,7 +152,8 @@ class Result:
 
     @property
     def camera(self) -> PinholeCamera:
-        """The camera the result was tracked with (pixels; OpenCV axes, the result's frame)."""
+        """The camera the result was tracked with (pixels of the tracked frames, after any
+        ``max_size`` scaling; OpenCV axes, the result's frame)."""
         return PinholeCamera.from_dict(json.loads(str(self.motion["camera"])))
 
     @property

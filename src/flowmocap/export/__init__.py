@@ -65,7 +65,7 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     without a midline to measure), "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
     to the result's world), "camera" (the result's camera, world frame), "units",
     "frames": [{"index", "time_s", "pose" (72, radians), "trans" (3, metres),
-    "joints3d" (24 x 3, metres), "joints2d" (24 x 2, input pixels), and where the result
+    "joints3d" (24 x 3, metres), "joints2d" (24 x 2, pixels of the tracked frames: the camera's), and where the result
     has them "contact" (left, right foot on the ground) and "disagreement" (24, metres,
     null outside the 13 scored joints: how far the run's 3D sources part,
     :mod:`flowmocap.fit.disagreement`) and, where the camera turned during the clip (the
