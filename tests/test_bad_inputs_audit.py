@@ -607,3 +607,101 @@ def test_eval_scores_the_silhouettes_with_the_body_the_result_was_tracked_with(t
     np.testing.assert_allclose(template, arrays["v_template"], rtol=1e-5)
     big.unlink()
     assert main(["eval", str(res), "--gt", str(seq)]) == 2  # the recorded model is gone: said, not swapped
+
+
+# --- the fifty-seventh session's audit of the Python API ---
+
+def test_track_checks_its_switches(tmp_path):
+    """force="no" wiped a finished result (any string is true); log and search_dir of the
+    wrong kind failed deep inside."""
+    src = _frames(tmp_path / "plain", 3, 64, 48)
+    for name in ("force", "resume", "fast", "reinit", "progress", "keep_flow"):
+        with pytest.raises(InputError, match=rf"{name} must be True or False.*got 'no'"):
+            track(src, tmp_path / "o", **{"log": None, "progress": False, name: "no"})
+    with pytest.raises(InputError, match="log must be a function"):
+        track(src, tmp_path / "o", log=5, progress=False)
+    with pytest.raises(InputError, match="search_dir must be None or a folder's path"):
+        _track(src, tmp_path / "o", search_dir=5)
+    assert not (tmp_path / "o").exists()
+
+
+def test_batch_takes_one_path_and_refuses_unknown_settings_before_any_work(tmp_path):
+    from flowmocap.batch import expand_inputs, plan, track_many
+
+    seq = _frames(tmp_path / "seq", 3, 64, 48)
+    assert expand_inputs(str(seq)) == [seq]  # was [s, e, q, ...]: the letters of the path
+    assert [it.input for it in plan(str(seq), tmp_path / "b")] == [str(seq)]
+    with pytest.raises(InputError, match="takes no bogus; check the names"):
+        track_many([seq], tmp_path / "b2", bogus=1, log=None)
+    assert not (tmp_path / "b2").exists()
+    with pytest.raises(InputError, match="force must be True or False"):
+        track_many([seq], tmp_path / "b2", force="no", log=None)
+    with pytest.raises(InputError, match="inputs must be paths"):
+        expand_inputs([seq, 5])
+
+
+def test_numpy_values_where_python_ones_are_expected(tmp_path):
+    from flowmocap.fit.config import TrackerConfig
+    from flowmocap.synth import synthesize
+
+    assert TrackerConfig(kalman=np.bool_(False)).kalman is False  # 'must be true or false; got True' before
+    with pytest.raises(InputError, match="the settings must be a dict"):
+        TrackerConfig.from_dict(None)
+    res = synthesize("builtin:walk", tmp_path / "s", frames=2, size="64x48", seed=np.int64(3), fps=np.float32(24),
+                     flow=False)
+    assert res.meta["seed"] == 3 and res.meta["fps"] == 24.0  # meta.json was not written (int64), fps refused
+
+
+def test_results_compare_and_the_readers_take_a_result_or_say_what_a_path_is(tmp_path):
+    import flowmocap
+    from flowmocap.body import load_body_model
+    from flowmocap.export import export_result, load_fitted_motion
+    from flowmocap.io import read_bvh, retarget
+    from flowmocap.synth import synthesize
+
+    res = flowmocap.load_result(_result(tmp_path / "r"))
+    assert (res == res) is True and (res == flowmocap.load_result(res)) is False  # was a ValueError
+    assert flowmocap.load_result(res).path == res.path
+    assert load_fitted_motion(res, frame="up").num_frames == 4
+    export_result(res, "json", tmp_path / "m.json", frame="up")
+    for call, match in ((lambda: load_fitted_motion(None), "a result folder is a path"),
+                        (lambda: export_result(res, "bvh", out=5), "out must be the path"),
+                        (lambda: load_body_model(None), "name_or_path must be the path"),
+                        (lambda: load_body_model(num_betas=-1), "num_betas must be"),
+                        (lambda: load_body_model(dtype="float64"), "dtype must be a torch dtype"),
+                        (lambda: read_bvh(None), "path must be the path of a .bvh"),
+                        (lambda: synthesize(None, tmp_path / "x"), "motion_source must be"),
+                        (lambda: export_result(res, "bvh", tmp_path / "x.bvh", units_per_metre="100"),
+                         "units_per_metre must be a positive number"),
+                        (lambda: load_fitted_motion(res, smooth="no"), "smooth must be False, True or a dict"),
+                        (lambda: load_fitted_motion(res, smooth={"window": 0.3}), "smooth takes window_s")):
+        with pytest.raises(InputError, match=match):
+            call()
+    from flowmocap.io.mocap import MocapClip  # noqa: F401 (the clip type retarget takes)
+
+    with pytest.raises(InputError, match="model must be a BodyModel"):
+        retarget(None, "default")
+    body = load_body_model()
+    with pytest.raises(InputError, match="at least one body"):
+        body(betas=np.zeros((0, 10)), pose=np.zeros((0, 72)), trans=np.zeros((0, 3)))
+
+
+def test_a_results_own_motion_npz_is_not_read_as_amass(tmp_path):
+    from flowmocap.io import read_amass_npz
+
+    res = _result(tmp_path / "r")
+    with pytest.raises(DataError, match="is a flowmocap result's motion.npz, not an AMASS file"):
+        read_amass_npz(res / "motion.npz")
+
+
+def test_people_to_track_takes_the_detections_file(tmp_path):
+    import json
+
+    from flowmocap.batch import people_to_track
+
+    info = {"person": {"people": [{"rank": 0, "frames": [0, 9], "detections": 10, "score": 1.0,
+                                   "first_box": [0, 0, 5, 5]}]}}
+    (tmp_path / "detections.json").write_text(json.dumps(info))
+    assert people_to_track(tmp_path / "detections.json") == people_to_track(info)
+    with pytest.raises(InputError, match="info must be a detections.json's dict"):
+        people_to_track(5)

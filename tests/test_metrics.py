@@ -100,3 +100,37 @@ def test_rendered_silhouette_of_ground_truth_matches_synthetic_masks(tmp_path):
     sil = render_silhouettes(model, seq.gt["poses"], seq.gt["trans"], seq.gt["betas"], seq.camera)
     masks = np.stack([seq.mask(i) for i in range(3)])
     assert mask_iou(sil, masks).min() > 0.98
+
+
+def test_metrics_agree_on_nan_empty_and_joint_indices():
+    """A NaN crashed the Procrustes metrics inside torch's SVD where mpjpe gave NaN; no frames
+    gave [] in one and a message about weights in another; a 13-joint array or a joint index
+    past J was an IndexError."""
+    import numpy as np
+    import pytest
+
+    from flowmocap.errors import InputError
+    from flowmocap.eval.metrics import (acceleration_error, global_procrustes_error, joint2d_error,
+                                        local_procrustes_error, mpjpe)
+
+    rng = np.random.default_rng(3)
+    gt = rng.normal(0, 0.3, (6, 24, 3))
+    pred = gt + rng.normal(0, 0.01, gt.shape)
+    holed = pred.copy()
+    holed[2, 5] = np.nan
+    for metric in (local_procrustes_error, global_procrustes_error, mpjpe):
+        whole, with_hole = metric(pred, gt), metric(holed, gt)
+        assert np.isnan(with_hole[2]) and np.isfinite(np.delete(with_hole, 2)).all(), metric.__name__
+    np.testing.assert_allclose(np.delete(local_procrustes_error(holed, gt), 2), np.delete(local_procrustes_error(pred, gt), 2))
+    np.testing.assert_allclose(global_procrustes_error(holed[[0, 1, 3, 4, 5]], gt[[0, 1, 3, 4, 5]]),
+                               np.delete(global_procrustes_error(holed, gt), 2))
+    for metric in (local_procrustes_error, global_procrustes_error, mpjpe, acceleration_error):
+        with pytest.raises(InputError, match="no frames"):
+            metric(np.zeros((0, 24, 3)), np.zeros((0, 24, 3)))
+        with pytest.raises(InputError, match="joint index .* outside the 13 joints"):
+            metric(gt[:, :13], gt[:, :13])
+    assert np.allclose(mpjpe(gt[:, :13], gt[:, :13], joints=range(13)), 0)
+    with pytest.raises(InputError, match="joint index 99"):
+        mpjpe(gt, gt, root=99)
+    with pytest.raises(InputError, match="joint index 30"):
+        joint2d_error(gt[..., :2], gt[..., :2], joints=[0, 30])

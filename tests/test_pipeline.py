@@ -10,7 +10,7 @@ import pytest
 
 import flowmocap
 from flowmocap.cli import main
-from flowmocap.errors import DataError, InputError
+from flowmocap.errors import DataError, InputError, NoPersonError
 from flowmocap.eval.protocol import noisy_init
 from flowmocap.io.sequence import load_sequence
 from flowmocap.pipeline import parse_frame_range
@@ -405,3 +405,28 @@ def test_repeated_and_conflicting_options_are_not_dropped_without_a_word(seq_dir
     monkeypatch.undo()
     assert main([*args, "--out", str(tmp_path / "nf"), "--no-keep-flow"]) == 0  # a frame folder on a small disk
     assert (tmp_path / "o" / "flow_cache").is_dir() and not (tmp_path / "nf" / "flow_cache").exists()
+
+
+def test_frames_of_numpy_or_torch_are_taken_as_numbers(seq_dir, tmp_path):
+    """frames=np.array([0, 3]) with the automatic start failed after the detection pass (numpy's
+    'truth value of an array'), and a torch tensor in the run's fingerprint ('not JSON
+    serialisable'); both are a pair of frame numbers."""
+    import torch
+
+    kw = {"init": seq_dir.parent / "init.json", "config": seq_dir.parent / "quick.json", "joints3d": "off",
+          "log": None, "progress": False}
+    a = flowmocap.track(seq_dir, tmp_path / "a", frames=np.array([0, 3]), **kw)
+    b = flowmocap.track(seq_dir, tmp_path / "b", frames=torch.tensor([0, 3]), **kw)
+    assert list(a.frame_index) == list(b.frame_index) == [0, 1, 2]
+    np.testing.assert_array_equal(a.poses, b.poses)
+    from flowmocap.pipeline import _auto_start
+
+    class Nobody:  # the automatic start's range: read as numbers, not tested for truth
+        found = [False] * 4
+        confidence = np.zeros((4, 40))
+
+        def __len__(self):
+            return 4
+
+    with pytest.raises(NoPersonError):
+        _auto_start(Nobody(), (np.int64(0), np.int64(3)), 4, tmp_path, (64, 48))

@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import numbers
 import os
 import re
 import shutil
@@ -46,6 +47,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from flowmocap.atomic import atomic_write
@@ -168,6 +170,8 @@ def expand_inputs(inputs: Sequence[str | Path], list_files: Sequence[str | Path]
         InputError: a list file that cannot be read, a folder that holds nothing to track,
             or no inputs at all.
     """
+    inputs = _as_inputs(inputs)
+    list_files = _as_inputs(list_files)
     found: list[Path] = []
     for x in inputs:
         s = str(x)
@@ -194,6 +198,25 @@ def expand_inputs(inputs: Sequence[str | Path], list_files: Sequence[str | Path]
     return unique
 
 
+def _as_inputs(inputs) -> list:
+    """``inputs`` as a list of paths: one path (a ``str`` is a sequence of letters, which
+    made a batch of the inputs "s", "e", "q") becomes a list of it.
+
+    Raises:
+        InputError: not a path or a sequence of paths.
+    """
+    if isinstance(inputs, (str, os.PathLike)):
+        return [inputs]
+    try:
+        items = list(inputs)
+    except TypeError:
+        raise InputError(f"inputs must be a path or a list of paths; got {type(inputs).__name__}.") from None
+    bad = [x for x in items if not isinstance(x, (str, os.PathLike))]
+    if bad:
+        raise InputError(f"inputs must be paths (str or Path); got {type(bad[0]).__name__} ({bad[0]!r}).")
+    return items
+
+
 def plan(inputs: Sequence[str | Path], out_root: str | Path) -> list[BatchItem]:
     """Each input's result folder under ``out_root`` and what is there (status ``"new"``,
     ``"resume"`` or ``"finished"``); records new names in ``out_root/batch.json``.
@@ -206,6 +229,7 @@ def plan(inputs: Sequence[str | Path], out_root: str | Path) -> list[BatchItem]:
     Raises:
         InputError: ``out_root`` is one input's result folder, not a batch's.
     """
+    inputs = _as_inputs(inputs)
     root = Path(out_root)
     _refuse_single_result(root)
     root.mkdir(parents=True, exist_ok=True)
@@ -272,6 +296,7 @@ def track_many(inputs: Sequence[str | Path], out_root: str | Path, workers: int 
         FolderBusyError: another batch holds ``out_root`` (one at a time writes it).
     """
     kwargs = _checked_kwargs("track_many", _OWN_ARGS, track_kwargs, workers, ray, force)
+    inputs = _as_inputs(inputs)
     _refuse_single_result(Path(out_root))  # before the lock makes a folder
     with FolderLock(out_root):  # one batch at a time writes batch.json and decides what is left to do
         return _track_many(inputs, Path(out_root), kwargs, workers, ray, force, progress, log)
@@ -323,8 +348,18 @@ def _checked_kwargs(who: str, own: Sequence[str], track_kwargs: dict, workers, r
     if "search_dir" in track_kwargs:  # one input's search, shared by its people: never by several inputs
         raise InputError(f"{who} does not take search_dir: it is for the runs of one input that choose different "
                          "people (track_people keeps one for them itself); leave it out.")
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+    import inspect
+
+    from flowmocap import pipeline
+
+    unknown = sorted(set(track_kwargs) - set(inspect.signature(pipeline.track).parameters))
+    if unknown:  # each input would fail alone, as a bug (exit 1, a traceback)
+        raise InputError(f"{who} passes settings to flowmocap.track, which takes no {', '.join(unknown)}; check the "
+                         "names (e.g. frames, config, init).")
+    if not isinstance(workers, numbers.Integral) or isinstance(workers, bool) or workers < 1:
         raise InputError(f"workers must be a whole number >= 1; got {workers!r}.")
+    if not isinstance(force, (bool, np.bool_)):  # force="no" would be true, and start every input over
+        raise InputError(f"force must be True or False; got {force!r}.")
     if ray is not False and ray is not None and workers != 1:
         raise InputError("choose either Ray (--ray) or local worker processes (--workers), not both.")
     if ray not in (False, None):  # before anything is written: say at once when Ray is missing or unreachable
@@ -357,7 +392,7 @@ def people_to_track(info: dict, min_share: float = PEOPLE_MIN_SHARE) -> list[dic
     """The people of a detection pass that :func:`track_people` tracks.
 
     Args:
-        info: a result folder's ``detections/detections.json`` (its ``person.people``: per
+        info: a result folder's ``detections/detections.json``, or its path (its ``person.people``: per
             person ``rank`` (0 = the largest), ``frames`` [first, last], ``detections`` (frames
             the detector followed them in), ``score``, ``first_box`` px).
         min_share: a person is tracked when followed in at least this share of as many frames
@@ -372,6 +407,13 @@ def people_to_track(info: dict, min_share: float = PEOPLE_MIN_SHARE) -> list[dic
     """
     if not 0.0 <= float(min_share) <= 1.0:
         raise InputError(f"min_share must lie in 0..1; got {min_share!r}.")
+    if isinstance(info, (str, os.PathLike)):  # the detections.json file itself
+        try:
+            info = json.loads(Path(info).read_text())
+        except (OSError, ValueError) as e:
+            raise DataError(f"cannot read {info} as a detections.json ({e}).") from None
+    if not isinstance(info, dict):
+        raise InputError(f"info must be a detections.json's dict, or its path; got {type(info).__name__}.")
     people = sorted((info.get("person") or {}).get("people") or [], key=lambda p: p["rank"])
     if not people:
         raise DataError("the detections list no people to choose from (made by an older flowmocap, or with your own "
@@ -518,7 +560,7 @@ def track_people_many(inputs: Sequence[str | Path], out_root: str | Path, min_sh
         raise InputError(f"{root} is the result folder of a single input; give another --out folder for several "
                          "inputs (each gets its own folder of people inside it).")
     with FolderLock(root):  # one run at a time writes batch.json and decides what is left to do
-        paths = [Path(p) for p in inputs]
+        paths = [Path(p) for p in _as_inputs(inputs)]
         names = _names(paths, root, _read_manifest(root))
         _update_manifest(root, {names[_absolute(p)]: {"input": _absolute(p)} for p in paths})
         done: set[str] = set()

@@ -71,6 +71,21 @@ EXIT_CODES = {
 }
 
 
+def check_path(value, name: str, what: str = "a file or folder") -> None:
+    """Refuse an argument that should be a path but is not one (``InputError`` naming the
+    argument, where pathlib would raise a bare ``TypeError`` deep inside).
+
+    Args:
+        value: the argument.
+        name: its name, for the message.
+        what: what the path should point to, for the message.
+    """
+    import os
+
+    if not isinstance(value, (str, os.PathLike)):
+        raise InputError(f"{name} must be the path of {what} (a str or a Path); got {type(value).__name__}.")
+
+
 __all__ = [
     "FlowMocapError",
     "InputError",
@@ -82,4 +97,5 @@ __all__ = [
     "OutputError",
     "DetectorError",
     "EXIT_CODES",
+    "check_path",
 ]

@@ -62,6 +62,7 @@ from flowmocap.io.results import (
     is_result_folder,
     json_default,
     read_result,
+    result_folder,
     write_json,
     write_motion,
     write_run,
@@ -88,7 +89,7 @@ from flowmocap.vision.person import describe_person, parse_person
 __all__ = ["Result", "load_result", "parse_frame_range", "read_init", "track"]
 
 
-@dataclass
+@dataclass(eq=False)  # dicts of arrays have no truth value: == is identity (compare the arrays themselves)
 class Result:
     """A result folder: ``motion`` (the arrays of ``motion.npz``), ``run`` (``run.json``:
     settings, profile, camera, timings, events) and its ``path``."""
@@ -177,13 +178,16 @@ class Result:
 
 
 def load_result(path: str | Path) -> Result:
-    """Read a result folder written by :func:`track`.
+    """Read a result folder written by :func:`track` (its path, or a :class:`Result` to read
+    again).
 
     Raises:
+        InputError: ``path`` is not a path.
         DataError: the folder holds no (readable) result.
     """
+    path = result_folder(path)
     motion, run = read_result(path)
-    return Result(Path(path), motion, run)
+    return Result(path, motion, run)
 
 
 def parse_frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
@@ -326,6 +330,20 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
     if not isinstance(model, (str, os.PathLike, BodyModel)):
         raise InputError(f"model must be 'default', a body model file or folder, or a BodyModel; got "
                          f"{type(model).__name__}.")
+    for name, value, none_ok in (("resume", resume, False), ("progress", progress, False), ("reinit", reinit, False),
+                                 ("force", force, False), ("fast", fast, False), ("keep_flow", keep_flow, True)):
+        if not (isinstance(value, (bool, np.bool_)) or (none_ok and value is None)):  # force="no" would be true
+            raise InputError(f"{name} must be True or False{' (or None)' if none_ok else ''}; got {value!r}.")
+    if log is not None and not callable(log):
+        raise InputError(f"log must be a function taking a line of text (e.g. print), or None; got "
+                         f"{type(log).__name__}.")
+    if not (search_dir is None or isinstance(search_dir, (str, os.PathLike))):
+        raise InputError(f"search_dir must be None or a folder's path; got {type(search_dir).__name__}.")
+    if frames is not None and not isinstance(frames, str):  # numpy or torch numbers: plain ones (JSON, tests)
+        try:
+            frames = tuple(int(v) if float(v) == int(v) else float(v) for v in frames)
+        except (TypeError, ValueError, OverflowError):
+            raise InputError(f"frames must be 'A:B' or a pair (A, B); got {frames!r}.") from None
     src, out = Path(source), Path(out)
     if not src.exists():
         raise DataError(f"{src} does not exist; give a video file, a folder of frames or a sequence folder.")
@@ -1018,7 +1036,7 @@ def _check_principal_point(cam: PinholeCamera, note: str) -> None:
 def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera_R=None) -> tuple:
     """Automatic initialisation: the InitSpec, the frame range and a sentence about it
     (``camera_R``: the camera's rotation, for the start's orientation in the world's axes)."""
-    if frames:
+    if frames is not None:
         a, b = parse_frame_range(frames, n)
     else:
         found = [i for i in range(n) if detections.found[i]]
@@ -1038,7 +1056,7 @@ def _auto_start(detections: PersonTrack, frames, n: int, out: Path, size, camera
     note = f"frames {first}:{b}"
     if first > a:
         note += f"; started at frame {first}, the first with a confidently detected person (frames {a}..{first - 1} skipped)"
-    if not frames and b < n:
+    if frames is None and b < n:
         note += f"; stopped after frame {b - 1}, the last with the person (frames {b}..{n - 1} skipped)"
     return parse_init(init, *size), (first, b), note
 

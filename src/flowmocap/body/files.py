@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import _compat_pickle
 import io
+import numbers
 import pickle
 import zipfile
 from importlib import resources
@@ -68,9 +69,16 @@ def load_body_model(
     """
     import torch
 
+    from flowmocap.errors import check_path
+
+    check_path(name_or_path, "name_or_path", "a body model file or folder, or 'default'")
     gender = _check_gender(gender)
+    if isinstance(num_betas, bool) or not isinstance(num_betas, numbers.Integral) or not 1 <= num_betas <= 300:
+        raise InputError(f"num_betas must be a whole number of shape coefficients in 1..300; got {num_betas!r}.")
+    if dtype is not None and not isinstance(dtype, torch.dtype):
+        raise InputError(f"dtype must be a torch dtype (e.g. torch.float64) or None; got {dtype!r}.")
     arrays = read_model_arrays(name_or_path, gender)
-    model = BodyModel(arrays, num_betas=num_betas, dtype=dtype or torch.float32)
+    model = BodyModel(arrays, num_betas=int(num_betas), dtype=dtype or torch.float32)
     # how to load it again (recorded in results): "default" or the file's absolute path
     model.name = "default" if str(name_or_path) == "default" else str(Path(name_or_path).expanduser().resolve())
     return model

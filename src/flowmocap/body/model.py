@@ -145,6 +145,8 @@ class BodyModel(torch.nn.Module):
         pose = _batch(pose, 3 * NUM_JOINTS, "pose", dev, dt)
         trans = _batch(trans, 3, "trans", dev, dt)
         B = max(betas.shape[0], pose.shape[0], trans.shape[0])
+        if min(betas.shape[0], pose.shape[0], trans.shape[0]) == 0:
+            raise InputError("betas, pose and trans must hold at least one body each (a batch of 0 was given).")
         for name, x in (("betas", betas), ("pose", pose), ("trans", trans)):
             if x.shape[0] not in (1, B):
                 raise InputError(

@@ -27,10 +27,24 @@ from flowmocap.errors import InputError
 from flowmocap.geometry.procrustes import similarity_procrustes
 
 
-def _check(pred, gt):
+def _check(pred, gt, joints=(), root: int | None = None, dim: int = 3):
+    """``pred``, ``gt`` as float64 arrays, checked: equal shapes ``(T, J, dim)`` with
+    ``T >= 1``, and ``joints`` (and ``root``) indices below J. NaN are allowed: a frame
+    with one among its joints scores NaN in every metric (a detector's missing frame).
+
+    Raises:
+        InputError: what is wrong, in words (a joint index past J used to be an IndexError).
+    """
     pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != 3:
-        raise InputError(f"joints must be (T, J, 3) of equal shape; got {pred.shape} and {gt.shape}.")
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != dim:
+        raise InputError(f"joints must be (T, J, {dim}) of equal shape; got {pred.shape} and {gt.shape}.")
+    if pred.shape[0] == 0:
+        raise InputError("the joints hold no frames (T = 0); give at least one frame.")
+    J = pred.shape[1]
+    bad = [j for j in [*joints, *([] if root is None else [root])] if not -J <= int(j) < J]
+    if bad:
+        raise InputError(f"joint index {bad[0]} is outside the {J} joints given (the default joints are the paper's "
+                         "13 of the 24 SMPL joints: give (T, 24, 3) arrays, or joints=range(J)).")
     return pred, gt
 
 
@@ -42,12 +56,16 @@ def local_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
         joints: the joints evaluated (default: the paper's 13).
 
     Returns:
-        ``(T,)`` mean error per frame in metres.
+        ``(T,)`` mean error per frame in metres (NaN for a frame with a NaN among its joints).
     """
-    pred, gt = _check(pred, gt)
+    pred, gt = _check(pred, gt, joints)
     p, g = pred[:, list(joints)], gt[:, list(joints)]
-    aligned = similarity_procrustes(p, g)[0]
-    return np.linalg.norm(aligned - g, axis=-1).mean(-1)
+    ok = np.isfinite(p).all((1, 2)) & np.isfinite(g).all((1, 2))  # a frame with a NaN scores NaN
+    out = np.full(len(p), np.nan)
+    if ok.any():
+        aligned = similarity_procrustes(p[ok], g[ok])[0]
+        out[ok] = np.linalg.norm(aligned - g[ok], axis=-1).mean(-1)
+    return out
 
 
 def global_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
@@ -58,13 +76,17 @@ def global_procrustes_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
         joints: the joints evaluated (default: the paper's 13).
 
     Returns:
-        ``(T,)`` metres.
+        ``(T,)`` metres (NaN for a frame with a NaN among its joints; the alignment is over
+        the others).
     """
-    pred, gt = _check(pred, gt)
-    T = pred.shape[0]
-    p, g = pred[:, list(joints)].reshape(-1, 3), gt[:, list(joints)].reshape(-1, 3)
-    aligned = similarity_procrustes(p, g)[0]
-    return np.linalg.norm(aligned - g, axis=-1).reshape(T, -1).mean(-1)
+    pred, gt = _check(pred, gt, joints)
+    p, g = pred[:, list(joints)], gt[:, list(joints)]
+    ok = np.isfinite(p).all((1, 2)) & np.isfinite(g).all((1, 2))  # one alignment over the frames with values
+    out = np.full(len(p), np.nan)
+    if ok.any():
+        aligned = similarity_procrustes(p[ok].reshape(-1, 3), g[ok].reshape(-1, 3))[0]
+        out[ok] = np.linalg.norm(aligned - g[ok].reshape(-1, 3), axis=-1).reshape(int(ok.sum()), -1).mean(-1)
+    return out
 
 
 def mpjpe(pred, gt, joints=EVAL_JOINTS, root: int = 0) -> np.ndarray:
@@ -75,7 +97,7 @@ def mpjpe(pred, gt, joints=EVAL_JOINTS, root: int = 0) -> np.ndarray:
         joints: the joints evaluated (default: the paper's 13).
         root: the joint both are made relative to (default the pelvis).
     """
-    pred, gt = _check(pred, gt)
+    pred, gt = _check(pred, gt, joints, root)
     p = pred[:, list(joints)] - pred[:, root : root + 1]
     g = gt[:, list(joints)] - gt[:, root : root + 1]
     return np.linalg.norm(p - g, axis=-1).mean(-1)
@@ -98,7 +120,7 @@ def depth_split_error(pred, gt, camera_rotation, root: int = 0) -> tuple[np.ndar
         ``depth``, the absolute depth error; ``bias``, the signed depth error (< 0: the
         joint sits nearer the camera than the truth).
     """
-    pred, gt = _check(pred, gt)
+    pred, gt = _check(pred, gt, root=root)
     R = np.asarray(camera_rotation, np.float64)
     if R.shape != (3, 3):
         raise InputError(f"camera_rotation must be a (3, 3) matrix; got {R.shape}.")
@@ -121,7 +143,7 @@ def acceleration_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
     Returns:
         ``(T - 2,)`` metres / frame^2, one value per inner frame.
     """
-    pred, gt = _check(pred, gt)
+    pred, gt = _check(pred, gt, joints)
     if pred.shape[0] < 3:
         raise InputError(f"the acceleration error needs at least 3 frames; got {pred.shape[0]}.")
     p, g = pred[:, list(joints)], gt[:, list(joints)]
@@ -139,9 +161,7 @@ def joint2d_error(pred, gt, joints=EVAL_JOINTS) -> np.ndarray:
     Returns:
         ``(T,)`` pixels.
     """
-    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != 2:
-        raise InputError(f"2D joints must be (T, J, 2) of equal shape; got {pred.shape} and {gt.shape}.")
+    pred, gt = _check(pred, gt, joints, dim=2)
     return np.linalg.norm(pred[:, list(joints)] - gt[:, list(joints)], axis=-1).mean(-1)
 
 

@@ -67,6 +67,10 @@ def score_result(result: str | Path, seq, model=None) -> dict:
     from flowmocap.io.results import read_result
     from flowmocap.io.sequence import Sequence, load_sequence
 
+    from flowmocap.errors import check_path
+
+    if not isinstance(seq, Sequence):
+        check_path(seq, "seq", "a sequence folder")
     motion, run = read_result(result)
     missing = [k for k in ("frame_index", "joints3d") if k not in motion]
     if missing:

@@ -15,6 +15,7 @@ file is z up, as AMASS's own; the C3D file is z up and in millimetres, as labs w
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -198,11 +199,16 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
             ``obj``, that is a file. DataError: not a result folder.
     """
     from flowmocap.export.marker_sets import marker_names
+    from flowmocap.io.results import result_folder
 
+    result_dir = result_folder(result_dir)
     _check_format(fmt)
     marker_names(markers)
     if markers != "joints" and fmt not in ("trc", "c3d"):
         raise InputError(f"a marker set ({markers!r}) is for the trc and c3d formats; {fmt!r} holds the body itself.")
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise InputError(f"out must be the path of the file to write (a str or a Path), or None; got "
+                         f"{type(out).__name__}.")
     out = Path(out) if out is not None else default_output(result_dir, fmt)
     ending = Path(FORMATS[fmt]).suffix
     if ending and out.suffix.lower() != ending:  # a .glb under a .bvh name opens in nothing

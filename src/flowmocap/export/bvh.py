@@ -11,6 +11,7 @@ axes). Leaves (head, feet, hands) get an ``End Site`` half as long as their own 
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 
 import numpy as np
@@ -88,7 +89,8 @@ def write_motion_bvh(path: str | Path, poses: np.ndarray, trans: np.ndarray, res
     """
     from flowmocap.io.mocap import write_bvh
 
-    if not np.isfinite(units_per_metre) or units_per_metre <= 0:
-        raise InputError(f"units_per_metre must be positive, got {units_per_metre}.")
+    if (isinstance(units_per_metre, bool) or not isinstance(units_per_metre, numbers.Real)
+            or not np.isfinite(units_per_metre) or units_per_metre <= 0):
+        raise InputError(f"units_per_metre must be a positive number (100 for centimetres), got {units_per_metre!r}.")
     clip = motion_to_clip(poses, trans, rest_joints, fps)
     return write_bvh(clip, path, units_per_metre=units_per_metre, order=order)

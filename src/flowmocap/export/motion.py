@@ -299,7 +299,9 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
 
     if frame not in FRAMES:
         raise InputError(f"unknown export frame {frame!r}; choose one of {', '.join(FRAMES)}.")
-    result_dir = Path(result_dir)
+    from flowmocap.io.results import result_folder
+
+    result_dir = result_folder(result_dir)
     if not result_dir.is_dir():
         raise DataError(f"result folder {result_dir} " + ("is a file" if result_dir.exists() else "does not exist")
                         + "; give the --out folder of "
@@ -362,6 +364,10 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
     else:
         W = up_rotation(camera) if frame == "up" else np.eye(3)
     smoothed = None
+    if not isinstance(smooth, (bool, dict)):  # smooth="no" would smooth
+        raise InputError(f"smooth must be False, True or a dict of window_s and order; got {smooth!r}.")
+    if isinstance(smooth, dict) and set(smooth) - {"window_s", "order"}:
+        raise InputError(f"smooth takes window_s (seconds) and order; got {sorted(smooth)}.")
     if smooth:
         from flowmocap.fit.smooth import DEFAULT_ORDER, DEFAULT_WINDOW_S, smooth_motion, window_frames
 

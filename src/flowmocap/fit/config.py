@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from flowmocap.errors import InputError
 from flowmocap.vision import FLOW_METHODS
 
@@ -353,8 +355,9 @@ class TrackerConfig:
             if name == "stages":
                 value = self._check_stages(value)
             elif kind == "bool":
-                if not isinstance(value, bool):
+                if not isinstance(value, (bool, np.bool_)):
                     raise _bad(name, value, "true or false")
+                value = bool(value)  # numpy's (arr.any()) as Python's: JSON, equality
             elif kind == "int":
                 if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                     raise _bad(name, value, f"an integer {_RANGES[name]}")
@@ -443,7 +446,11 @@ class TrackerConfig:
 
 
 def check_setting_names(values: Mapping[str, Any], source: str = "config") -> None:
-    """Refuse a removed setting (saying what happens now) or an unknown one."""
+    """Refuse a removed setting (saying what happens now) or an unknown one, or ``values``
+    that are not a mapping of names to values."""
+    if not isinstance(values, Mapping):
+        raise InputError(f"{source}: the settings must be a dict of names to values (a JSON object); got "
+                         f"{type(values).__name__}.")
     for name in values:
         if name in REMOVED_SETTINGS:
             raise InputError(f"{source}: setting {name!r} was removed: {REMOVED_SETTINGS[name]}. "

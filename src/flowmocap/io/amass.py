@@ -91,6 +91,9 @@ def read_amass_npz(path: str | Path, model=None):
         raise DataError(f"AMASS file {path} does not exist.") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:  # cut off or empty: the last two
         raise DataError(f"cannot read {path} as an AMASS .npz ({type(e).__name__}: {e}).") from None
+    if "energy_names" in data and "frame_index" in data:  # a flowmocap result's own motion.npz: y down, not z up
+        raise DataError(f"{path} is a flowmocap result's motion.npz, not an AMASS file; export it as one with "
+                        "`flowmocap export RESULT -f npz` (motion_amass.npz), or read it with flowmocap.load_result.")
     missing = [k for k in ("poses", "trans") if k not in data]
     if missing:
         raise DataError(f"{path} lacks {', '.join(missing)}; an AMASS file has poses, trans, betas, "

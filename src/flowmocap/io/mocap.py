@@ -578,6 +578,9 @@ def read_bvh(
         DataError: missing file, malformed hierarchy or motion (with line numbers),
             frame count mismatch, or a unit that cannot be guessed.
     """
+    from flowmocap.errors import check_path
+
+    check_path(path, "path", "a .bvh file")
     path = Path(path)
     if up not in ("y", "z"):
         raise InputError(f"up must be 'y' or 'z', got {up!r}")

@@ -514,6 +514,22 @@ def check_run(result_dir: str | Path, run: dict) -> None:
             raise DataError(f"{where} 'camera_motion' '{key}' holds NaN or infinite values; {redo}")
 
 
+def result_folder(value) -> Path:
+    """A result folder argument as a ``Path``: a path (``str`` or ``os.PathLike``), or a
+    :class:`flowmocap.Result` (its ``path``).
+
+    Raises:
+        InputError: anything else (pathlib would raise a bare ``TypeError``).
+    """
+    path = getattr(value, "path", None) if not isinstance(value, (str, os.PathLike)) else value
+    if not isinstance(path, (str, os.PathLike)):
+        from flowmocap.errors import InputError
+
+        raise InputError(f"a result folder is a path (a str or a Path) or a flowmocap.Result; got "
+                         f"{type(value).__name__}.")
+    return Path(path)
+
+
 def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     """``(motion arrays, run info)`` of a result folder, finished or not: a run that is
     still going, or was killed, gives its committed frames and events (see the module
@@ -522,11 +538,7 @@ def read_result(out_dir: str | Path) -> tuple[dict, dict]:
     Raises:
         DataError: missing or unreadable files.
     """
-    if not isinstance(out_dir, (str, os.PathLike)):
-        from flowmocap.errors import InputError
-
-        raise InputError(f"a result folder is a path (a str or a Path); got {type(out_dir).__name__}.")
-    out_dir = Path(out_dir)
+    out_dir = result_folder(out_dir)
     if not out_dir.exists():
         raise DataError(f"result folder {out_dir} does not exist; give the --out folder of `flowmocap track`.")
     if not out_dir.is_dir():

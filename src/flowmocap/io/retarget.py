@@ -402,6 +402,17 @@ def retarget(
         DataError: unknown rig (lists the joints found) or a degenerate rest pose.
         InputError: bad arguments.
     """
+    from flowmocap.body import BodyModel
+
+    if not isinstance(model, BodyModel):
+        raise InputError(f"model must be a BodyModel (flowmocap.body.load_body_model('default')); got "
+                         f"{type(model).__name__}.")
+    try:
+        facing_ok = facing is None or math.isfinite(float(facing))
+    except (TypeError, ValueError):
+        facing_ok = False
+    if not facing_ok:
+        raise InputError(f"facing must be a finite heading in radians, or None; got {facing!r}.")
     if origin not in ("start", None):
         raise InputError(f"origin must be 'start' or None, got {origin!r}")
     if ground not in ("clip", "frame", None):

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -215,6 +216,11 @@ def synthesize(
     """
     from flowmocap.body import load_body_model
 
+    from flowmocap.errors import check_path
+
+    if not isinstance(motion_source, SmplMotion):
+        check_path(motion_source, "motion_source", "a .bvh or .amc file, or 'builtin:walk'")
+    check_path(out_dir, "out_dir", "the sequence folder to write")
     t0 = time.perf_counter()
     if not str(out_dir).strip():
         raise InputError("the sequence folder (out_dir, --out) is empty; give the path of a new folder.")
@@ -223,6 +229,7 @@ def synthesize(
         raise InputError(f"output path {out_dir} is a file; give a folder")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"seed must be a whole number >= 0; got {seed!r}")
+    seed = int(seed)  # numpy's as Python's: meta.json
     if camera is not None:
         cam_given = read_camera_json(camera, *(parse_size(size) if size is not None else (None, None)))
         width, height = cam_given.width, cam_given.height
@@ -232,8 +239,9 @@ def synthesize(
             raise InputError("give an image size or a camera")
         width, height = parse_size(size)
     lo, hi = SYNTH_FPS_RANGE
-    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and lo <= fps <= hi):
+    if not (isinstance(fps, numbers.Real) and not isinstance(fps, bool) and math.isfinite(fps) and lo <= fps <= hi):
         raise InputError(f"fps must be a frame rate of {lo:g}..{hi:g} Hz, got {fps!r}")
+    fps = float(fps)
     if int(start) != start or start < 0:
         raise InputError(f"start must be a frame index >= 0, got {start!r}")
     if frames is not None and (int(frames) != frames or frames < 1):
