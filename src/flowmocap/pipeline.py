@@ -215,8 +215,8 @@ def parse_frame_range(frames: str | tuple | None, n: int) -> tuple[int, int]:
         if not whole:
             raise InputError(f"frames must be whole frame numbers; got {frames!r}.")
     if not (0 <= a < b <= n) or b - a < 2:
-        raise InputError(f"frames {a}:{b} do not select at least 2 of the {n} frames (frames A to B - 1, with "
-                         f"0 <= A < B <= {n}).")
+        raise InputError(f"frames {a}:{b} are not a range of at least 2 of the input's {n} frames (frames A to "
+                         f"B - 1, with 0 <= A < B <= {n}).")
     return a, b
 
 

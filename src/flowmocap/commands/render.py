@@ -17,8 +17,8 @@ def register(subparsers) -> None:
     p.add_argument("result", help="result folder (motion.npz, run.json), or a `track --person all` folder")
     p.add_argument("--out", help="folder for outputs given without a path (default RESULT/render)")
     p.add_argument("--video", nargs="?", const="", metavar="MP4",
-                   help="the fitted body over the input video (H.264 MP4 at the input's size, one frame for each "
-                   "of the result's)")
+                   help="the fitted body over the input video (H.264 MP4 at the tracked frames' size, after any "
+                   "--max-size; one frame for each of the result's)")
     p.add_argument("--side", action="store_true", help="add a side view to the video: the body as it moves in the world (the "
                    "camera's own turns, zoom and moves undone), from a camera orbited 90 degrees about the "
                    "middle of its path, far enough back to keep it in view")
