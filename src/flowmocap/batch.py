@@ -461,7 +461,6 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
             ``out_root`` that is a single result folder or a batch's folder.
         FolderBusyError: another run holds ``out_root``.
     """
-    say = log if log is not None else (lambda _msg: None)
     kwargs = _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
     root = Path(out_root)
     if _holds_result(root):
@@ -471,65 +470,71 @@ def track_people(source: str | Path, out_root: str | Path, min_share: float = PE
         raise InputError(f"{root} holds a batch of inputs ({MANIFEST}); give another --out folder for the people "
                          "of one input.")
     with FolderLock(root):  # one run at a time writes people.json and decides who is left to track
-        src = str(source)
-        try:
-            before = json.loads((root / PEOPLE_MANIFEST).read_text()).get("input")
-        except (OSError, ValueError, AttributeError):
-            before = None
-        if before is not None and before != _absolute(Path(src)):
-            tracked = sorted(d.name for d in root.glob("person*") if _holds_result(d))
-            if tracked:  # a run that failed before anyone was tracked leaves only people.json: used again
-                raise InputError(f"{root} holds the people of another input ({before}: {', '.join(tracked)}); give "
-                                 "another --out folder, the same input to go on with it, or delete the folder first to "
-                                 "use it for this input.")
-            (root / PEOPLE_MANIFEST).unlink()  # the other input's list of people, none of them tracked
-        _update_people(root, src, min_share, {})
-        kwargs["search_dir"] = str((root / PEOPLE_SEARCH).resolve())
-        first = _person_item(root, src, 0, force)
-        results: dict[int, BatchItem] = {}
+        return _track_people(str(source), root, kwargs, min_share, workers, ray, force, progress, log)
 
-        def report(res: BatchItem) -> None:
-            results[res.person] = res
-            entry = _manifest_entry(res)
-            del entry["input"]  # people.json names it once
-            _update_people(root, src, min_share, {res.name: entry})
-            _say_result(say, "", res)
 
-        if first.status == "finished":
-            say(f"{first.name} (the largest person) finished before: skipped")
-            results[0] = replace(first, status="skipped")
-        else:
-            say(f"tracking the largest person into {first.out}; then everyone else the detector follows in at least "
-                f"{min_share:g} of as many frames")
-            report(_track_one(first, kwargs, progress=progress, log=log))
-        found = root / first.name / "detections" / "detections.json"
-        try:
-            info = json.loads(found.read_text())
-        except (OSError, ValueError):  # the first run failed before its detection pass ended: nobody else is known
-            return [results[0]]
-        if not (info.get("person") or {}).get("people"):  # nobody found (the first run failed for it)
-            return [results[0]]
-        chosen = people_to_track(info, min_share)
-        listed = {f"person{p['rank']}": {"rank": p["rank"], "seen_frames": p["frames"], "detections": p["detections"],
-                                         "first_box": p["first_box"], "tracked": p in chosen}
-                  for p in (info.get("person") or {}).get("people", [])}
-        _update_people(root, src, min_share, listed)
-        items = [_person_item(root, src, p["rank"], force) for p in chosen[1:]]
-        for it in items:
-            if it.status == "finished":
-                results[it.person] = replace(it, status="skipped")
-        todo = [it for it in items if it.status != "finished"]
-        skipped = len(items) - len(todo)
-        found_n = len(info["person"]["people"])
-        say(f"{found_n} {'person' if found_n == 1 else 'people'} found, {len(chosen)} followed long enough to track"
-            + (f"; {len(todo)} more to track" if todo else "")
-            + (f", {skipped} finished before (skipped)" if skipped else ""))
-        # a stated height is the first (largest) person's; the others' sizes come from standing on
-        # that person's floor where the people are viewed or exported together (flowmocap.export.floor)
-        _dispatch(todo, {k: v for k, v in kwargs.items() if k != "height"}, workers, ray, report, say, progress, log)
-        if all(results[r].status != "failed" for r in results):  # nobody left to search for
-            shutil.rmtree(root / PEOPLE_SEARCH, ignore_errors=True)
-        return [results[r] for r in sorted(results)]
+def _track_people(src: str, root: Path, kwargs: dict, min_share: float, workers, ray, force: bool, progress: bool,
+                  log) -> list[BatchItem]:
+    """:func:`track_people`'s work, with ``root`` held."""
+    say = log if log is not None else (lambda _msg: None)
+    try:
+        before = json.loads((root / PEOPLE_MANIFEST).read_text()).get("input")
+    except (OSError, ValueError, AttributeError):
+        before = None
+    if before is not None and before != _absolute(Path(src)):
+        tracked = sorted(d.name for d in root.glob("person*") if _holds_result(d))
+        if tracked:  # a run that failed before anyone was tracked leaves only people.json: used again
+            raise InputError(f"{root} holds the people of another input ({before}: {', '.join(tracked)}); give "
+                             "another --out folder, the same input to go on with it, or delete the folder first to "
+                             "use it for this input.")
+        (root / PEOPLE_MANIFEST).unlink()  # the other input's list of people, none of them tracked
+    _update_people(root, src, min_share, {})
+    kwargs["search_dir"] = str((root / PEOPLE_SEARCH).resolve())
+    first = _person_item(root, src, 0, force)
+    results: dict[int, BatchItem] = {}
+
+    def report(res: BatchItem) -> None:
+        results[res.person] = res
+        entry = _manifest_entry(res)
+        del entry["input"]  # people.json names it once
+        _update_people(root, src, min_share, {res.name: entry})
+        _say_result(say, "", res)
+
+    if first.status == "finished":
+        say(f"{first.name} (the largest person) finished before: skipped")
+        results[0] = replace(first, status="skipped")
+    else:
+        say(f"tracking the largest person into {first.out}; then everyone else the detector follows in at least "
+            f"{min_share:g} of as many frames")
+        report(_track_one(first, kwargs, progress=progress, log=log))
+    found = root / first.name / "detections" / "detections.json"
+    try:
+        info = json.loads(found.read_text())
+    except (OSError, ValueError):  # the first run failed before its detection pass ended: nobody else is known
+        return [results[0]]
+    if not (info.get("person") or {}).get("people"):  # nobody found (the first run failed for it)
+        return [results[0]]
+    chosen = people_to_track(info, min_share)
+    listed = {f"person{p['rank']}": {"rank": p["rank"], "seen_frames": p["frames"], "detections": p["detections"],
+                                     "first_box": p["first_box"], "tracked": p in chosen}
+              for p in (info.get("person") or {}).get("people", [])}
+    _update_people(root, src, min_share, listed)
+    items = [_person_item(root, src, p["rank"], force) for p in chosen[1:]]
+    for it in items:
+        if it.status == "finished":
+            results[it.person] = replace(it, status="skipped")
+    todo = [it for it in items if it.status != "finished"]
+    skipped = len(items) - len(todo)
+    found_n = len(info["person"]["people"])
+    say(f"{found_n} {'person' if found_n == 1 else 'people'} found, {len(chosen)} followed long enough to track"
+        + (f"; {len(todo)} more to track" if todo else "")
+        + (f", {skipped} finished before (skipped)" if skipped else ""))
+    # a stated height is the first (largest) person's; the others' sizes come from standing on
+    # that person's floor where the people are viewed or exported together (flowmocap.export.floor)
+    _dispatch(todo, {k: v for k, v in kwargs.items() if k != "height"}, workers, ray, report, say, progress, log)
+    if all(results[r].status != "failed" for r in results):  # nobody left to search for
+        shutil.rmtree(root / PEOPLE_SEARCH, ignore_errors=True)
+    return [results[r] for r in sorted(results)]
 
 
 def track_people_many(inputs: Sequence[str | Path], out_root: str | Path, min_share: float = PEOPLE_MIN_SHARE,
@@ -553,39 +558,46 @@ def track_people_many(inputs: Sequence[str | Path], out_root: str | Path, min_sh
         InputError: as :func:`track_people`, before anything runs.
         FolderBusyError: another run holds ``out_root``.
     """
-    say = log if log is not None else (lambda _msg: None)
     _checked_people_kwargs(track_kwargs, min_share, workers, ray, force)
     root = Path(out_root)
     if _holds_result(root):
         raise InputError(f"{root} is the result folder of a single input; give another --out folder for several "
                          "inputs (each gets its own folder of people inside it).")
     with FolderLock(root):  # one run at a time writes batch.json and decides what is left to do
-        paths = [Path(p) for p in _as_inputs(inputs)]
-        names = _names(paths, root, _read_manifest(root))
-        _update_manifest(root, {names[_absolute(p)]: {"input": _absolute(p)} for p in paths})
-        done: set[str] = set()
-        items: list[BatchItem] = []
-        for p in paths:
-            name = names[_absolute(p)]
-            if name in done:
-                continue
-            done.add(name)
-            say(f"[{len(done)}/{len(names)}] {p}: every person into {root / name}")
-            t0 = time.perf_counter()
-            try:
-                if not p.exists():
-                    raise DataError(f"{p} does not exist; give a video file, a folder of frames or a sequence folder.")
-                people = track_people(p, root / name, min_share=min_share, workers=workers, ray=ray, force=force,
-                                      progress=progress, log=log, **track_kwargs)
-            except FlowMocapError as e:  # this input's own trouble (e.g. its folder holds another input's people)
-                people = [BatchItem(input=str(p), name="person0", out=root / name / "person0", status="failed",
-                                    seconds=time.perf_counter() - t0, error=str(e), person=0)]
-            items += [replace(it, name=f"{name}/{it.name}") for it in people]
-            failed = [it.name for it in people if it.status == "failed"]
-            _update_manifest(root, {name: {"status": "failed" if failed else "finished", "people": len(people),
-                                           **({"failed": failed} if failed else {}),
-                                           "when": time.strftime("%Y-%m-%dT%H:%M:%S%z")}})
-        return items
+        return _track_people_many(_as_inputs(inputs), root, min_share, workers, ray, force, progress, log,
+                                  track_kwargs)
+
+
+def _track_people_many(inputs: list, root: Path, min_share: float, workers, ray, force: bool, progress: bool, log,
+                       track_kwargs: dict) -> list[BatchItem]:
+    """:func:`track_people_many`'s work, with ``root`` held."""
+    say = log if log is not None else (lambda _msg: None)
+    paths = [Path(p) for p in inputs]
+    names = _names(paths, root, _read_manifest(root))
+    _update_manifest(root, {names[_absolute(p)]: {"input": _absolute(p)} for p in paths})
+    done: set[str] = set()
+    items: list[BatchItem] = []
+    for p in paths:
+        name = names[_absolute(p)]
+        if name in done:
+            continue
+        done.add(name)
+        say(f"[{len(done)}/{len(names)}] {p}: every person into {root / name}")
+        t0 = time.perf_counter()
+        try:
+            if not p.exists():
+                raise DataError(f"{p} does not exist; give a video file, a folder of frames or a sequence folder.")
+            people = track_people(p, root / name, min_share=min_share, workers=workers, ray=ray, force=force,
+                                  progress=progress, log=log, **track_kwargs)
+        except FlowMocapError as e:  # this input's own trouble (e.g. its folder holds another input's people)
+            people = [BatchItem(input=str(p), name="person0", out=root / name / "person0", status="failed",
+                                seconds=time.perf_counter() - t0, error=str(e), person=0)]
+        items += [replace(it, name=f"{name}/{it.name}") for it in people]
+        failed = [it.name for it in people if it.status == "failed"]
+        _update_manifest(root, {name: {"status": "failed" if failed else "finished", "people": len(people),
+                                       **({"failed": failed} if failed else {}),
+                                       "when": time.strftime("%Y-%m-%dT%H:%M:%S%z")}})
+    return items
 
 
 def _checked_people_kwargs(track_kwargs: dict, min_share: float, workers, ray, force: bool) -> dict:
