@@ -166,12 +166,12 @@ def test_cli_serves_until_ctrl_c_and_stops_cleanly(result, sig):
             proc.kill()
 
 
-def _chromium_run(url: str, *extra: str, timeout: int = 120) -> subprocess.CompletedProcess:
+def _chromium_run(url: str, *extra: str, timeout: int = 120, window: str = "1000,420") -> subprocess.CompletedProcess:
     with tempfile.TemporaryDirectory() as profile:
         return subprocess.run([
             _chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            "--enable-unsafe-swiftshader", f"--user-data-dir={profile}", "--window-size=1000,420",
+            "--enable-unsafe-swiftshader", f"--user-data-dir={profile}", f"--window-size={window}",
             "--virtual-time-budget=20000", *extra, url], capture_output=True, text=True, timeout=timeout)
 
 
@@ -489,3 +489,19 @@ def test_view_says_when_the_run_is_not_finished_or_the_input_not_the_tracked_one
     (copy / "run.json").write_text(json.dumps({**run, "fingerprint": {"input": "0" * 16}}))
     notes = ViewerData(copy, input=frames).notes
     assert len(notes) == 1 and "is not the input that was tracked" in notes[0]
+
+
+def test_the_slider_keeps_its_width_in_a_narrow_window_and_on_every_frame(reviewed):
+    """At 800 px the slider was 0 px wide (the label and the result's name took the bar), and
+    it moved sideways from frame to frame as the label grew ' (review)'."""
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium); the viewer's browser test needs it")
+    data, url = reviewed
+    widths = []
+    for k in (0, 4):  # frame 4 is to be reviewed: its label is longer
+        dom = _chromium_run(url + f"/?frame={k}", "--dump-dom", window="800,420").stdout
+        assert 'data-ready="1"' in dom and f'data-frame="{k}"' in dom, dom[-2000:]
+        widths.append(int(dom.split('data-slider="')[1].split('"')[0]))
+    assert min(widths) >= 120 and widths[0] == widths[1], widths
+    dom = _chromium_run(url + "/?frame=abc", "--dump-dom").stdout  # not a number: the first frame, not NaN
+    assert 'data-frame="0"' in dom and "NaN" not in dom.split("<header")[1].split("</header>")[0]

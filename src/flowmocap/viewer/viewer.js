@@ -236,10 +236,11 @@ function draw() {
 }
 
 async function setFrame(k) {
-  current = Math.max(0, Math.min(T - 1, Math.round(k)));
+  current = Math.max(0, Math.min(T - 1, Math.round(Number.isFinite(k) ? k : 0)));  // ?frame=abc: the first
   const mine = ++token;
   $('slider').value = String(current);
-  label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(current / fps).toFixed(2)} s`;
+  // the time in the input video (a result may start at a later frame)
+  label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(meta.frame_index[current] / fps).toFixed(2)} s`;
   // who was not seen in this frame: held at the last seen pose, or tracked by flow alone
   const unseen = meta.people.map((person) => (person.unseen ? person.unseen[current] : ''));
   unseen.forEach((how, k) => {
@@ -262,11 +263,17 @@ async function setFrame(k) {
     // per person, 0/1: that person's frame is to be reviewed
     document.body.dataset.reviewPeople = meta.people.map((person) => (person.review ? person.review[current] : 0)).join('');
   }
+  label.title = label.textContent;  // the whole text where a narrow window cuts it
   const img = $('frame');
-  await new Promise((resolve) => { img.onload = resolve; img.onerror = resolve; img.src = `/frame/${current}.jpg`; });
+  const loaded = await new Promise((resolve) => {
+    img.onload = () => resolve(true); img.onerror = () => resolve(false); img.src = `/frame/${current}.jpg`;
+  });
+  $('frame-caption').textContent = loaded ? 'input with the fitted body (the result\'s camera)'
+    : `input frame ${meta.frame_index[current]} could not be loaded: is flowmocap view still running?`;
   if (mine !== token) return;  // a newer frame was asked for meanwhile
   draw();
   document.body.dataset.frame = String(current);
+  document.body.dataset.slider = String(Math.round($('slider').getBoundingClientRect().width));  // px, for tests
   document.body.dataset.ready = '1';
   document.title = `flowmocap view: frame ${current}`;
 }
@@ -291,12 +298,13 @@ $('prev').addEventListener('click', () => { setPlaying(false); setFrame(current 
 $('next').addEventListener('click', () => { setPlaying(false); setFrame(current + 1); });
 $('slider').addEventListener('input', (e) => { setPlaying(false); setFrame(Number(e.target.value)); });
 window.addEventListener('keydown', (e) => {
+  // preventDefault: a focused slider would step once more by itself
   if (e.key === ' ') { setPlaying(!playing); e.preventDefault(); }
-  if (e.key === 'ArrowLeft') { setPlaying(false); setFrame(current - 1); }
-  if (e.key === 'ArrowRight') { setPlaying(false); setFrame(current + 1); }
+  if (e.key === 'ArrowLeft') { setPlaying(false); setFrame(current - 1); e.preventDefault(); }
+  if (e.key === 'ArrowRight') { setPlaying(false); setFrame(current + 1); e.preventDefault(); }
 });
 
 layout();
 drawStrip();
-await setFrame(Number(params.get('frame') || 0));
+await setFrame(Number(params.get('frame') || 0));  // setFrame takes a non-number as the first frame
 if (params.get('play') === '1') setPlaying(true);
