@@ -705,3 +705,27 @@ def test_people_to_track_takes_the_detections_file(tmp_path):
     assert people_to_track(tmp_path / "detections.json") == people_to_track(info)
     with pytest.raises(InputError, match="info must be a detections.json's dict"):
         people_to_track(5)
+
+
+def test_a_demo_killed_while_it_wrote_a_file_runs_again(tmp_path):
+    """Its own temporary (default_body.png.XXXX.tmp) made the demo's folder 'not empty and
+    holds no flowmocap demo' for every rerun."""
+    from flowmocap.eval.demo import check_demo
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "default_body.png.x0wge0xn.tmp").write_bytes(b"half")
+    check_demo(out, 30, "640x480", 0)
+    (out / "mine.tmp").write_text("a user's")
+    with pytest.raises(InputError, match=r"is not empty \(mine.tmp\)"):
+        check_demo(out, 30, "640x480", 0)
+
+
+def test_a_child_whose_parent_is_gone_ends_at_once():
+    """The bench's tracking child outlived a bench killed outright, holding the result folder."""
+    import subprocess
+    import sys
+
+    code = "from flowmocap.vision.detect_worker import end_with_parent; end_with_parent(1); print('still here')"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 130 and "still here" not in done.stdout

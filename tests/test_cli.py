@@ -79,3 +79,44 @@ def test_track_takes_a_list_file_alone_and_says_when_there_is_no_input(tmp_path,
     assert main(["track", "--list", str(todo), "--out", str(tmp_path / "out")]) == 6  # a batch whose input failed
     assert "missing.mp4 does not exist" in capsys.readouterr().out
 
+
+
+def _child_signals() -> None:
+    """In the child: Ctrl-C as a shell gives it (a child can inherit an ignored SIGINT)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def test_ctrl_c_while_the_libraries_load_is_one_line_not_a_traceback(tmp_path):
+    """Ctrl-C in the first second or two of any command came out as an import's traceback
+    (scipy: 'ImportError: initialization failed', exit 1: a bug's status)."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "flowmocap.cli", "body", "--out", str(tmp_path / "b.png")],
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_child_signals)
+    time.sleep(0.4)  # torch, scipy and OpenCV take seconds to load
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "Traceback" not in err and "interrupted" in err, (proc.returncode, err)
+
+
+def test_sigterm_stops_a_command_as_ctrl_c_does_and_leaves_no_temporary(tmp_path):
+    """SIGTERM ended every command but view at once: render's video and export's files left
+    their temporaries, and no rerun removed them."""
+    import signal
+    import time
+
+    out = tmp_path / "seq"
+    proc = subprocess.Popen([sys.executable, "-m", "flowmocap.cli", "synth", "builtin:walk", "--out", str(out),
+                             "--num-frames", "400", "--size", "160x120", "--no-flow"],
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_child_signals)
+    deadline = time.time() + 300
+    while time.time() < deadline and len(list((out / "frames").glob("*.png")) if (out / "frames").is_dir() else []) < 3:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, (proc.returncode, err)
+    assert not [p for p in out.rglob("*.tmp")]

@@ -444,3 +444,44 @@ def test_names_of_the_wrong_kind_are_refused_before_the_work(posed_result, tmp_p
     assert "give --smooth too" in capsys.readouterr().err
     assert main(["export", str(folder), "-f", "bvh", "--out", str(tmp_path / "m.bvh"), "--bvh-unit", "cm",
                  "--smooth", "0.2", "--smooth-order", "3", "--quiet"]) == 0
+
+
+def test_an_obj_export_stopped_while_it_moves_in_leaves_the_earlier_one_whole(posed_result, tmp_path, monkeypatch):
+    """The new frames were moved in one by one after the old ones were deleted: a stop there
+    left 4 new frames and lost the rest of both exports. Now the folders trade places."""
+    import os
+
+    folder, _ = posed_result
+    objs = tmp_path / "obj"
+    first = sorted(p.name for p in export_result(folder, "obj", objs).iterdir())
+    before = {p.name: p.read_bytes() for p in objs.iterdir()}
+    real, calls = os.rename, []
+
+    def stopped(src, dst):
+        calls.append(dst)
+        if Path(dst) == objs and calls.count(dst) == 1:  # the new export is about to take the name
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "rename", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        export_result(folder, "obj", objs, smooth=True)
+    monkeypatch.undo()
+    assert {p.name: p.read_bytes() for p in objs.iterdir()} == before and sorted(before) == first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obj"]  # no staging or old folder left
+    again = export_result(folder, "obj", objs, smooth=True)
+    assert sorted(p.name for p in again.iterdir()) == first and {p.name: p.read_bytes() for p in objs.iterdir()} != before
+
+
+def test_an_export_made_now_equals_one_made_later_from_the_cached_world_frame(posed_result, tmp_path):
+    """The first export used the world frame at full precision, later ones world.json's 9
+    decimals: BVHs of the same result differed by up to 1.2e-8."""
+    import shutil
+
+    folder, _ = posed_result
+    copy = tmp_path / "r"
+    shutil.copytree(folder, copy)
+    (copy / "world.json").unlink(missing_ok=True)
+    first = export_result(copy, "bvh", tmp_path / "a.bvh").read_bytes()
+    assert (copy / "world.json").exists()
+    assert export_result(copy, "bvh", tmp_path / "b.bvh").read_bytes() == first

@@ -4,8 +4,25 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import signal
 import sys
+import threading
 from pathlib import Path
+
+
+def _stopped_while_starting(signum, frame) -> None:
+    """Ctrl-C while the libraries below load (a second or two): nothing has started, so
+    say so and end, where a KeyboardInterrupt inside an import came out as its traceback
+    (scipy's 'ImportError: initialization failed', exit 1)."""
+    sys.stderr.write("flowmocap: interrupted\n")
+    os._exit(130)
+
+
+_LOADING = (threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler)  # not where SIGINT is ignored
+if _LOADING:
+    signal.signal(signal.SIGINT, _stopped_while_starting)
 
 from flowmocap.batch import (BATCH_FAILED, expand_inputs, is_batch, summary_table, track_many, track_people,
                              track_people_many)
@@ -18,6 +35,9 @@ from flowmocap.synth import synthesize
 from flowmocap.version import __version__
 from flowmocap.vision.flow import FLOW_METHODS
 from flowmocap.viz.body_figure import POSES, body_sheet, render_body
+
+if _LOADING:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _parse_betas(text: str | None) -> list[float]:
@@ -410,6 +430,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):  # no command: say which there are, as for any other usage error
         parser.print_help(sys.stderr)
         return 2
+    def terminated(signum, frame):  # SIGTERM (kill, a service manager) stops as cleanly as Ctrl-C
+        raise KeyboardInterrupt
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, terminated) if main_thread else None
     try:
         return args.func(args)
     except FlowMocapError as e:
@@ -429,6 +454,9 @@ def main(argv: list[str] | None = None) -> int:
               + ("; free space (or raise the file size limit) and run the command again" if full else ""),
               file=sys.stderr)
         return OutputError.exit_code
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -329,16 +329,41 @@ def _finished(res_dir: Path) -> bool:
         return False
 
 
+def _run_method_child(parent: int, **kw) -> None:
+    """:func:`run_method` in the bench's child process: it ends with the bench (a bench killed
+    outright left it tracking on, holding the result folder), and a Ctrl-C ends it with exit
+    status 130 and no traceback (the bench says it was interrupted)."""
+    import sys
+
+    from flowmocap.vision.detect_worker import end_with_parent
+
+    end_with_parent(parent)
+    try:
+        run_method(**kw)
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
 def _run_isolated(isolate: bool, **kw) -> None:
     if not isolate:
         run_method(record_memory=False, **kw)
         return
     import multiprocessing as mp
+    import os
 
     ctx = mp.get_context("spawn")
-    proc = ctx.Process(target=run_method, kwargs=kw)
+    proc = ctx.Process(target=_run_method_child, args=(os.getpid(),), kwargs=kw)
     proc.start()
-    proc.join()
+    try:
+        proc.join()
+    except BaseException:  # Ctrl-C: the child got it too and records its stop; one sent here alone stops it
+        proc.join(15)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(15)
+        raise
+    if proc.exitcode in (130, -2):  # the child's Ctrl-C (the terminal's reaches both)
+        raise KeyboardInterrupt
     if proc.exitcode != 0:
         raise DataError(f"the {kw['method']} run on {kw['seq_dir']} failed (exit code {proc.exitcode}); "
                         f"see the messages above, fix the cause and re-run the bench: it resumes from {kw['res_dir']}.")

@@ -20,6 +20,12 @@ from flowmocap.synth import synthesize
 DEMO_FILES = ("sequence", "result", "init.json", "eval.json", "default_body.png")
 
 
+def _own_temporary(name: str) -> bool:
+    """Whether ``name`` is the temporary of one of the demo's files (``NAME.XXXX.tmp``,
+    :func:`flowmocap.atomic.atomic_write`), left by a demo killed while it wrote it."""
+    return name.endswith(".tmp") and any(name.startswith(f"{f}.") for f in DEMO_FILES)
+
+
 def check_demo(out_dir: str | Path, frames: int, size: str, seed: int, fps: float = 30.0) -> None:
     """Refuse the demo's arguments before anything is written (``InputError``): an empty or
     file ``out_dir``, one that holds files other than a demo's (:data:`DEMO_FILES`), fewer
@@ -32,7 +38,8 @@ def check_demo(out_dir: str | Path, frames: int, size: str, seed: int, fps: floa
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} is a file; the demo writes into a folder: give a new folder.")
-    others = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FILES) if out.is_dir() else []
+    others = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FILES and not _own_temporary(p.name)
+                    ) if out.is_dir() else []
     if others:
         shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
         raise InputError(f"{out} is not empty ({shown}) and holds no flowmocap demo; give a new or empty folder.")
@@ -61,6 +68,9 @@ def run_demo(out_dir: str | Path = "demo_out", frames: int = 40, size: str = "64
     """
     check_demo(out_dir, frames, size, seed, fps)
     out_dir = Path(out_dir)
+    for p in out_dir.glob("*.tmp") if out_dir.is_dir() else []:  # a stopped demo's half-written file
+        if _own_temporary(p.name):
+            p.unlink(missing_ok=True)
     seq_dir, res_dir = out_dir / "sequence", out_dir / "result"
     t0 = time.perf_counter()
     fresh = not _same_clip(seq_dir, frames, size, seed, fps)

@@ -41,7 +41,9 @@ def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, comment
 def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numbers, num_frames: int,
                        progress: bool = False) -> list[Path]:
     """Write ``frame_<number>.obj`` per frame into ``folder``, in place of the
-    ``frame_*.obj`` of an earlier export there (written beside it first, then moved in).
+    ``frame_*.obj`` of an earlier export there: written beside it first, then the folders
+    trade places (a stop leaves one whole export; where the folder holds other files too,
+    the frames are replaced in it one by one).
 
     Args:
         folder: output folder (created).
@@ -75,13 +77,26 @@ def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numb
                             frame_numbers):
             made.append(write_obj(staging / f"frame_{int(n):06d}.obj", verts, faces,
                                   comment=f"flowmocap frame {int(n)}, metres"))
-        folder.mkdir(exist_ok=True)
-        for old in folder.glob("frame_*.obj"):  # the earlier export's frames
-            old.unlink()
-        paths = []
-        for p in made:
-            os.replace(p, folder / p.name)
-            paths.append(folder / p.name)
+        names = [p.name for p in made]
+        if not folder.exists():
+            os.rename(staging, folder)
+        elif all(p.name.startswith("frame_") and p.suffix == ".obj" for p in folder.iterdir()):
+            # only an earlier export's frames: the folders trade places, so a stop leaves one whole
+            # export under the name (the earlier one is put back if the new one is not in yet)
+            old = Path(tempfile.mkdtemp(dir=folder.parent, prefix=folder.name + ".old.", suffix=".tmp"))
+            os.rmdir(old)
+            os.rename(folder, old)
+            try:
+                os.rename(staging, folder)
+            except BaseException:
+                os.rename(old, folder)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:  # a folder that holds files of the user's as well: the frames are replaced in it
+            for p in folder.glob("frame_*.obj"):
+                p.unlink()
+            for p in made:
+                os.replace(p, folder / p.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return paths
+    return [folder / n for n in names]

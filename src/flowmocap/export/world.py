@@ -245,10 +245,12 @@ def load_world_frame(result_dir: str | Path, poses, trans, betas, model, camera,
         except (ValueError, KeyError, TypeError, AttributeError, IndexError, OSError):
             pass  # an unreadable cache (not JSON, not an object, missing parts) is computed again
     wf = world_frame(poses, trans, betas, model, camera, fps)
+    text = json.dumps(wf.to_dict(frame_index), indent=1)
     if cache:
-        text = json.dumps(wf.to_dict(frame_index), indent=1)
         try:
             atomic_write(path, lambda tmp: Path(tmp).write_text(text))
         except OSError:
             pass
-    return wf
+    # as the cache will give it (9 decimals): an export made now and one made later from
+    # world.json are equal to the last digit
+    return WorldFrame.from_dict(json.loads(text))

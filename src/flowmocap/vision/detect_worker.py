@@ -55,11 +55,24 @@ PARENT_ENV = "FLOWMOCAP_DETECT_PARENT"
 
 
 def _end_with_parent() -> None:
-    """Have the kernel stop this process when the one that started it ends (Linux's
-    ``PR_SET_PDEATHSIG``): a tracking process killed outright (``kill -9``, SIGTERM) used to
-    leave its detector running on, outside the result folder's lock. A parent already gone
-    by now (its id in :data:`PARENT_ENV` no longer this process's parent) ends it at once.
-    Elsewhere than Linux: nothing (the parent's Ctrl-C still reaches the process group)."""
+    """:func:`end_with_parent` with the parent's id from :data:`PARENT_ENV`: a tracking
+    process killed outright (``kill -9``, SIGTERM) used to leave its detector running on,
+    outside the result folder's lock."""
+    import os
+
+    parent = os.environ.get(PARENT_ENV)
+    end_with_parent(int(parent) if parent and parent.isdigit() else None)
+
+
+def end_with_parent(parent: int | None = None) -> None:
+    """Have the kernel stop this process (SIGTERM) when the one that started it ends
+    (Linux's ``PR_SET_PDEATHSIG``). A ``parent`` already gone by now (its id no longer this
+    process's parent) ends it at once (exit 130). Elsewhere than Linux: nothing (the
+    parent's Ctrl-C still reaches the process group).
+
+    Args:
+        parent: the process id of the parent that started this one, or None (not checked).
+    """
     import os
     import signal
 
@@ -71,8 +84,7 @@ def _end_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         return
-    parent = os.environ.get(PARENT_ENV)
-    if parent and parent.isdigit() and os.getppid() != int(parent):
+    if parent is not None and os.getppid() != parent:
         sys.exit(130)
 
 
