@@ -876,13 +876,16 @@ def _refuse_single_result(root: Path) -> None:
 
 
 def _finished(folder: Path) -> bool:
-    """Whether ``folder`` holds a finished result."""
-    if not folder.is_dir():
+    """Whether ``folder`` holds a finished result: its ``run.json`` says so beside a
+    ``motion.npz``, with no run in progress (read without loading the motion: it is asked
+    before every input's run)."""
+    if (folder / "progress.json").exists() or not (folder / "motion.npz").is_file():
         return False
     try:
-        return load_result(folder).run.get("status") == "finished"
-    except FlowMocapError:
+        run = json.loads((folder / "run.json").read_text())
+    except (OSError, ValueError):
         return False
+    return isinstance(run, dict) and run.get("status") == "finished"
 
 
 def _holds_result(folder: Path) -> bool:
