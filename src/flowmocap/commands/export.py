@@ -68,6 +68,17 @@ def smooth_option(text: str | None, order: int) -> dict | bool:
     return {"window_s": window, "order": order}
 
 
+def _says_finished(folder) -> bool:
+    """Whether ``folder``'s ``run.json`` says its run finished, with no run in progress."""
+    import json
+
+    try:
+        run = json.loads((folder / "run.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(run, dict) and run.get("status") == "finished" and not (folder / "progress.json").exists()
+
+
 def run_export(args) -> int:
     from pathlib import Path
 
@@ -86,6 +97,8 @@ def run_export(args) -> int:
     args.smooth_order = 2 if args.smooth_order is None else args.smooth_order
 
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
+        if _says_finished(Path(folder)):  # the usual case: the export reads the motion itself, once
+            continue
         motion, run = read_result(folder)
         note = unfinished_words(folder, run, len(motion["poses"]))
         if note:
