@@ -750,11 +750,18 @@ def _run_processes(todo: list[BatchItem], kwargs: dict, workers: int, report: Ca
     spent: dict[str, float] = {}  # seconds of tries that died
     try:
         while pending or running:
+            broken = False  # the pool died after the last wait and refuses new work
             while pending and len(running) < workers:
                 it = pending.popleft()
+                try:
+                    fut = pool.submit(_track_in_worker, it, kwargs, threads)
+                except BrokenProcessPool:  # never handed out: no try spent
+                    pending.appendleft(it)
+                    broken = True
+                    break
                 tries[it.name] = tries.get(it.name, 0) + 1
-                running[pool.submit(_track_in_worker, it, kwargs, threads)] = (it, time.perf_counter())
-            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                running[fut] = (it, time.perf_counter())
+            finished = wait(running, return_when=FIRST_COMPLETED)[0] if running else set()
             lost = []
             for fut in finished:
                 it, t0 = running.pop(fut)
@@ -764,11 +771,12 @@ def _run_processes(todo: list[BatchItem], kwargs: dict, workers: int, report: Ca
                     lost.append((it, t0))
                 else:
                     report(replace(res, seconds=res.seconds + spent.get(res.name, 0.0)))
-            if lost:  # every input still in the dead pool is lost with it
+            if lost or broken:  # every input still in the dead pool is lost with it
                 lost += list(running.values())
                 running.clear()
                 pool.shutdown(wait=True, cancel_futures=True)
                 pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+            if lost:
                 again = [it.name for it, _ in lost if tries[it.name] < 2]
                 say(f"a worker process died while tracking {', '.join(it.name for it, _ in lost)}"
                     + (f"; trying {', '.join(again)} once more (resuming)" if again else ""))
