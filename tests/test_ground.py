@@ -184,3 +184,75 @@ def test_exports_stand_on_the_floor_by_default(tmp_path):
     feet = np.array([f["joints3d"] for f in doc["frames"]])[:, [7, 8, 10, 11], 1]
     assert 0.0 < feet.min() < 0.12  # ankles/toes just above the floor, never under it by more than noise
     assert any(f["contact"][0] for f in doc["frames"]) and any(f["contact"][1] for f in doc["frames"])
+
+
+# A calibrated camera's world may be y up (synthetic, look_at), z up (lab calibrations: Qualisys,
+# Vicon) or y down (a checkerboard on a wall): the world's +y is not always up.
+_WORLDS = {"y up": np.eye(3), "z up": Rotation.from_rotvec([np.pi / 2, 0, 0]).as_matrix(),
+           "y down": np.diag([1.0, -1.0, -1.0])}
+
+
+@pytest.mark.parametrize("world", list(_WORLDS))
+def test_world_up_is_the_world_axis_nearest_the_image_up(world):
+    from flowmocap.geometry.camera import world_up
+    from flowmocap.export.motion import up_rotation
+
+    M = _WORLDS[world]  # y-up world -> this world
+    for pitch_deg in (0.0, 30.0, -40.0):  # a camera looking down or up, within 45 degrees of level
+        for yaw_deg in (0.0, 70.0, 200.0):
+            R0 = (Rotation.from_rotvec([np.radians(pitch_deg), 0, 0]) * Rotation.from_rotvec([0, np.radians(yaw_deg), 0])
+                  ).as_matrix() @ np.diag([1.0, -1.0, -1.0])  # in the y-up world
+            cam = PinholeCamera.from_focal(64, 48, 80.0, R=R0 @ M.T, t=[0.1, 0.2, 3.0])
+            np.testing.assert_allclose(world_up(cam), M @ [0.0, 1.0, 0.0], atol=1e-12)
+            U = up_rotation(cam)
+            np.testing.assert_allclose(U @ U.T, np.eye(3), atol=1e-12)
+            assert np.linalg.det(U) == pytest.approx(1.0)
+            np.testing.assert_allclose(U @ M @ [0.0, 1.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    up = M @ [0.0, 1.0, 0.0]
+    side = M @ [0.0, 0.0, 1.0]  # a horizontal axis of this world
+    for pitch_deg in (-60.0, 60.0, 68.0):  # steep: the image up nearer a horizontal axis; an upright body decides
+        R0 = Rotation.from_rotvec([np.radians(pitch_deg), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+        np.testing.assert_allclose(world_up(R0 @ M.T, body_up=up + [0.03, 0.03, -0.03]), up, atol=1e-12)
+    # a body lying through the whole clip, filmed from 40 degrees above: the camera decides
+    R0 = Rotation.from_rotvec([np.radians(40.0), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    np.testing.assert_allclose(world_up(R0 @ M.T, body_up=side), up, atol=1e-12)
+    np.testing.assert_allclose(up_rotation(PinholeCamera.from_focal(64, 48, 80.0, R=R0 @ M.T), side) @ up, [0, 1, 0],
+                               atol=1e-12)
+    # no calibration: the camera's own frame, y down
+    np.testing.assert_allclose(world_up(np.eye(3)), [0.0, -1.0, 0.0])
+    np.testing.assert_allclose(world_up(np.eye(3), body_up=[1.0, 0.0, 0.0]), [0.0, -1.0, 0.0])
+
+
+@pytest.mark.parametrize("world", list(_WORLDS))
+def test_a_result_in_any_calibrated_world_stands_upright_on_the_floor(tmp_path, world):
+    # a z-up lab calibration gave a body lying along -x in every export (its up taken as the world's +y)
+    from flowmocap.io.smpl_motion import rotate_motion
+
+    M = _WORLDS[world]
+    model = load_body_model("default")
+    walk = builtin_walk(model, fps=30.0, frames=60, facing=np.pi / 2)
+    with torch.no_grad():
+        out = model(pose=torch.as_tensor(walk.poses, dtype=torch.float32),
+                    trans=torch.as_tensor(walk.trans, dtype=torch.float32))
+    rest0 = out.rest_joints[0, 0].double().numpy()
+    poses, trans = rotate_motion(walk.poses, walk.trans, rest0, M)
+    R0 = Rotation.from_rotvec([np.radians(10.0), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    cam = PinholeCamera.from_focal(320, 240, 300.0, R=R0 @ M.T, t=-R0 @ np.array([1.0, 1.4, 5.0]))
+    j = out.joints.double().numpy() @ M.T
+    write_motion(tmp_path, {
+        "poses": poses.astype(np.float32), "trans": trans.astype(np.float32), "betas": np.zeros(10, np.float32),
+        "gender": np.array("neutral"), "fps": np.array(30.0), "camera": np.array(json.dumps(cam.to_dict())),
+        "joints3d": j.astype(np.float32), "joints2d": cam.project(j).astype(np.float32), "frame_index": np.arange(60),
+    })
+    write_run(tmp_path, {"model": "default", "gender": "neutral"})
+    truth = out.joints.double().numpy()  # y up, feet on y = 0
+    for frame in ("ground", "up"):
+        m = load_fitted_motion(tmp_path, frame=frame)
+        got = m.joints()
+        body_up = (got[:, 12] - 0.5 * (got[:, 7] + got[:, 8])).mean(0)
+        assert _angle_deg(body_up, [0.0, 1.0, 0.0]) < 10.0, (frame, body_up)
+        if frame == "ground":
+            np.testing.assert_allclose(got[..., 1], truth[..., 1], atol=0.02)  # the walk's own heights
+        else:  # a pure turn of the world: y up as the walk's own frame
+            np.testing.assert_allclose(got, truth, atol=1e-4)
+        np.testing.assert_allclose(m.camera.project(got), m.joints2d, atol=1e-3)

@@ -2,7 +2,8 @@
 
 A result's 3D quantities live in the world frame of its camera (``X_cam = R X + t``).
 Synthetic sequences and cameras placed with :func:`flowmocap.geometry.look_at` have a
-y-up world; a result tracked with only a focal length has ``R = I``, so its world *is*
+y-up world, lab calibrations often a z-up one (:func:`flowmocap.geometry.camera.world_up`
+finds the up axis); a result tracked with only a focal length has ``R = I``, so its world *is*
 the camera frame (x right, y down, z forward) and a person standing in the video stands
 upside down there, under a floor tilted by the camera's pitch. Export frames
 (:data:`FRAMES`):
@@ -218,16 +219,41 @@ class FittedMotion:
         return np.concatenate(out) if out else np.zeros((0, 24, 3))
 
 
-def up_rotation(camera) -> np.ndarray:
+def up_rotation(camera, body_up=None) -> np.ndarray:
     """``(3, 3)`` rotation from a result's world frame to a y-up frame.
 
-    Identity when the camera has a pose (its world was set up y-up, as synthetic
-    sequences and :func:`~flowmocap.geometry.look_at` do); 180 degrees about x
-    (:data:`CAMERA_TO_Y_UP`) when the world is the camera frame (``R = I``, ``t = 0``).
+    It turns :func:`~flowmocap.geometry.camera.world_up` (the world axis that the camera's
+    image up and the body's mean up agree on) to ``+y``: the identity for a y-up world
+    (synthetic sequences, :func:`~flowmocap.geometry.look_at`), ``(x, y, z) -> (x, z, -y)``
+    for a z-up lab calibration, and 180 degrees about x (:data:`CAMERA_TO_Y_UP`) when the
+    world is the camera frame (``R = I``, a video without a calibration).
+
+    Args:
+        camera: the result's ``PinholeCamera``.
+        body_up: ``(3,)`` the body's mean up direction in the world, or None.
     """
-    if np.allclose(camera.R, np.eye(3), atol=1e-9):
+    from flowmocap.geometry.camera import world_up
+
+    up = world_up(camera, body_up)
+    if up[1] > 0.5:
+        return np.eye(3)
+    if up[1] < -0.5:
         return CAMERA_TO_Y_UP.copy()
-    return np.eye(3)
+    k = np.cross(up, [0.0, 1.0, 0.0])  # a unit axis: up is at right angles to y
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + K + K @ K  # 90 degrees about k (Rodrigues)
+
+
+def _root_up(poses: np.ndarray) -> np.ndarray:
+    """``(3,)`` the pelvis's mean up direction (its rest ``+y`` turned by the root), from
+    ``(T, 72)`` axis-angle poses; frames that are not finite are left out."""
+    from scipy.spatial.transform import Rotation
+
+    root = np.asarray(poses, np.float64).reshape(-1, 72)[:, :3]
+    root = root[np.isfinite(root).all(1)]
+    if not len(root):
+        return np.array([0.0, 1.0, 0.0])
+    return Rotation.from_rotvec(root).apply([0.0, 1.0, 0.0]).mean(0)
 
 
 def _model_for(run: dict, gender: str, model):
@@ -362,7 +388,7 @@ def load_fitted_motion(result_dir: str | Path, frame: str = "ground", model=None
                                  cache=cache_world)
         W, offset = world.rotation, world.offset
     else:
-        W = up_rotation(camera) if frame == "up" else np.eye(3)
+        W = up_rotation(camera, _root_up(poses)) if frame == "up" else np.eye(3)
     smoothed = None
     if not isinstance(smooth, (bool, dict)):  # smooth="no" would smooth
         raise InputError(f"smooth must be False, True or a dict of window_s and order; got {smooth!r}.")

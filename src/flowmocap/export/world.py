@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowmocap.geometry.camera import world_up
 from flowmocap.geometry.ground import GroundPlane, fit_ground_plane, foot_contacts, ground_frame
 
 __all__ = ["WorldFrame", "world_frame", "load_world_frame", "foot_vertex_sets", "camera_in_frame",
@@ -132,7 +133,7 @@ def foot_vertex_sets(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: Bump when :func:`world_frame` changes, so cached ``world.json`` files are recomputed.
-ALGORITHM = "ground-v2"
+ALGORITHM = "ground-v3"  # v3: the world's up from the camera's orientation (a z-up calibration)
 
 
 def _fingerprint(poses, trans, betas, model) -> str:
@@ -142,14 +143,6 @@ def _fingerprint(poses, trans, betas, model) -> str:
     h.update(str(getattr(model, "source", "")).encode())
     h.update(str(getattr(model, "gender", "")).encode())
     return h.hexdigest()[:16]
-
-
-def _camera_up(camera) -> np.ndarray:
-    """Image up (camera ``-y``) in the result's frame; the world's ``+y`` for a posed camera
-    (synthetic worlds and :func:`~flowmocap.geometry.look_at` are y up)."""
-    if np.allclose(camera.R, np.eye(3), atol=1e-9):
-        return -camera.R.T @ np.array([0.0, 1.0, 0.0])
-    return np.array([0.0, 1.0, 0.0])
 
 
 def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, camera, fps: float,
@@ -175,7 +168,6 @@ def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, 
     dt = model.v_template.dtype
     b = torch.as_tensor(np.asarray(betas, np.float64)[None], dtype=dt)
     shaped = model.shaped(b)  # one shape for every frame: shaped once
-    cam_up = _camera_up(camera)
 
     def posed(s, vertices):
         return model(betas=b, pose=torch.as_tensor(poses[s:s + chunk], dtype=dt),
@@ -187,6 +179,7 @@ def world_frame(poses: np.ndarray, trans: np.ndarray, betas: np.ndarray, model, 
     body_up = body_up / np.linalg.norm(body_up, axis=1, keepdims=True)
     prior = body_up.mean(0)
     prior = prior / np.linalg.norm(prior)
+    cam_up = world_up(camera, prior)  # the calibrated world's up axis (image up for R = I)
     if prior @ cam_up < np.cos(np.radians(45)):  # lying or upside down: trust the camera
         prior = cam_up
 

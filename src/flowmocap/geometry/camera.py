@@ -26,7 +26,7 @@ import torch
 
 from flowmocap.errors import DataError, InputError
 
-__all__ = ["PinholeCamera", "look_at"]
+__all__ = ["PinholeCamera", "look_at", "world_up"]
 
 
 def _as_vector3(x: Any, name: str) -> np.ndarray:
@@ -85,6 +85,42 @@ def look_at(
     y = np.cross(z, x)
     R = np.stack([x, y, z])
     return R, -R @ eye_v
+
+
+def world_up(R: Any, body_up: Any = None) -> np.ndarray:
+    """The up direction of a camera's world.
+
+    Calibrated worlds come in every convention (synthetic and :func:`look_at` worlds y
+    up, lab calibrations z up, a checkerboard on a wall y down), and one of their axes is
+    vertical. It is the one of ``±x, ±y, ±z`` that best agrees with two cues: the image's
+    up direction ``-R.T @ (0, 1, 0)`` (cameras that film people stand roughly level) and,
+    where given, the body's mean up direction (people mostly stand). The camera counts
+    1.5 times the body, so an upright body filmed from up to about 73 degrees above the
+    horizon, and a body lying down through a whole clip filmed from up to about 48
+    degrees above it, both get the right axis. ``R = I`` (the camera's own frame: a
+    video without a calibration, or a calibration whose world is its first camera) gives
+    ``-y``, the image's up.
+
+    Args:
+        R: ``(3, 3)`` world-to-camera rotation (OpenCV axes), or a camera with an ``R``.
+        body_up: ``(3,)`` the body's mean up direction in the world (pelvis to neck, any
+            length), or None for the camera alone.
+
+    Returns:
+        ``(3,)`` float64 unit vector, in world coordinates.
+    """
+    R = np.asarray(getattr(R, "R", R), np.float64).reshape(3, 3)
+    image_up = -R.T @ np.array([0.0, 1.0, 0.0])
+    if np.allclose(R, np.eye(3), atol=1e-9):
+        return image_up
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    score = 1.5 * (axes @ image_up)
+    if body_up is not None:
+        b = np.asarray(body_up, np.float64).reshape(3)
+        n = np.linalg.norm(b)
+        if np.isfinite(n) and n > 0:
+            score = score + axes @ (b / n)
+    return axes[int(np.argmax(score))].copy()
 
 
 @dataclass(frozen=True, eq=False)
