@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -120,3 +123,37 @@ def test_sigterm_stops_a_command_as_ctrl_c_does_and_leaves_no_temporary(tmp_path
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, (proc.returncode, err)
     assert not [p for p in out.rglob("*.tmp")]
+
+
+_READ_ONLY_INSTALL = r"""
+import os, sys
+real = os.access
+blocked = (sys.argv[1], os.path.join(sys.argv[2], ".cache"))  # the package's folder, the home's cache
+os.access = lambda p, mode, **kw: False if (mode & os.W_OK and str(p).startswith(blocked)) else real(p, mode, **kw)
+os.environ.pop("NUMBA_CACHE_DIR", None)
+os.environ["HOME"] = sys.argv[2]
+os.environ.pop("XDG_CACHE_HOME", None)
+import flowmocap
+os.access = real
+from numba.core import config
+print(os.environ.get("NUMBA_CACHE_DIR"), config.CACHE_DIR)
+"""
+
+
+def test_a_read_only_install_keeps_numba_kernels_in_a_temporary_folder(tmp_path):
+    # site-packages and the home both read-only (a container run as another user): numba could cache
+    # nowhere and every command, --help included, was a numba traceback
+    import flowmocap
+
+    pkg = str(Path(flowmocap.__file__).parent)
+    out = subprocess.run([sys.executable, "-c", _READ_ONLY_INSTALL, pkg, str(tmp_path / "home")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    env_dir, config_dir = out.stdout.split()
+    assert env_dir == config_dir and env_dir.startswith(tempfile.gettempdir()) and "flowmocap-numba" in env_dir
+    assert os.access(env_dir, os.W_OK)
+    # a writable package folder leaves numba's own choice alone
+    plain = subprocess.run([sys.executable, "-c", "import os, flowmocap; print(os.environ.get('NUMBA_CACHE_DIR'))"],
+                           capture_output=True, text=True, timeout=120,
+                           env={k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"})
+    assert plain.stdout.strip() == "None", plain.stderr

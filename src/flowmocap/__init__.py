@@ -9,7 +9,37 @@ Layers (a layer imports only from layers above it): geometry, body, render, visi
 io, export, synth, pipeline, eval, viz, commands, cli. See the README and docs/.
 """
 
-from flowmocap.errors import (
+import os as _os
+
+
+def _numba_cache_dir() -> str | None:
+    """Where numba should keep the compiled kernels (``@njit(cache=True)``) when it could
+    not itself: numba writes next to the sources, else under the user's cache folder, and
+    fails on the first kernel (``--help`` included) where neither can be written, as in a
+    container whose site-packages and home are read-only. None: numba's own choice works
+    (or the user set ``NUMBA_CACHE_DIR``)."""
+    import tempfile
+
+    if _os.environ.get("NUMBA_CACHE_DIR") or _os.access(_os.path.dirname(__file__), _os.W_OK):
+        return None
+    home_cache = _os.environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
+    for folder in (_os.path.join(home_cache, "flowmocap", "numba"),
+                   _os.path.join(tempfile.gettempdir(), f"flowmocap-numba-{_os.getuid() if hasattr(_os, 'getuid') else 0}")):
+        try:
+            _os.makedirs(folder, exist_ok=True)
+        except OSError:
+            continue
+        if _os.access(folder, _os.W_OK):
+            return folder
+    return None
+
+
+if (_cache := _numba_cache_dir()) is not None:
+    _os.environ["NUMBA_CACHE_DIR"] = _cache  # read when numba is first imported (flowmocap imports it lazily)
+    if "numba" in __import__("sys").modules:  # imported before flowmocap: read its settings again
+        __import__("numba.core.config").core.config.reload_config()
+
+from flowmocap.errors import (  # noqa: E402  (after the cache folder is chosen)
     DataError,
     FlowMocapError,
     InputError,
@@ -17,7 +47,7 @@ from flowmocap.errors import (
     NoPersonError,
     OptimizationError,
 )
-from flowmocap.version import __version__
+from flowmocap.version import __version__  # noqa: E402
 
 #: Imported on first use (PEP 562), so that ``import flowmocap.vision...`` in a helper
 #: process (the person detector's, :mod:`flowmocap.vision.detect_worker`) does not load
