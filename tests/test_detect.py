@@ -165,39 +165,94 @@ def test_the_heavy_model_ships_whole():
     assert HEAVY_MODEL.is_file() and _md5(HEAVY_MODEL) == HEAVY_MD5
 
 
-def test_install_model_copies_the_heavy_model_where_mediapipe_reads_it_once(tmp_path):
-    """MediaPipe's legacy Pose reads ``modules/pose_landmark/pose_landmark_heavy.tflite`` from
-    its own folder (and would download it there); the shipped copy goes there instead, is
-    left alone once it is there, and a different file in its place is replaced."""
+def test_the_heavy_model_is_linked_in_a_temporary_resource_folder(tmp_path, monkeypatch):
+    """MediaPipe's legacy Pose reads ``mediapipe/modules/pose_landmark/pose_landmark_heavy.tflite``
+    under its resource folder; a temporary one links MediaPipe's own files and the shipped
+    model, writes nothing into MediaPipe's folder, and is gone after the block."""
     import os
+    import tempfile
 
-    from flowmocap.vision.detect import HEAVY_MD5, _md5, install_model
+    from flowmocap.errors import InputError
+    from flowmocap.vision.detect import HEAVY_MODEL, _heavy_resources
 
-    assert install_model("full", tmp_path) is None and not any(tmp_path.iterdir())
-    target = install_model("heavy", tmp_path)
-    assert target == tmp_path / "modules" / "pose_landmark" / "pose_landmark_heavy.tflite"
-    assert _md5(target) == HEAVY_MD5 and os.listdir(target.parent) == [target.name]  # no temporary file left
-    os.utime(target, (1, 1))
-    assert install_model("heavy", tmp_path) == target and target.stat().st_mtime == 1  # not copied again
-    target.write_bytes(b"not a model")
-    install_model("heavy", tmp_path)
-    assert _md5(target) == HEAVY_MD5
+    fake = tmp_path / "site"  # a stand-in for site-packages
+    (fake / "mediapipe" / "modules" / "pose_landmark").mkdir(parents=True)
+    (fake / "mediapipe" / "modules" / "pose_detection").mkdir()
+    (fake / "mediapipe" / "python").mkdir()
+    (fake / "mediapipe" / "modules" / "pose_landmark" / "pose_landmark_cpu.binarypb").write_bytes(b"graph")
+    (fake / "mediapipe" / "modules" / "pose_landmark" / "pose_landmark_heavy.tflite").write_bytes(b"old download")
+    before = sorted(str(p) for p in fake.rglob("*"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    cleanups = []
+    monkeypatch.setattr("atexit.register", lambda f, *a: cleanups.append((f, a)))
+    root = _heavy_resources(fake)
+    pl = root / "mediapipe" / "modules" / "pose_landmark"
+    assert (pl / "pose_landmark_heavy.tflite").resolve() == HEAVY_MODEL.resolve()
+    assert (pl / "pose_landmark_cpu.binarypb").read_bytes() == b"graph"
+    assert (root / "mediapipe" / "python").resolve() == (fake / "mediapipe" / "python").resolve()
+    assert (root / "mediapipe" / "modules" / "pose_detection").resolve() == (
+        fake / "mediapipe" / "modules" / "pose_detection").resolve()
+    assert sorted(str(p) for p in fake.rglob("*")) == before  # MediaPipe's folder untouched
+    for f, a in cleanups:  # as when the process ends
+        f(*a)
+    assert not root.exists() and not os.listdir(tmp_path / "tmp")
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda **kw: (_ for _ in ()).throw(PermissionError(13, "denied")))
+    with pytest.raises(InputError, match="set TMPDIR to a writable folder, or use the detector model 'full'"):
+        _heavy_resources(fake)
 
 
-def test_install_model_refuses_what_it_cannot_do(tmp_path, monkeypatch):
+def test_check_model_files_refuses_what_cannot_run(tmp_path, monkeypatch):
     from flowmocap.errors import InputError
     from flowmocap.vision import detect
 
     with pytest.raises(InputError, match="unknown detector model 'huge'"):
-        detect.install_model("huge", tmp_path)
-    blocked = tmp_path / "blocked"
-    blocked.write_text("a file where MediaPipe's folder should be")
-    with pytest.raises(InputError, match="copy .*pose_landmark_heavy.tflite to .*or use the detector model 'full'"):
-        detect.install_model("heavy", blocked)
+        detect.check_model_files("huge")
+    detect.check_model_files("full")
+    detect.check_model_files("heavy")
     monkeypatch.setattr(detect, "HEAVY_MODEL", tmp_path / "missing.tflite")
     monkeypatch.setattr(detect, "_SHIPPED_OK", [])
     with pytest.raises(InputError, match="missing or damaged; reinstall flowmocap"):
-        detect.install_model("heavy", tmp_path)
+        detect.check_model_files("heavy")
+    detect.check_model_files("full")
+
+
+@pytest.mark.skipif(not DAVIS.exists(), reason=f"shared data not found at {DAVIS} (real frames for MediaPipe)")
+def test_the_heavy_graph_reads_the_shipped_model_and_leaves_mediapipes_folder_alone(monkeypatch):
+    # the shipped file was copied into MediaPipe's own folder: a read-only install could not run "heavy"
+    mp = pytest.importorskip("mediapipe")
+    import subprocess
+    import sys
+
+    from flowmocap.io.sequence import read_image
+
+    img = read_image(DAVIS / "JPEGImages" / "00000.jpg")
+    pose_dir = Path(mp.__file__).parent / "modules" / "pose_landmark"
+    listing = sorted((p.name, p.stat().st_mtime_ns) for p in pose_dir.iterdir())
+    # a fresh process each: MediaPipe keeps a model it has loaded for the rest of the process
+    script = (
+        "import sys, numpy as np, mediapipe as mp\n"
+        "from pathlib import Path\n"
+        "from flowmocap.io.sequence import read_image\n"
+        "from flowmocap.vision import detect\n"
+        "if sys.argv[2] != '-':\n"
+        "    detect.HEAVY_MODEL, detect._SHIPPED_OK = Path(sys.argv[2]), [True]\n"
+        "p = detect._make_pose(mp, sys.argv[1], static_image_mode=True)\n"
+        "r = p.process(read_image(sys.argv[3]))\n"
+        "print(' '.join(f'{v:.6f}' for lm in r.pose_landmarks.landmark for v in (lm.x, lm.y)))\n")
+
+    def landmarks(model, heavy_file="-"):
+        out = subprocess.run([sys.executable, "-c", script, model, str(heavy_file), str(DAVIS / "JPEGImages" / "00000.jpg")],
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return np.array(out.stdout.split(), float)
+
+    assert img.ndim == 3
+    full, heavy = landmarks("full"), landmarks("heavy")
+    assert np.abs(full - heavy).max() > 1e-3  # two different networks
+    # the file linked in is the one read: the full network put in the heavy one's place gives full's answer
+    np.testing.assert_allclose(landmarks("heavy", pose_dir / "pose_landmark_full.tflite"), full, atol=1e-6)
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in pose_dir.iterdir()) == listing
 
 
 def test_the_detectors_name_says_its_model():

@@ -314,14 +314,14 @@ def detect_sequence(seq, out_dir: str | Path, detector: PersonDetector | None = 
     if choice == ("index", 0):
         choice = ("largest", None)
     out_dir = Path(out_dir)
-    from flowmocap.vision.detect import MediaPipePoseDetector, install_model
+    from flowmocap.vision.detect import MediaPipePoseDetector, check_model_files
 
     if isinstance(detector, str) and detector not in ("plain", "unaugmented"):
         raise InputError(f"detector must be None, 'plain', 'unaugmented' or a detector object; got {detector!r}.")
     plain = detector == "plain"
     augment = detector is None
     if detector is None or isinstance(detector, str):  # here, before any pass: a failure is clear and early
-        install_model(model)
+        check_model_files(model)
     if (detector is None or isinstance(detector, str)) and searcher in ("default", None) and DETECT_IN_CHILD \
             and _picklable(seq):
         spec = {"augment": augment, "search": searcher == "default" and not plain, "model": model}

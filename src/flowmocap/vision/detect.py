@@ -7,9 +7,10 @@ landmarks and its person segmentation). It runs offline and downloads nothing: t
 "full" landmark model ships inside the ``mediapipe==0.10.21`` wheel, and the "heavy" one
 (:data:`MODELS`) inside this package (``vision/data/pose_landmark_heavy.tflite``, from
 MediaPipe's own ``@mediapipe/pose`` package, Apache-2.0; ``vision/data/README.md``).
-MediaPipe's Python solution reads the heavy model only from its own package folder, where
-it would otherwise download it, so :func:`install_model` copies the shipped file there
-first (checked by its digest).
+MediaPipe's Python solution reads the heavy model only under its resource folder, and
+would download it into its own package folder, so the heavy graph is made with a
+temporary resource folder that links MediaPipe's files and the shipped model (checked by
+its digest): nothing is downloaded or written into MediaPipe's folder.
 
 Keypoints come in the order of :data:`KEYPOINT_NAMES`: the twelve SMPL joints an
 ``init.json`` takes (hips, knees, ankles, shoulders, elbows, wrists, by SMPL's names,
@@ -30,6 +31,7 @@ import contextlib
 import hashlib
 import os
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -39,7 +41,7 @@ import numpy as np
 from flowmocap.errors import InputError
 
 __all__ = ["KEYPOINT_NAMES", "SMPL_KEYPOINTS", "Detection", "PersonDetector", "MediaPipePoseDetector",
-           "MEDIAPIPE_LANDMARKS", "MODELS", "check_model", "install_model", "visibility_map"]
+           "MEDIAPIPE_LANDMARKS", "MODELS", "check_model", "check_model_files", "visibility_map"]
 
 #: Keypoints that are SMPL joints (the joints of an init.json), in this order.
 SMPL_KEYPOINTS: tuple[str, ...] = (
@@ -131,53 +133,100 @@ def _shipped_ok() -> bool:
     return _SHIPPED_OK[0]
 
 
-def install_model(model: str, mediapipe_dir: str | Path | None = None) -> Path | None:
-    """Make MediaPipe's legacy Pose able to run ``model`` without downloading it.
-
-    "full" ships inside MediaPipe's wheel: nothing to do. For "heavy", MediaPipe looks for
-    ``modules/pose_landmark/pose_landmark_heavy.tflite`` in its own package folder and
-    downloads it there when missing; this copies the file shipped with flowmocap there
-    instead (atomically), unless an identical file is already in place.
-
-    Args:
-        model: a key of :data:`MODELS`.
-        mediapipe_dir: MediaPipe's package folder (default: the installed one's).
-
-    Returns:
-        The model file MediaPipe will read, or None for "full".
+def check_model_files(model: str) -> None:
+    """Check that ``model`` can run offline: "full" ships inside MediaPipe's wheel; "heavy"
+    inside this package, checked against its digest (once per process).
 
     Raises:
-        InputError: an unknown model; the shipped file is missing or damaged; MediaPipe's
-            folder cannot be written (the message says which file to copy where).
+        InputError: an unknown model, or the shipped heavy file is missing or damaged.
     """
-    if check_model(model) == "full":
-        return None
-    if not _shipped_ok():
+    if check_model(model) == "heavy" and not _shipped_ok():
         raise InputError(f"the heavy pose model shipped with flowmocap ({HEAVY_MODEL}) is missing or damaged; "
                          "reinstall flowmocap, or use the detector model 'full'.")
-    if mediapipe_dir is None:  # found without importing MediaPipe (seconds, and its graphs' threads)
-        import importlib.util
 
-        spec = importlib.util.find_spec("mediapipe")
-        if spec is None or spec.origin is None:  # pragma: no cover - depends on the environment
-            raise InputError(MediaPipePoseDetector.NOT_INSTALLED)
-        mediapipe_dir = Path(spec.origin).parent
-    target = Path(mediapipe_dir) / "modules" / "pose_landmark" / "pose_landmark_heavy.tflite"
-    if target.is_file() and target.stat().st_size == HEAVY_MODEL.stat().st_size and _md5(target) == HEAVY_MD5:
-        return target
+
+_SHADOW_LOCK = threading.Lock()
+_SHADOW: list = []  # this process's resource folder, once made
+
+
+def _heavy_resources(mp_root: Path) -> Path:
+    """A resource folder for MediaPipe's graphs in which MediaPipe's own files are linked
+    and the heavy landmark model is the shipped one; made once per process in the
+    temporary folder, removed when the process ends.
+
+    MediaPipe's legacy Pose reads ``mediapipe/modules/pose_landmark/pose_landmark_heavy.tflite``
+    under its resource folder (its installed package's parent) and downloads the file into
+    its own package folder when it is missing. flowmocap neither downloads nor writes into
+    another package's folder (a read-only install refused it; an uninstalled MediaPipe
+    left it behind). A graph reads its models on its own threads after it is made, so the
+    folder stays for the process.
+
+    Args:
+        mp_root: the folder that holds MediaPipe's package (``site-packages``).
+
+    Returns:
+        The resource folder (it holds ``mediapipe/...``).
+
+    Raises:
+        InputError: the shipped model is missing or damaged, or the folder cannot be made.
+    """
+    import atexit
     import shutil
+    import tempfile
 
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    check_model_files("heavy")
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(HEAVY_MODEL, tmp)
-        os.replace(tmp, target)
+        root = Path(tempfile.mkdtemp(prefix="flowmocap-mediapipe-"))
     except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise InputError(f"cannot put the heavy pose model where MediaPipe reads it ({e}); copy {HEAVY_MODEL} "
-                         f"to {target} by hand, or use the detector model 'full'.") from e
-    return target
+        raise InputError(f"cannot make a temporary folder for the heavy pose model ({e}); set TMPDIR to a writable "
+                         "folder, or use the detector model 'full'.") from e
+    try:
+        chain = ("mediapipe", "modules", "pose_landmark")
+        for depth in range(len(chain)):  # each level linked entry by entry, but for the next level down
+            here, there = root.joinpath(*chain[:depth + 1]), mp_root.joinpath(*chain[:depth + 1])
+            here.mkdir()
+            keep_out = chain[depth + 1] if depth + 1 < len(chain) else "pose_landmark_heavy.tflite"
+            for entry in there.iterdir():
+                if entry.name != keep_out:
+                    (here / entry.name).symlink_to(entry)
+        target = root.joinpath(*chain, "pose_landmark_heavy.tflite")
+        try:
+            target.symlink_to(HEAVY_MODEL)
+        except OSError:  # pragma: no cover - a file system without symbolic links
+            shutil.copyfile(HEAVY_MODEL, target)
+    except OSError as e:
+        shutil.rmtree(root, ignore_errors=True)
+        raise InputError(f"cannot prepare the heavy pose model for MediaPipe in {root} ({e}); set TMPDIR to a "
+                         "writable folder, or use the detector model 'full'.") from e
+    atexit.register(shutil.rmtree, root, True)
+    return root
+
+
+def _use_heavy_resources(mp) -> Path:
+    """Point every MediaPipe graph this process makes from now on at
+    :func:`_heavy_resources`' folder (it links all of MediaPipe's own files, so the other
+    solutions run as before), and stop Pose downloading the heavy model. Once per process."""
+    with _SHADOW_LOCK:
+        if _SHADOW:
+            return _SHADOW[0]
+        from mediapipe.python import solution_base
+
+        root = _heavy_resources(Path(mp.__file__).parent.parent)
+        resource_util, pose_module = solution_base.resource_util, mp.solutions.pose
+        set_dir, fetch = resource_util.set_resource_dir, pose_module._download_oss_pose_landmark_model
+        resource_util.set_resource_dir = lambda _default: set_dir(str(root))
+        pose_module._download_oss_pose_landmark_model = lambda complexity: None if complexity == 2 else fetch(complexity)
+        set_dir(str(root))
+        _SHADOW.append(root)
+        return root
+
+
+def _make_pose(mp, model: str, **options):
+    """MediaPipe's legacy ``Pose`` of ``model`` (:data:`MODELS`) with ``options``; a heavy
+    one reads the shipped model (:func:`_use_heavy_resources`) and downloads nothing."""
+    if model == "heavy":
+        _use_heavy_resources(mp)
+    return mp.solutions.pose.Pose(model_complexity=MODELS[check_model(model)], **options)
 
 
 @contextlib.contextmanager
@@ -289,7 +338,7 @@ class MediaPipePoseDetector:
             raise InputError(self.NOT_INSTALLED) from e
         if not 0.0 < threshold < 1.0:
             raise InputError(f"threshold must be in (0, 1); got {threshold}.")
-        install_model(model, Path(mp.__file__).parent)
+        check_model_files(model)
         self._visibility = visibility_map(model) if calibrated else None
         self._mp = mp
         self.augment = bool(augment)
@@ -326,8 +375,8 @@ class MediaPipePoseDetector:
         return f"mediapipe-pose-{version}-{tag}-3d{'-tta4' if augment else ''}-c{min_confidence:g}-t{threshold:g}"
 
     def _pose(self, static: bool, model: str = "full"):
-        return self._mp.solutions.pose.Pose(
-            static_image_mode=static, model_complexity=MODELS[model], smooth_landmarks=True, enable_segmentation=True,
+        return _make_pose(
+            self._mp, model, static_image_mode=static, smooth_landmarks=True, enable_segmentation=True,
             smooth_segmentation=not static, min_detection_confidence=self.min_confidence,
             min_tracking_confidence=self.min_confidence)
 
