@@ -157,3 +157,8 @@ def test_a_read_only_install_keeps_numba_kernels_in_a_temporary_folder(tmp_path)
                            capture_output=True, text=True, timeout=120,
                            env={k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"})
     assert plain.stdout.strip() == "None", plain.stderr
+
+
+def test_python_dash_m_flowmocap_is_the_command():
+    out = subprocess.run([sys.executable, "-m", "flowmocap", "--version"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip().startswith("flowmocap "), out.stderr

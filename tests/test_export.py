@@ -446,6 +446,20 @@ def test_names_of_the_wrong_kind_are_refused_before_the_work(posed_result, tmp_p
                  "--smooth", "0.2", "--smooth-order", "3", "--quiet"]) == 0
 
 
+def test_an_obj_folder_gets_a_folders_usual_mode(posed_result, tmp_path):
+    # it was 0700 (tempfile.mkdtemp's), so other users and services could not read the meshes
+    import os
+
+    folder, _ = posed_result
+    umask = os.umask(0o022)
+    try:
+        assert (export_result(folder, "obj", tmp_path / "obj").stat().st_mode & 0o777) == 0o755
+        (tmp_path / "obj").chmod(0o750)  # a mode the user chose is kept over a new export
+        assert (export_result(folder, "obj", tmp_path / "obj").stat().st_mode & 0o777) == 0o750
+    finally:
+        os.umask(umask)
+
+
 def test_an_obj_export_stopped_while_it_moves_in_leaves_the_earlier_one_whole(posed_result, tmp_path, monkeypatch):
     """The new frames were moved in one by one after the old ones were deleted: a stop there
     left 4 new frames and lost the rest of both exports. Now the folders trade places."""
