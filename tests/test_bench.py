@@ -122,6 +122,43 @@ def test_suites_and_errors(tmp_path):
     assert bench.commit()
 
 
+def test_the_shared_data_folder_is_given_with_data_or_flowmocap_data(tmp_path, capsys, monkeypatch):
+    # an installed package looked for the data beside site-packages, with no way to point it elsewhere
+    data = tmp_path / "data"
+    (data / "mocap" / "prior").mkdir(parents=True)
+    full = bench.suite("full", data=data)
+    assert full[0].motion == str(data / "mocap" / "cmu" / "35_01.amc")
+    assert full[2].frames_dir == str(data / "video" / "davis-dance-twirl" / "JPEGImages")
+    with pytest.raises(DataError, match=r"needs .*index.csv.*give bench --data DIR"):
+        bench.suite("diverse", data=data)
+    monkeypatch.setenv("FLOWMOCAP_DATA", str(data))
+    assert bench.shared_data() == data
+    monkeypatch.delenv("FLOWMOCAP_DATA")
+    assert bench.shared_data() == bench.ROOT.parent / "shared" / "data"
+    # the command: a missing --data folder is refused; a suite whose data is not there leaves no empty --out
+    assert main(["bench", "--suite", "diverse", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    assert main(["bench", "--suite", "real3d", "--data", str(data), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "give bench --data DIR" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    assert main(["bench", "--suite", "diverse", "--data", str(data), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_commit_is_read_only_from_a_source_checkout(tmp_path, monkeypatch):
+    # an install inside another git project recorded that project's commit in bench.json
+    import subprocess
+
+    if (bench.ROOT / ".git").exists():
+        assert bench.commit() != "unknown"  # this checkout
+    other = tmp_path / "project"
+    (other / "lib").mkdir(parents=True)
+    subprocess.run(["git", "init", "-q", str(other)], check=True)
+    subprocess.run(["git", "-C", str(other), "-c", "user.email=a@b", "-c", "user.name=a", "commit", "-q",
+                    "--allow-empty", "-m", "x"], check=True)
+    monkeypatch.setattr(bench, "ROOT", other / "lib")
+    assert bench.commit() == "unknown"
+
+
 def test_table_shows_null_metrics_as_dashes():
     result = {"suite": "quick", "commit": "abc", "sequences": {"x": {
         "settings": {"motion": "builtin:walk", "frames": 3, "size": "8x8", "fps": 30, "azimuth": 0, "seed": 0},

@@ -26,6 +26,9 @@ def register(subparsers) -> None:
     b.add_argument("--config", default=None,
                    help="tracker settings JSON (fields of TrackerConfig), recorded in bench.json")
     b.add_argument("--fast", action="store_true", help="real3d: track with flowmocap track --fast")
+    b.add_argument("--data", default=None, metavar="DIR",
+                   help="the shared data folder, holding mocap/ and video/ (default: $FLOWMOCAP_DATA, else "
+                   "../shared/data beside the source checkout); every suite but quick reads it")
     b.add_argument("--as-video", action="store_true",
                    help="the synthetic suites (quick, diverse, tune, --mocap; full's renders): track each rendered "
                    "clip as a user's video would be tracked (automatic masks, 2D/3D joints and starting pose from "
@@ -56,25 +59,39 @@ def cmd_bench(args) -> int:
                          "settings: give them with --config.")
     if args.as_video and args.suite == "real3d":
         raise InputError("--as-video is for the synthetic suites; real3d is tracked as a video already.")
-    if args.suite == "real3d":
-        from flowmocap.eval.real3d import run_real3d
+    data = None
+    if args.data is not None:
+        data = Path(args.data).expanduser()
+        if not data.is_dir():
+            raise InputError(f"--data {args.data} is not a folder; give the shared data folder (it holds mocap/ and "
+                             "video/).")
+    out = Path(args.out)
+    new_out = not out.exists()
+    try:
+        if args.suite == "real3d":
+            from flowmocap.eval.real3d import DATA, run_real3d
 
-        run_real3d(args.out, frames=args.num_frames, tracker_config=_tracker_overrides(args.config),
-                   progress=not args.quiet, fast=args.fast)
-        print(f"wrote {args.out}/real3d.md and {args.out}/real3d.json")
-        return 0
-    if args.mocap:
-        specs = mocap_specs(args.mocap, frames=args.num_frames or 130, size=args.size or "640x480")
-        name = "mocap"
-    else:
-        name = args.suite or "quick"
-        specs = suite(name, frames=args.num_frames, size=args.size)
-    tracker = _tracker_overrides(args.config)
-    baseline = {}
-    if args.baseline_iterations:
-        baseline = {"iterations": args.baseline_iterations, "orient_iterations": args.baseline_iterations}
-    run_bench(specs, args.out, name, isolate=not args.no_isolate, progress=not args.quiet,
-              tracker_config=tracker, baseline_config=baseline, as_video=args.as_video)
+            run_real3d(args.out, frames=args.num_frames, tracker_config=_tracker_overrides(args.config),
+                       progress=not args.quiet, fast=args.fast,
+                       data_dir=DATA if data is None else data / "video" / "pose2sim-multi")
+            print(f"wrote {args.out}/real3d.md and {args.out}/real3d.json")
+            return 0
+        if args.mocap:
+            specs = mocap_specs(args.mocap, frames=args.num_frames or 130, size=args.size or "640x480")
+            name = "mocap"
+        else:
+            name = args.suite or "quick"
+            specs = suite(name, frames=args.num_frames, size=args.size, data=data)
+        tracker = _tracker_overrides(args.config)
+        baseline = {}
+        if args.baseline_iterations:
+            baseline = {"iterations": args.baseline_iterations, "orient_iterations": args.baseline_iterations}
+        run_bench(specs, args.out, name, isolate=not args.no_isolate, progress=not args.quiet,
+                  tracker_config=tracker, baseline_config=baseline, as_video=args.as_video)
+    except BaseException:
+        if new_out and out.is_dir() and not any(out.iterdir()):  # a run that failed before writing anything
+            out.rmdir()
+        raise
     print(f"wrote {args.out}/bench.md and {args.out}/bench.json")
     return 0
 

@@ -32,6 +32,7 @@ as ``flowmocap track FRAMES_DIR`` does, so its row is what a user gets.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import time
 from dataclasses import asdict, dataclass, replace
@@ -57,7 +58,16 @@ from flowmocap.vision.auto import load_detections
 from flowmocap.vision.detect import SMPL_KEYPOINTS
 
 ROOT = Path(__file__).resolve().parents[3]
-SHARED = ROOT.parent / "shared" / "data"
+
+
+def shared_data() -> Path:
+    """The shared data folder (``mocap/``, ``video/``): ``$FLOWMOCAP_DATA`` where set (``bench
+    --data``), else ``shared/data`` beside the source checkout (``../shared/data``)."""
+    env = os.environ.get("FLOWMOCAP_DATA", "").strip()
+    return Path(env).expanduser() if env else ROOT.parent / "shared" / "data"
+
+
+SHARED = shared_data()
 CMU_35_01 = SHARED / "mocap" / "cmu" / "35_01.amc"
 DAVIS = SHARED / "video" / "davis-dance-twirl"
 PRIOR_DATA = SHARED / "mocap" / "prior"
@@ -110,18 +120,21 @@ class RealSpec:
     masks_dir: str
 
 
-def suite(name: str, frames: int | None = None, size: str | None = None) -> list:
-    """The sequences of ``quick`` or ``full``; ``frames``/``size`` override (tests)."""
+def suite(name: str, frames: int | None = None, size: str | None = None, data: str | Path | None = None) -> list:
+    """The sequences of a suite; ``frames``/``size`` override (tests); ``data``: the shared
+    data folder (default :func:`shared_data`)."""
+    shared = Path(data) if data is not None else SHARED
+    cmu, davis = shared / "mocap" / "cmu" / "35_01.amc", shared / "video" / "davis-dance-twirl"
     if name == "quick":
         specs = [SyntheticSpec("walk-quick", "builtin:walk", 20, "320x240", 30.0, 60.0, seed=0)]
     elif name == "full":
-        specs = [SyntheticSpec("cmu35_01-side", str(CMU_35_01), 130, "640x480", 60.0, 90.0, seed=0),
-                 SyntheticSpec("cmu35_01-45deg", str(CMU_35_01), 130, "640x480", 60.0, 45.0, seed=0),
-                 RealSpec("davis-dance-twirl", str(DAVIS / "JPEGImages"), str(DAVIS / "Annotations"))]
+        specs = [SyntheticSpec("cmu35_01-side", str(cmu), 130, "640x480", 60.0, 90.0, seed=0),
+                 SyntheticSpec("cmu35_01-45deg", str(cmu), 130, "640x480", 60.0, 45.0, seed=0),
+                 RealSpec("davis-dance-twirl", str(davis / "JPEGImages"), str(davis / "Annotations"))]
     elif name == "diverse":
-        return diverse_specs(frames=frames or 100, size=size or "640x480")
+        return diverse_specs(frames=frames or 100, size=size or "640x480", data=shared / "mocap" / "prior")
     elif name == "tune":
-        return tune_specs(frames=frames or 100, size=size or "640x480")
+        return tune_specs(frames=frames or 100, size=size or "640x480", data=shared / "mocap" / "prior")
     else:
         raise InputError(f"unknown suite {name!r}; use 'quick', 'full', 'diverse' or 'tune'.")
     return [_override(s, frames, size) for s in specs]
@@ -158,7 +171,7 @@ def diverse_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0,
     data = Path(data) if data is not None else PRIOR_DATA
     index = data / "index.csv"
     if not index.exists():
-        raise DataError(f"the diverse suite needs {index} (../shared/data/mocap/prior next to the repository).")
+        raise DataError(f"the diverse suite needs {index} (shared/data/mocap/prior): give bench --data DIR (the folder holding mocap/ and video/) or set FLOWMOCAP_DATA.")
     with index.open(newline="") as f:
         split = {row["file"]: row.get("split", "") for row in csv.DictReader(f)}
     specs = []
@@ -192,7 +205,7 @@ def tune_specs(frames: int = 100, size: str = "640x480", fps: float = 60.0, data
     data = Path(data) if data is not None else PRIOR_DATA
     index = data / "index.csv"
     if not index.exists():
-        raise DataError(f"the tune suite needs {index} (../shared/data/mocap/prior next to the repository).")
+        raise DataError(f"the tune suite needs {index} (shared/data/mocap/prior): give bench --data DIR (the folder holding mocap/ and video/) or set FLOWMOCAP_DATA.")
     with index.open(newline="") as f:
         rows = [r for r in csv.DictReader(f) if r.get("split") == "train"]
     specs = []
@@ -236,7 +249,11 @@ def _override(spec, frames, size):
 
 
 def commit() -> str:
-    """``git rev-parse --short HEAD`` of the source tree (``+dirty`` with local changes), or ``unknown``."""
+    """``git rev-parse --short HEAD`` of the source tree (``+dirty`` with local changes), or
+    ``unknown``; ``unknown`` too for an installed package (the folder above it is no
+    flowmocap checkout, e.g. a virtual environment inside another git project)."""
+    if not ((ROOT / "pyproject.toml").is_file() and (ROOT / "src" / "flowmocap").is_dir()):
+        return "unknown"
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               timeout=10)
@@ -380,8 +397,8 @@ def run_synthetic(spec: SyntheticSpec, out_dir: Path, isolate: bool = True, prog
     d = out_dir / spec.name
     seq_dir = d / "sequence"
     if spec.motion != "builtin:walk" and not Path(spec.motion).exists():
-        raise DataError(f"mocap file {spec.motion} not found; the full suite needs ../shared/data "
-                        "next to the repository.")
+        raise DataError(f"mocap file {spec.motion} not found; the full suite needs the shared data: "
+                        "give bench --data DIR (the folder holding mocap/ and video/) or set FLOWMOCAP_DATA.")
     if not (seq_dir / "gt.npz").exists():
         log(f"[{spec.name}] synthesising {spec.frames} frames {spec.size} at {spec.fps:g} fps, "
             f"azimuth {spec.azimuth:g}")

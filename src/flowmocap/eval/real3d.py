@@ -54,6 +54,7 @@ counted as skipped.
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -73,8 +74,9 @@ __all__ = ["run_real3d", "build_reference", "detect_view_people", "associate_peo
            "consistent_joints", "scored_frames", "scored_runs", "BONES", "DATA", "VIEWS", "EVAL_NAMES"]
 
 ROOT = Path(__file__).resolve().parents[3]
-#: The Pose2Sim multi-person recording.
-DATA = ROOT.parent / "shared" / "data" / "video" / "pose2sim-multi"
+#: The Pose2Sim multi-person recording (under ``$FLOWMOCAP_DATA`` where set, else ``../shared/data``).
+DATA = Path(os.environ.get("FLOWMOCAP_DATA", "").strip() or ROOT.parent / "shared" / "data").expanduser() / "video" \
+    / "pose2sim-multi"
 VIEWS = ("cam01", "cam02", "cam03", "cam04")
 #: The 13 evaluated joints, in the order of :data:`~flowmocap.body.skeleton.EVAL_JOINTS`.
 EVAL_NAMES: tuple[str, ...] = tuple(JOINT_NAMES[j] for j in EVAL_JOINTS)
@@ -446,7 +448,8 @@ def build_reference(out_dir: str | Path, data_dir: str | Path = DATA, progress: 
     data_dir = Path(data_dir)
     if not (data_dir / "Calib.qca.txt").exists():
         raise DataError(f"the real3d recording is not in {data_dir} (Calib.qca.txt, videos/cam01.mp4 ...); "
-                        "it is part of ../shared/data next to the repository.")
+                        "it is shared/data/video/pose2sim-multi: give bench --data DIR (the folder holding mocap/ and "
+                        "video/) or set FLOWMOCAP_DATA.")
     cams = read_qualisys_calibration(data_dir / "Calib.qca.txt")
     missing = [v for v in VIEWS if v not in cams or not (data_dir / "videos" / f"{v}.mp4").exists()]
     if missing:
