@@ -430,3 +430,44 @@ def test_frames_of_numpy_or_torch_are_taken_as_numbers(seq_dir, tmp_path):
 
     with pytest.raises(NoPersonError):
         _auto_start(Nobody(), (np.int64(0), np.int64(3)), 4, tmp_path, (64, 48))
+
+
+def test_the_frame_rate_of_a_folder_is_its_meta_json_or_given_or_assumed_with_a_note(seq_dir, tmp_path, capsys):
+    # a folder without meta.json was taken as 30 fps without a word, and no option could say otherwise; a meta.json
+    # fps of 0 failed only after the whole tracking
+    import shutil
+
+    init = seq_dir.parent / "init.json"
+    bare = tmp_path / "bare"
+    shutil.copytree(seq_dir, bare)
+    (bare / "meta.json").unlink()
+    kw = {"init": init, "config": QUICK, "progress": False, "joints3d": "off"}
+    res = flowmocap.track(bare, tmp_path / "assumed", **kw)
+    assert "frame rate of" in capsys.readouterr().out and res.fps == 30.0
+    assert res.run["frame_rate"] == {"fps": 30.0, "source": "assumed"}
+    assert main(["track", str(bare), "--out", str(tmp_path / "given"), "--init", str(init), "--config",
+                 str(seq_dir.parent / "quick.json"), "--joints3d", "off", "--quiet", "--fps", "24"]) == 0
+    given = flowmocap.load_result(tmp_path / "given")
+    assert given.fps == 24.0 and given.run["frame_rate"] == {"fps": 24.0, "source": "given"}
+    assert "frame rate of" not in capsys.readouterr().out
+    # the rate is part of what a resume must match
+    with pytest.raises(InputError, match="cannot be resumed|differ"):
+        flowmocap.track(bare, tmp_path / "given", resume=True, fps=25.0, log=None, **kw)
+    own = flowmocap.track(seq_dir, tmp_path / "own", log=None, **kw)
+    assert own.run["frame_rate"] == {"fps": 30.0, "source": "meta.json"}
+    for bad in (0, -1, float("nan"), "24", True):
+        with pytest.raises(InputError, match="frames per second"):
+            flowmocap.track(bare, tmp_path / "bad", fps=bad, **kw)
+    (bare / "meta.json").write_text(json.dumps({"fps": 0}))
+    with pytest.raises(DataError, match=r"meta.json's \"fps\" must be a number of frames per second"):
+        flowmocap.track(bare, tmp_path / "bad", **kw)
+    assert not (tmp_path / "bad" / "motion.npz").exists()
+
+
+def test_a_rate_given_for_a_video_is_refused(tmp_path):
+    import imageio.v3 as iio
+
+    video = tmp_path / "v.mp4"
+    iio.imwrite(video, np.zeros((4, 48, 64, 3), np.uint8), plugin="pyav", codec="libx264", fps=25)
+    with pytest.raises(InputError, match=r"is a video, which states its own frame rate \(25 fps\)"):
+        flowmocap.track(video, tmp_path / "r", fps=30.0, progress=False, log=None)

@@ -101,6 +101,8 @@ def cmd_track(args) -> int:
                 "gender": args.gender, "flow": args.flow, "max_size": args.max_size, "reinit": not args.no_reinit,
                 "joints3d": args.joints3d, "person": args.person, "keep_flow": args.keep_flow,
                 "fast": args.fast, "height": args.height, "detector": args.detector}
+    if args.fps is not None:  # only where given: a batch's inputs otherwise keep their own rates
+        settings["fps"] = args.fps
     lists = [args.list] if args.list else []
     if not args.input and not lists:
         raise InputError("track needs an input: a video file, a folder of frames, a sequence folder, or a batch "
@@ -352,6 +354,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "flowmocap.fit.config.TrackerConfig; see docs/settings.md)")
     t.add_argument("--frames", help="A:B, the frames to track: A to B - 1 (2: from frame 2 on, :50 the first 50; default: all with the "
                    "person)")
+    t.add_argument("--fps", type=float, default=None, metavar="N",
+                   help="frames per second of a folder of frames (a video states its own): it sets every time and "
+                   "speed of the result and its exports (default: the folder's meta.json, else 30, with a note)")
     t.add_argument("--height", type=float, default=None, metavar="METRES",
                    help="the person's standing height in metres, if known (e.g. 1.78): the body is given that "
                    "height and placed at the depth that goes with it, so lengths, speeds and positions come out in "

@@ -67,7 +67,7 @@ from flowmocap.io.results import (
     write_motion,
     write_run,
 )
-from flowmocap.io.sequence import Sequence, check_max_side, load_sequence, read_image
+from flowmocap.io.sequence import DEFAULT_FPS, Sequence, check_fps, check_max_side, load_sequence, read_image
 from flowmocap.io.video import VIDEO_SUFFIXES, cut_short_words, default_camera, load_video
 from flowmocap.synth import read_camera_json
 from flowmocap.version import __version__
@@ -228,7 +228,7 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
           log: Callable[[str], None] | None = print, person: str | int | tuple = "largest",
           force: bool = False, keep_flow: bool | None = None, fast: bool = False,
           height: float | None = None, detector: str | None = None,
-          search_dir: str | Path | None = None) -> Result:
+          search_dir: str | Path | None = None, fps: float | None = None) -> Result:
     """Track the person in ``source`` and write the result folder ``out``.
 
     Args:
@@ -304,6 +304,11 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
             (:func:`~flowmocap.vision.auto.detect_sequence`; :func:`flowmocap.batch.track_people`
             gives one); the result does not depend on it. None: in ``out``, removed when the
             detection pass ends.
+        fps: frames per second of a folder of frames (a video states its own; giving one
+            for a video is refused). None: the sequence's ``meta.json`` ``fps``, else 30
+            with a note (``run.json`` ``frame_rate`` records the rate and where it came
+            from). It sets every time and speed of the result and its exports, and the
+            settings given in seconds.
 
     Returns:
         the :class:`Result`.
@@ -358,12 +363,14 @@ def track(source: str | Path, out: str | Path, init="auto", masks: str | Path | 
         check_height(height)
     if detector is not None:
         check_model(detector)
+    if fps is not None:
+        check_fps(fps, "fps (--fps)")
     _check_out(out, force, src)
     with FolderLock(out):
         try:
             return _track(src, out, init, masks, camera, config, frames, resume, progress, profile, model, gender,
                           flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast, height, detector,
-                          search_dir)
+                          search_dir, fps)
         except BaseException as e:
             _failed_before_tracking(out, e)
             if not isinstance(e, OSError):
@@ -392,7 +399,7 @@ def _failed_before_tracking(out: Path, error: BaseException) -> None:
 
 def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, progress, profile, model, gender,
            flow, max_size, reinit, joints3d, say, person, force, keep_flow, fast=False, height=None,
-           detector=None, search_dir=None) -> Result:
+           detector=None, search_dir=None, fps=None) -> Result:
     """:func:`track` with ``out`` locked."""
     choice = parse_person(person)
     for name in RESULT_FILES:  # half-written files of a run that was killed (the lock says none is running)
@@ -407,6 +414,16 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if len(seq) < 2:
         raise InputError(f"{src} holds only {len(seq)} frame; tracking needs at least 2 frames "
                          "(the flow is measured between neighbouring frames).")
+    if fps is not None and is_video:
+        raise InputError(f"{src} is a video, which states its own frame rate ({float(seq.meta.get('fps', 0)):g} fps); "
+                         "--fps is for a folder of frames.")
+    rate_source = "video" if is_video else "given" if fps is not None else "meta.json" if "fps" in seq.meta else "assumed"
+    if fps is not None:
+        seq.meta["fps"] = float(fps)
+    elif rate_source == "assumed":
+        seq.meta["fps"] = DEFAULT_FPS
+        say(f"note: the frame rate of {src} is not known: {DEFAULT_FPS:g} fps assumed (give --fps N); it sets the "
+            "times and speeds of the result and its exports")
     if is_video and seq.meta.get("cut_short"):
         say(f"warning: {src} is cut off: {cut_short_words(seq.meta['cut_short'])}; only the frames that decode are "
             "tracked (run.json 'video' 'cut_short'). If the file was cut short in a download or copy, get it again "
@@ -453,7 +470,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
                                 "joints3d": joints3d, "masks": "auto" if auto_masks else "given",
-                                **({"fast": True} if fast else {})})
+                                **({"fast": True} if fast else {}), **({"fps": float(fps)} if fps is not None else {})})
     if resume and has_result(out):
         done = _resumable(out, fingerprint)
         if done is not None:
@@ -515,6 +532,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         notes["gaps"] = [{"frames": r, "why": "no person found: held at the last seen pose" if 0 < held < r[1] - r[0] + 1
                           else "no person found: tracked by flow alone, no silhouette term"}
                          for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
+    notes["frame_rate"] = {"fps": float(seq.meta["fps"]), "source": rate_source}
     if is_video:
         notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
                                                    "scale", "focal_35mm", "timestamps") if k in seq.meta}
@@ -537,7 +555,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if detections is not None:  # the detector's joints also pull the body (E_j) and say each limb's depth (E_d)
         keypoints = lambda i: detections.smpl_joints(i) if i < len(detections) and detections.found[i] else None
         if lift:
-            watch = lifted_track(detections, mix=mix, fps=seq.meta.get("fps", 30.0))
+            watch = lifted_track(detections, mix=mix, fps=seq.meta["fps"])
         j3d = lambda i: watch.smpl_joints3d(i, cam, ray_share)
     elif joints3d == "auto" and cfg.detector_keypoints:  # own masks and init, the detector's joints of every frame too
         say(f"finding the person's joints in {len(seq)} frames (MediaPipe pose; for E_j, E_d and refits) ...")
@@ -545,7 +563,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         seen2d = watch
         if watch is not None:
             if lift:
-                watch = lifted_track(watch, mix=mix, fps=seq.meta.get("fps", 30.0))
+                watch = lifted_track(watch, mix=mix, fps=seq.meta["fps"])
             keypoints = lambda i: watch.smpl_joints(i) if i < len(watch) and watch.found[i] else None
             j3d = lambda i: watch.smpl_joints3d(i, cam, ray_share)
     elif joints3d == "auto" and cfg.uses_detector3d:
@@ -628,7 +646,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if joints3d == "off":
         j3d = None
     monitor = watch if (watch is not None and reinit) else None
-    seen = _seen_proportions(seen2d, cfg, seq.meta.get("fps", 30.0)) if isinstance(spec, InitSpec) else None
+    seen = _seen_proportions(seen2d, cfg, seq.meta["fps"]) if isinstance(spec, InitSpec) else None
     run = _run(seq, out, body, cam, spec, cfg, (a, b), resume, progress, monitor, keypoints, j3d, profile,
                {"fingerprint": fingerprint, **notes}, keep_flow, seen)
     run = _post_steps(out, watch, body, cfg, run, joints3d, say)
@@ -1117,7 +1135,7 @@ def _run_sequence(seq, out, model, camera, init, cfg, span, resume, progress, de
         "model": model.name or model.source, "model_source": model.source, "gender": model.gender,
         "camera": camera.to_dict(), "status": "running", **notes,
     }
-    fps = seq.meta.get("fps", 30.0)
+    fps = seq.meta["fps"]
     cache = FlowCache(out / "flow_cache" if keep_flow else None, method=cfg.flow_method)
     init_events: list[dict] = []
 

@@ -169,6 +169,8 @@ def _read_meta(path: Path) -> dict:
     if not isinstance(meta, dict):
         raise DataError(f"{path} must hold a JSON object but holds a {type(meta).__name__}; regenerate it "
                         "(flowmocap synth), or remove it.")
+    if "fps" in meta:  # checked here: a bad rate used to fail after the whole tracking
+        check_fps(meta["fps"], f"{path}'s \"fps\"", DataError)
     return meta
 
 
@@ -203,6 +205,24 @@ def check_images(paths: list[Path], size: tuple[int, int] | tuple[tuple[int, int
 #: The smallest long side, pixels, frames may be scaled to (``--max-size``): in a smaller frame
 #: a person is too few pixels for the detector or the flow.
 MIN_MAX_SIDE = 64
+
+#: Frames per second taken for a folder of frames that states no rate (``meta.json``
+#: ``fps``, ``track --fps``).
+DEFAULT_FPS = 30.0
+#: The highest frame rate taken (high-speed cameras film at 1000 fps).
+MAX_FPS = 10000.0
+
+
+def check_fps(value, what: str = "fps", error=InputError) -> float:
+    """``value`` as a frame rate in frames per second: a finite number in (0, :data:`MAX_FPS`].
+
+    Raises:
+        ``error`` (InputError by default): anything else, with ``what`` named.
+    """
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not ok or not (np.isfinite(value) and 0 < value <= MAX_FPS):
+        raise error(f"{what} must be a number of frames per second, more than 0 and at most {MAX_FPS:g}; got {value!r}.")
+    return float(value)
 
 
 def check_max_side(max_side) -> None:
