@@ -154,3 +154,64 @@ def test_the_ground_frames_c3d_carries_the_foot_contacts_as_gait_events(camera_f
     assert len(_read_c3d(doc)["events"]) == len(contact_events(motion.world.contacts))
     with pytest.raises(InputError, match="contacts must be"):
         write_c3d(tmp_path / "x.c3d", motion.joints(), JOINT_NAMES, motion.fps, contacts=contacts[:2])
+
+
+def _with_run(src, dst, **fields):
+    """A copy of the result folder ``src`` whose run.json holds ``fields`` too."""
+    import json
+    import shutil
+
+    shutil.copytree(src, dst)
+    run = json.loads((dst / "run.json").read_text())
+    (dst / "run.json").write_text(json.dumps({**run, **fields}))
+    return dst
+
+
+def test_frames_without_the_person_and_a_variable_rate_are_said_in_the_exports(posed_result, tmp_path, capsys):
+    # every format gave the frames without the person as measured data (C3D gait events came from them), json time_s
+    # counted from the first exported frame, and a variable-rate video's own times were not used anywhere
+    import json
+
+    folder, _ = posed_result  # frames 3..7 of the input at 25 fps
+    stamps = [0.0, 0.04, 0.08, 0.12, 0.2, 0.28, 0.36, 0.40]  # frames 4-6 shown 80 ms apart
+    vfr = _with_run(folder, tmp_path / "vfr", gaps=[{"frames": [5, 6], "why": "no person found"}],
+                    video={"fps": 20.0, "variable_frame_rate": True, "timestamps": stamps})
+    doc = json.loads(export_result(vfr, "json", tmp_path / "m.json", frame="up").read_text())
+    assert [f["time_s"] for f in doc["frames"]] == stamps[3:8]
+    assert [f["seen"] for f in doc["frames"]] == [True, True, False, False, True]
+    plain = json.loads(export_result(folder, "json", tmp_path / "p.json", frame="up").read_text())
+    assert [f["time_s"] for f in plain["frames"]] == [round(i / 25.0, 6) for i in range(3, 8)]  # the input's time
+    assert all(f["seen"] for f in plain["frames"])
+    # glb: keys at the video's own times from the first exported frame; the unseen frames named
+    pygltflib = pytest.importorskip("pygltflib")
+    glb = pygltflib.GLTF2().load(str(export_result(vfr, "glb", tmp_path / "m.glb", frame="up")))
+    acc = glb.accessors[glb.animations[0].samplers[0].input]
+    view = glb.bufferViews[acc.bufferView]
+    keys = np.frombuffer(glb.binary_blob(), np.float32, acc.count, view.byteOffset + (acc.byteOffset or 0))
+    np.testing.assert_allclose(keys, np.array(stamps[3:8]) - stamps[3], atol=1e-6)
+    assert glb.scenes[0].extras["unseen_frames"] == [5, 6]
+    # c3d: the unseen frames are gaps (invalid points), the file says its axes
+    doc = _read_c3d(export_result(vfr, "c3d", tmp_path / "m.c3d", frame="up"))
+    valid = [bool(np.all(pts[:, 3] >= 0)) for _, pts in doc["frames"]]
+    assert valid == [True, True, False, False, True]
+    import ezc3d
+
+    params = ezc3d.c3d(str(tmp_path / "m.c3d"))["parameters"]["POINT"]
+    assert (params["X_SCREEN"]["value"], params["Y_SCREEN"]["value"]) == (["+X"], ["+Z"])
+    # the command says what a one-rate format does with the video's times; json keeps them
+    assert main(["export", str(vfr), "-f", "bvh", "--out", str(tmp_path / "m.bvh"), "--quiet"]) == 0
+    assert "the video's frame rate varies; bvh holds one rate" in capsys.readouterr().out
+    assert main(["export", str(vfr), "-f", "json", "--out", str(tmp_path / "m2.json"), "--quiet"]) == 0
+    assert "frame rate varies" not in capsys.readouterr().out
+
+
+def test_c3d_events_leave_out_the_frames_without_the_person(tmp_path):
+    j = np.zeros((6, 2, 3))
+    j[..., 1] = np.arange(6)[:, None, None].repeat(2, 1)[..., 0] * 0.01
+    contacts = np.array([[1, 0], [0, 0], [1, 0], [0, 0], [1, 0], [0, 0]], bool)
+    seen = np.array([True, True, False, False, True, True])
+    doc = _read_c3d(write_c3d(tmp_path / "e.c3d", j, ["a", "b"], 10.0, contacts=contacts, seen=seen))
+    frames_of_events = sorted(round(t * 10) for _, _, t in doc["events"])
+    assert frames_of_events and not set(frames_of_events) & {2, 3}
+    with pytest.raises(InputError, match="seen must be"):
+        write_c3d(tmp_path / "f.c3d", j, ["a", "b"], 10.0, seen=np.ones(5, bool))

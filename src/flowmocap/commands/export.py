@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from flowmocap.export.marker_sets import MARKER_SETS
 
 FORMAT_HELP = {
@@ -12,8 +14,8 @@ FORMAT_HELP = {
     "json": "per-frame joints (3D, 2D), parameters and foot contacts",
     "npz": "AMASS layout (poses, trans, betas, gender, mocap_framerate; z up)",
     "trc": "marker trajectories (--markers), OpenSim's text format (metres, y up: OpenSim, Pose2Sim)",
-    "c3d": "marker trajectories (--markers), the motion-capture binary standard (millimetres, z up: "
-           "Vicon, Visual3D, Mokka)",
+    "c3d": "marker trajectories (--markers), the motion-capture binary standard (millimetres, z up; --frame "
+           "world: the result's own axes; frames without the person as gaps: Vicon, Visual3D, Mokka)",
 }
 
 
@@ -79,6 +81,19 @@ def _says_finished(folder) -> bool:
     return isinstance(run, dict) and run.get("status") == "finished" and not (folder / "progress.json").exists()
 
 
+def _rate_note(folder, fmt: str) -> str | None:
+    """:func:`~flowmocap.export.motion.variable_rate_note` for ``folder``'s ``run.json``."""
+    import json
+
+    from flowmocap.export.motion import variable_rate_note
+
+    try:
+        run = json.loads((Path(folder) / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return variable_rate_note(run, fmt) if isinstance(run, dict) else None
+
+
 def run_export(args) -> int:
     from pathlib import Path
 
@@ -97,6 +112,9 @@ def run_export(args) -> int:
     args.smooth_order = 2 if args.smooth_order is None else args.smooth_order
 
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
+        rate = _rate_note(folder, args.fmt)
+        if rate:
+            print(rate)
         if _says_finished(Path(folder)):  # the usual case: the export reads the motion itself, once
             continue
         motion, run = read_result(folder)

@@ -65,7 +65,10 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     body's standing height, sole to crown, :mod:`flowmocap.body.stature`; null for a model
     without a midline to measure), "joint_names" (24), "parents" (24), "frame" ("up" | "world"), "rotation" (3x3 applied
     to the result's world), "camera" (the result's camera, world frame), "units",
-    "frames": [{"index", "time_s", "pose" (72, radians), "trans" (3, metres),
+    "frames": [{"index" (the input's frame number), "time_s" (seconds since the input's first frame: the
+    video's own time stamps where its rate varies, else index / fps), "seen" (false where the detector found
+    no person in the frame: the pose there was carried by the flow, held or filled in; ``run.json`` ``gaps``),
+    "pose" (72, radians), "trans" (3, metres),
     "joints3d" (24 x 3, metres), "joints2d" (24 x 2, pixels of the tracked frames: the camera's), and where the result
     has them "contact" (left, right foot on the ground) and "disagreement" (24, metres,
     null outside the 13 scored joints: how far the run's 3D sources part,
@@ -85,12 +88,14 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
         tall = None
     r = lambda a, n=6: np.round(np.asarray(a, np.float64), n).tolist()  # noqa: E731
     contacts = motion.foot_contacts
+    times, seen = motion.times, motion.seen
 
     def frame(k):
         cam = motion.camera_at(k) if motion.turns is not None else None  # this frame's camera, built once
         return {
             "index": int(motion.frame_index[k]),
-            "time_s": round(float(k / motion.fps), 6),
+            "time_s": round(float(times[k]), 6),
+            "seen": bool(seen[k]),
             "pose": r(motion.poses[k]),
             "trans": r(motion.trans[k]),
             "joints3d": r(j3d[k]),
@@ -156,9 +161,16 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
         extras["floor"] = {"method": motion.world.plane.method, "contact_points": motion.world.plane.inliers}
     if motion.foot_contacts is not None:
         extras["contacts"] = motion.foot_contacts.astype(int).tolist()
+    seen = motion.seen
+    if not seen.all():  # the input's frame numbers without the person (carried by the flow, held or filled in)
+        extras["unseen_frames"] = [int(i) for i in motion.frame_index[~seen]]
+    times = None
+    if motion.variable_rate:  # the keys at the video's own times (glTF keys need not be evenly spaced)
+        times = motion.times - motion.times[0]
+        extras["variable_frame_rate"] = True
     return write_skinned_glb(path, motion.poses, motion.trans, out.rest_vertices[0].double().numpy(),
                              out.rest_joints[0].double().numpy(), motion.model.faces_np,
-                             motion.model.weights.double().numpy(), motion.fps, extras=extras)
+                             motion.model.weights.double().numpy(), motion.fps, extras=extras, times=times)
 
 
 def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = None, frame: str = "ground",
@@ -257,9 +269,9 @@ def export_result(result_dir: str | Path, fmt: str, out: str | Path | None = Non
         names, points = marker_trajectories(motion, markers)
         if fmt == "trc":
             return write_trc(out, points, names, motion.fps, first_frame=first)
-        return write_c3d(out, points, names, motion.fps, first_frame=first,
-                         up="none" if frame == "world" else "y",
-                         contacts=motion.foot_contacts)
+        # --frame world: the result's own axes as they are (a lab's calibrated world, z up, stays the lab's)
+        return write_c3d(out, points, names, motion.fps, first_frame=first, up="none" if frame == "world" else "y",
+                         contacts=motion.foot_contacts, seen=motion.seen)
     from flowmocap.io.amass import write_amass_npz
 
     if frame == "world":

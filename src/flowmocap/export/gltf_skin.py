@@ -12,7 +12,8 @@ Built with ``pygltflib``. Layout:
   renormalised (SMPL's weights have up to 6; the 4 largest carry >= 96.6 % of every
   vertex of the default body). Inverse bind matrices translate each rest joint to the
   origin (the rest pose has identity rotations).
-- animation ``motion``: ``LINEAR`` keys at ``k / fps`` seconds, one per video frame: each
+- animation ``motion``: ``LINEAR`` keys at ``k / fps`` seconds (a variable-rate video's own times
+  where given), one per video frame: each
   joint's local rotation (unit quaternion ``x, y, z, w``, kept in one hemisphere frame
   to frame) and the pelvis's translation.
 
@@ -73,7 +74,7 @@ def _quaternions(poses: np.ndarray) -> np.ndarray:
 
 def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, rest_vertices: np.ndarray,
                       rest_joints: np.ndarray, faces: np.ndarray, weights: np.ndarray, fps: float,
-                      extras: dict | None = None) -> Path:
+                      extras: dict | None = None, times: np.ndarray | None = None) -> Path:
     """Write a fitted motion as a skinned, animated ``.glb`` (see the module docstring).
 
     Args:
@@ -84,7 +85,9 @@ def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, re
         rest_joints: ``(24, 3)`` its rest-pose joints, metres.
         faces: ``(F, 3)`` triangles, counter-clockwise seen from outside.
         weights: ``(V, 24)`` skinning weights.
-        fps: frames per second (Hz) of the keys.
+        fps: frames per second (Hz) of the keys (at ``k / fps`` seconds unless ``times`` is given).
+        times: ``(T,)`` increasing seconds of the keys, e.g. a variable-rate video's own time
+            stamps from the first frame; None: ``k / fps``.
         extras: JSON-able dict stored as the scene's ``extras`` (e.g. the camera).
 
     Returns:
@@ -138,7 +141,14 @@ def write_skinned_glb(path: str | Path, poses: np.ndarray, trans: np.ndarray, re
         baseColorFactor=list(BODY_COLOUR), metallicFactor=0.0, roughnessFactor=0.8))]
     gltf.skins = [g.Skin(name="smpl24", inverseBindMatrices=ibm_acc, skeleton=1, joints=list(range(1, 25)))]
 
-    times = blob.add((np.arange(T) / fps).astype(np.float32), g.SCALAR, bounds=True, name="time")
+    if times is None:
+        key_times = np.arange(T) / fps
+    else:
+        key_times = np.asarray(times, np.float64).reshape(-1)
+        if key_times.shape != (T,) or not np.isfinite(key_times).all() or (np.diff(key_times) <= 0).any():
+            raise InputError(f"times must be ({T},) increasing finite seconds, one per frame; got shape "
+                             f"{key_times.shape}.")
+    times = blob.add(key_times.astype(np.float32), g.SCALAR, bounds=True, name="time")
     samplers, channels = [], []
     for j in range(24):
         out = blob.add(np.ascontiguousarray(quats[:, j]), g.VEC4, name=f"{JOINT_NAMES[j]}.rotation")

@@ -160,7 +160,7 @@ def _check_written_c3d(own: str, frames: int, points: int, path: Path) -> None:
 
 
 def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_frame: int = 0,
-              up: str = "y", contacts: np.ndarray | None = None) -> Path:
+              up: str = "y", contacts: np.ndarray | None = None, seen: np.ndarray | None = None) -> Path:
     """Write joint trajectories as a ``.c3d`` file (via ``ezc3d``), atomically.
 
     Args:
@@ -174,10 +174,15 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
             (written as given, e.g. a camera-frame export).
         contacts: optional ``(T, 2)`` bool, left/right foot on the floor per frame: written
             as the file's gait events (:func:`contact_events`), at ``(first_frame + k) / fps``
-            seconds, the time of the file's frame ``first_frame + k + 1``.
+            seconds, the time of the file's frame ``first_frame + k + 1``; none in unseen frames.
+        seen: optional ``(T,)`` bool, False for frames in which the person was not seen
+            (their points were not measured but carried by the flow, held or filled in):
+            written as invalid points (residual -1), the gaps a motion-capture tool fills
+            by its own means.
 
     Returns:
-        The path written. Points are in millimetres (``POINT:UNITS`` ``mm``).
+        The path written. Points are in millimetres (``POINT:UNITS`` ``mm``), the z-up axes
+        named in ``POINT:X_SCREEN`` ``+X`` and ``POINT:Y_SCREEN`` ``+Z`` (Vicon's, Mokka's).
 
     Raises:
         InputError: wrong shapes, non-finite positions or frame rate, unknown ``up``, or a
@@ -204,13 +209,24 @@ def write_c3d(path: str | Path, joints: np.ndarray, names, fps: float, first_fra
     points = np.ones((4, M, T))
     points[:3] = np.transpose(j * C3D_UNITS_PER_METRE, (2, 1, 0))
     c3d["data"]["points"] = points
+    seen = np.ones(T, bool) if seen is None else np.asarray(seen, bool)
+    if seen.shape != (T,):
+        raise InputError(f"seen must be (T,) = ({T},), one flag per frame; got {seen.shape}.")
+    if not seen.all():  # the frames without the person: invalid points (residual -1)
+        c3d["data"]["meta_points"] = {"residuals": np.where(seen, 0.0, -1.0)[None, None, :].repeat(M, 1),
+                                      "camera_masks": np.zeros((7, M, T), bool)}
     c3d["header"]["points"]["first_frame"] = int(first_frame)
     c3d.add_parameter("MANUFACTURER", "SOFTWARE", "flowmocap")
+    if up == "y":  # the axes the file's points are in, for the tools that read them (Vicon, Mokka, BTK)
+        c3d.add_parameter("POINT", "X_SCREEN", "+X")
+        c3d.add_parameter("POINT", "Y_SCREEN", "+Z")
     if contacts is not None:
         if np.shape(contacts) != (T, 2):
             raise InputError(f"contacts must be (T, 2) = ({T}, 2), one left/right pair per frame; "
                              f"got {np.shape(contacts)}.")
         for k, side, label in contact_events(contacts):
+            if not seen[k]:  # a contact of frames without the person is a guess, not an event
+                continue
             c3d.add_event([0, (int(first_frame) + k) / float(fps)], context=side, label=label,
                           description="from the fitted foot's contact with the floor (a rough estimate)")
     path = Path(path)

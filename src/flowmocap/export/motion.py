@@ -52,7 +52,7 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
-__all__ = ["FittedMotion", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
+__all__ = ["FittedMotion", "FIXED_RATE_FORMATS", "variable_rate_note", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
            "camera_turns", "camera_shifts", "camera_zooms", "zoomed_depth", "camera_height_from_feet",
            "camera_move_refused", "shared_move_refusal", "turned_camera", "FLOOR_BODY_MAX_DEG"]
 
@@ -173,6 +173,40 @@ class FittedMotion:
         """Number of frames T."""
         return int(self.poses.shape[0])
 
+    @property
+    def variable_rate(self) -> bool:
+        """Whether the input is a video whose frames are unevenly spaced in time (``run.json``
+        ``video.variable_frame_rate``, frame intervals differing by more than 10 %)."""
+        return bool((self.run.get("video") or {}).get("variable_frame_rate"))
+
+    @property
+    def times(self) -> np.ndarray:
+        """``(T,)`` float64 seconds of each row since the input's first frame: the video's own
+        time stamps where its rate varies (:attr:`variable_rate`), else ``frame_index / fps``."""
+        index = np.asarray(self.frame_index, np.int64)
+        stamps = (self.run.get("video") or {}).get("timestamps")
+        if self.variable_rate and isinstance(stamps, list) and len(index) and 0 <= index.min() \
+                and index.max() < len(stamps):
+            t = np.asarray(stamps, np.float64)[index]
+            if np.isfinite(t).all() and (np.diff(t) > 0).all():
+                return t
+        return index / float(self.fps)
+
+    @property
+    def seen(self) -> np.ndarray:
+        """``(T,)`` bool: False for the rows of frames in which the detector found no person
+        (``run.json`` ``gaps``: tracked by flow alone, held, or filled in between), True
+        elsewhere (and everywhere for a run whose masks were given)."""
+        seen = np.ones(self.num_frames, bool)
+        index = np.asarray(self.frame_index, np.int64)
+        for gap in self.run.get("gaps") or []:
+            try:
+                a, b = (int(v) for v in gap["frames"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            seen &= ~((index >= a) & (index <= b))
+        return seen
+
     def rest_joints(self) -> np.ndarray:
         """``(24, 3)`` float64 joints of the fitted shape in the rest (T-) pose, metres, y up."""
         import torch
@@ -242,6 +276,25 @@ def up_rotation(camera, body_up=None) -> np.ndarray:
     k = np.cross(up, [0.0, 1.0, 0.0])  # a unit axis: up is at right angles to y
     K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + K + K @ K  # 90 degrees about k (Rodrigues)
+
+
+#: Export formats that hold one frame rate (a variable-rate video's frames are put at its mean rate).
+FIXED_RATE_FORMATS = ("bvh", "trc", "c3d", "npz", "glb-frames", "obj")
+
+
+def variable_rate_note(run: dict, fmt: str) -> str | None:
+    """A note for an export of ``fmt`` from a result whose video's frame rate varies, where
+    the format holds one rate; None otherwise."""
+    video = run.get("video") or {}
+    if not video.get("variable_frame_rate") or fmt not in FIXED_RATE_FORMATS:
+        return None
+    stamps = np.asarray(video.get("timestamps") or [], np.float64)
+    fps = float(video.get("fps") or 0)
+    off = ""
+    if len(stamps) > 1 and fps > 0:
+        off = f", off the video's own times by up to {np.abs(stamps - np.arange(len(stamps)) / fps).max():.2f} s"
+    return (f"note: the video's frame rate varies; {fmt} holds one rate, so its frames are put at the mean "
+            f"{fps:.3g} fps{off}. The json and glb exports keep each frame's own time.")
 
 
 def _root_up(poses: np.ndarray) -> np.ndarray:
