@@ -499,3 +499,29 @@ def test_an_export_made_now_equals_one_made_later_from_the_cached_world_frame(po
     first = export_result(copy, "bvh", tmp_path / "a.bvh").read_bytes()
     assert (copy / "world.json").exists()
     assert export_result(copy, "bvh", tmp_path / "b.bvh").read_bytes() == first
+
+
+@pytest.mark.parametrize("unit, per_metre", [("m", 1.0), ("cm", 100.0)])
+def test_flowmocaps_own_bvh_of_a_small_body_is_read_back_in_its_unit(posed_result, tmp_path, unit, per_metre):
+    # a body under about 1.2 m (track --height takes 0.5-2.5) could not be read back, and in centimetres one of
+    # about 0.55 m was taken as inches, 2.54x too large
+    from flowmocap.io.mocap import read_bvh
+
+    folder, _ = posed_result
+    path = export_result(folder, "bvh", tmp_path / "m.bvh", frame="up", units_per_metre=per_metre)
+    full = read_bvh(path)
+    lines, motion, out = path.read_text().splitlines(), False, []
+    for ln in lines:  # the same file for a body 0.3 times the size
+        if ln.strip().startswith("OFFSET"):
+            head, *nums = ln.split()
+            ln = ln[:ln.index("OFFSET")] + " ".join([head] + [repr(float(v) * 0.3) for v in nums])
+        elif motion and ln and not ln.startswith("Frame"):
+            vals = ln.split()
+            ln = " ".join([repr(float(v) * 0.3) for v in vals[:3]] + vals[3:])
+        motion = motion or ln.startswith("MOTION")
+        out.append(ln)
+    small = tmp_path / "small.bvh"
+    small.write_text("\n".join(out) + "\n")
+    clip = read_bvh(small)
+    assert clip.info["unit"] == unit
+    np.testing.assert_allclose(clip.positions, 0.3 * full.positions, atol=1e-5)

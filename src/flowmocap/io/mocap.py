@@ -74,6 +74,9 @@ BVH_UNITS: dict[str, float] = {
 
 # Rest-pose heights (metres) accepted when guessing a BVH file's unit.
 _HEIGHT_RANGE = (1.1, 2.2)
+# The same for flowmocap's own BVH export, in metres or centimetres: its rest joints span
+# about 0.93 of the body's stature, which flowmocap.body.stature.STATURE_RANGE_M bounds.
+_OWN_SPAN = (0.4, 2.5)
 
 
 # ----------------------------------------------------------------------------- the clip
@@ -733,6 +736,12 @@ def _guess_bvh_unit(names, parents, offsets, up, path) -> tuple[float, str]:
         rest[j] = offsets[j] if p < 0 else rest[p] + offsets[j]
     axis = 1 if up == "y" else 2
     height = float(rest[:, axis].max() - rest[:, axis].min())
+    from flowmocap.body.skeleton import JOINT_NAMES
+
+    if set(JOINT_NAMES) <= set(names):  # flowmocap's own export (SMPL's joints): metres or centimetres, any
+        for name in ("m", "cm"):       # body --height takes (its joints span about 0.93 of the stature)
+            if _OWN_SPAN[0] <= height * BVH_UNITS[name] <= _OWN_SPAN[1]:
+                return BVH_UNITS[name], name
     for name, s in BVH_UNITS.items():
         if _HEIGHT_RANGE[0] <= height * s <= _HEIGHT_RANGE[1]:
             return s, name
