@@ -94,7 +94,7 @@ def read_model_arrays(name_or_path: str | Path = "default", gender: str = "neutr
                 raise ModelFileError(
                     f"The bundled default model file {path} is missing from the installed "
                     "package. Reinstall flowmocap, or regenerate it with "
-                    "tools/make_default_model.py (see body/data/ATTRIBUTION.md)."
+                    "tools/make_default_model.py of the source repository (see body/data/ATTRIBUTION.md)."
                 )
             data = _read_npz(path)
         return _to_arrays(data, path, gender)

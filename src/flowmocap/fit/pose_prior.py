@@ -67,7 +67,7 @@ MIRROR_JOINTS: tuple[int, ...] = tuple(
     for n in JOINT_NAMES
 )
 
-_RETRAIN = "python tools/train_pose_prior.py (see flowmocap/fit/data/README.md)"
+_RETRAIN = "python tools/train_pose_prior.py in the source repository (see flowmocap/fit/data/README.md)"
 
 
 def default_prior_path() -> Path:

@@ -125,13 +125,13 @@ def _read_keypoint_map(path: Path) -> KeypointMap:
         ears_part, ears_offset = JOINT_INDEX[ears["part"]], np.asarray(ears["offset_m"], np.float64).reshape(3)
     except FileNotFoundError as e:
         raise ModelFileError(f"keypoint offsets {path} not found; reinstall flowmocap, or make them with "
-                         "tools/learn_keypoint_offsets.py.") from e
+                         "tools/learn_keypoint_offsets.py of the source repository.") from e
     except (ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ModelFileError(f"{path} is not a keypoint-offset file (tools/learn_keypoint_offsets.py writes one): "
+        raise ModelFileError(f"{path} is not a keypoint-offset file (the source repository's tools/learn_keypoint_offsets.py writes one): "
                          f"{type(e).__name__}: {e}") from e
     if not (np.isfinite(offset).all() and np.isfinite(ears_offset).all()) or np.abs(offset).max() > 0.2:
         raise ModelFileError(f"{path}: offsets must be finite and below 0.2 m; remake the file with "
-                         "tools/learn_keypoint_offsets.py.")
+                         "tools/learn_keypoint_offsets.py of the source repository.")
     return KeypointMap(part, offset, int(ears_part), ears_offset)
 
 

@@ -305,7 +305,7 @@ class Lifter:
                 weights = {k[2:]: torch.as_tensor(z[k].astype(np.float32)) for k in z.files if k.startswith("w/")}
         except (OSError, KeyError, ValueError) as e:
             raise ModelFileError(f"{p} is not a readable lifter file ({e}); reinstall flowmocap or retrain it with "
-                                 "tools/train_lifter.py.") from e
+                                 "tools/train_lifter.py of the source repository.") from e
         if meta.get("kind") != LIFTER_KIND or meta.get("format") not in (1, LIFTER_FORMAT):
             raise ModelFileError(f"{p} is not a flowmocap keypoint lifter (kind {meta.get('kind')!r}, format "
                                  f"{meta.get('format')!r}; expected {LIFTER_KIND!r}, 1 or {LIFTER_FORMAT}).")
