@@ -162,3 +162,31 @@ def test_a_read_only_install_keeps_numba_kernels_in_a_temporary_folder(tmp_path)
 def test_python_dash_m_flowmocap_is_the_command():
     out = subprocess.run([sys.executable, "-m", "flowmocap", "--version"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip().startswith("flowmocap "), out.stderr
+
+
+def test_a_numba_cache_folder_someone_else_could_write_is_not_used(tmp_path, monkeypatch):
+    # numba loads pickled kernels from the folder: another user's, or one anyone can write, could run their code
+    import flowmocap
+
+    pkg = Path(flowmocap.__file__).parent
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if (mode & os.W_OK and (
+        str(p) == str(pkg) or str(p).startswith(str(tmp_path / "home")))) else real(p, mode, **kw))
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    shared = tmp_path / "tmp" / f"flowmocap-numba-{os.getuid()}"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)  # planted by someone else, writable by all
+    chosen = flowmocap._numba_cache_dir()
+    assert chosen != str(shared) and Path(chosen).parent == tmp_path / "tmp"
+    assert (os.stat(chosen).st_mode & 0o777) == 0o700
+    shared.rmdir()
+    (tmp_path / "elsewhere").mkdir()
+    shared.symlink_to(tmp_path / "elsewhere")  # a link to a folder of another's choosing
+    assert flowmocap._numba_cache_dir() != str(shared)
+    shared.unlink()
+    assert flowmocap._numba_cache_dir() == str(shared)  # made here: this user's, 0700
+    assert (os.stat(shared).st_mode & 0o777) == 0o700

@@ -202,6 +202,26 @@ def test_the_heavy_model_is_linked_in_a_temporary_resource_folder(tmp_path, monk
         _heavy_resources(fake)
 
 
+def test_a_resource_folder_a_killed_process_left_is_removed_by_the_next(tmp_path, monkeypatch):
+    # cleaned at exit only: a detector process ended by SIGTERM (its parent gone) left its folder behind
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    from flowmocap.vision import detect
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = tmp_path / f"flowmocap-mediapipe-{int(gone.stdout)}-abc"
+    alive = tmp_path / f"flowmocap-mediapipe-{os.getpid()}-def"
+    other = tmp_path / "flowmocap-mediapipe-notapid-x"
+    for d in (dead, alive, other):
+        (d / "mediapipe").mkdir(parents=True)
+    detect._drop_dead_resources()
+    assert not dead.exists() and alive.exists() and other.exists()
+
+
 def test_check_model_files_refuses_what_cannot_run(tmp_path, monkeypatch):
     from flowmocap.errors import InputError
     from flowmocap.vision import detect

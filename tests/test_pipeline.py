@@ -450,9 +450,11 @@ def test_the_frame_rate_of_a_folder_is_its_meta_json_or_given_or_assumed_with_a_
     given = flowmocap.load_result(tmp_path / "given")
     assert given.fps == 24.0 and given.run["frame_rate"] == {"fps": 24.0, "source": "given"}
     assert "frame rate of" not in capsys.readouterr().out
-    # the rate is part of what a resume must match
-    with pytest.raises(InputError, match="cannot be resumed|differ"):
+    # the rate is part of what a resume must match, where it changes the rate
+    with pytest.raises(InputError, match=r"joints3d, fast, fps\)"):
         flowmocap.track(bare, tmp_path / "given", resume=True, fps=25.0, log=None, **kw)
+    again = flowmocap.track(bare, tmp_path / "assumed", resume=True, fps=30.0, log=None, **kw)  # the rate it had
+    assert again.fps == 30.0 and again.run["status"] == "finished"
     own = flowmocap.track(seq_dir, tmp_path / "own", log=None, **kw)
     assert own.run["frame_rate"] == {"fps": 30.0, "source": "meta.json"}
     for bad in (0, -1, float("nan"), "24", True):

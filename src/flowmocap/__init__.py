@@ -23,15 +23,24 @@ def _numba_cache_dir() -> str | None:
     if _os.environ.get("NUMBA_CACHE_DIR") or _os.access(_os.path.dirname(__file__), _os.W_OK):
         return None
     home_cache = _os.environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
+    uid = _os.getuid() if hasattr(_os, "getuid") else None
     for folder in (_os.path.join(home_cache, "flowmocap", "numba"),
-                   _os.path.join(tempfile.gettempdir(), f"flowmocap-numba-{_os.getuid() if hasattr(_os, 'getuid') else 0}")):
+                   _os.path.join(tempfile.gettempdir(), f"flowmocap-numba-{uid if uid is not None else 0}")):
         try:
-            _os.makedirs(folder, exist_ok=True)
+            _os.makedirs(folder, mode=0o700, exist_ok=True)
+            st = _os.lstat(folder)
         except OSError:
             continue
-        if _os.access(folder, _os.W_OK):
+        # numba loads pickled kernels from it: only a real folder of this user's that no one else can write
+        import stat
+
+        if (stat.S_ISDIR(st.st_mode) and (uid is None or st.st_uid == uid) and not st.st_mode & 0o022
+                and _os.access(folder, _os.W_OK)):
             return folder
-    return None
+    try:  # a folder of this process's own; the kernels are compiled again in the next
+        return tempfile.mkdtemp(prefix="flowmocap-numba-")
+    except OSError:
+        return None
 
 
 if (_cache := _numba_cache_dir()) is not None:

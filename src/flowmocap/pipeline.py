@@ -418,10 +418,13 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
         raise InputError(f"{src} is a video, which states its own frame rate ({float(seq.meta.get('fps', 0)):g} fps); "
                          "--fps is for a folder of frames.")
     rate_source = "video" if is_video else "given" if fps is not None else "meta.json" if "fps" in seq.meta else "assumed"
+    if fps is not None and float(fps) == float(seq.meta.get("fps", DEFAULT_FPS)):
+        fps = None  # the rate the folder gives anyway: the same run, in the fingerprint too (a resume goes on)
     if fps is not None:
         seq.meta["fps"] = float(fps)
-    elif rate_source == "assumed":
+    elif "fps" not in seq.meta:
         seq.meta["fps"] = DEFAULT_FPS
+    if rate_source == "assumed":
         say(f"note: the frame rate of {src} is not known: {DEFAULT_FPS:g} fps assumed (give --fps N); it sets the "
             "times and speeds of the result and its exports")
     if is_video and seq.meta.get("cut_short"):
@@ -930,7 +933,7 @@ def _resumable(out: Path, fingerprint: dict) -> Result | None:
     if parts:
         named = {"input": "the input", "masks": "the masks", "model": "the body model", "camera": "the camera",
                  "init": "the init", "config": "the config", "options": "the options (frames, max size, profile, "
-                 "re-initialisation, joints3d)", "detector": "the detector's version", "code": "the flowmocap version"}
+                 "re-initialisation, joints3d, fast, fps)", "detector": "the detector's version", "code": "the flowmocap version"}
         names = [named.get(p, p) for p in parts]
         what = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
         raise InputError(f"cannot resume the run in {out}: {what} differ{'s' if len(parts) == 1 else ''} from the "

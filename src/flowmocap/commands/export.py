@@ -111,9 +111,11 @@ def run_export(args) -> int:
         raise InputError("--smooth-order is the degree of --smooth's polynomial; give --smooth too.")
     args.smooth_order = 2 if args.smooth_order is None else args.smooth_order
 
+    said = set()
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
         rate = _rate_note(folder, args.fmt)
-        if rate:
+        if rate and rate not in said:  # once for the people of one video
+            said.add(rate)
             print(rate)
         if _says_finished(Path(folder)):  # the usual case: the export reads the motion itself, once
             continue

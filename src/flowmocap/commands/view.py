@@ -118,7 +118,8 @@ class ViewerData:
         self.people = []
         for k, (name, m) in enumerate(zip(names, motions)):
             with tempfile.TemporaryDirectory() as tmp:
-                glb = write_motion_glb(Path(tmp) / "motion.glb", m).read_bytes()
+                # row k at k / fps, as the page steps through the rows (not a variable-rate video's own times)
+                glb = write_motion_glb(Path(tmp) / "motion.glb", m, own_times=False).read_bytes()
             where = {int(i): r for r, i in enumerate(m.frame_index)}
             self.people.append({"name": name, "motion": m, "glb": glb,
                                 "rows": [where.get(int(i), -1) for i in self.frame_index],

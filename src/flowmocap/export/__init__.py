@@ -134,12 +134,14 @@ def write_json(path: str | Path, motion: FittedMotion) -> Path:
     return path
 
 
-def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
+def write_motion_glb(path: str | Path, motion: FittedMotion, own_times: bool = True) -> Path:
     """A :class:`FittedMotion` as a skinned, animated ``.glb``
     (:func:`flowmocap.export.gltf_skin.write_skinned_glb`); the scene's ``extras`` hold the
     camera in the motion's frame, the frame's name, the input's frame numbers, where the camera
     turned, moved or zoomed its turns, moves and zooms per frame, and, in the ground frame,
-    the floor and the per-frame foot contacts."""
+    the floor and the per-frame foot contacts. ``own_times``: a variable-rate video's rows
+    keyed at its own times (else, and for any other input, row ``k`` at ``k / fps``, as the
+    viewer's page steps through them)."""
     import torch
 
     from flowmocap.export.gltf_skin import write_skinned_glb
@@ -165,7 +167,7 @@ def write_motion_glb(path: str | Path, motion: FittedMotion) -> Path:
     if not seen.all():  # the input's frame numbers without the person (carried by the flow, held or filled in)
         extras["unseen_frames"] = [int(i) for i in motion.frame_index[~seen]]
     times = None
-    if motion.variable_rate:  # the keys at the video's own times (glTF keys need not be evenly spaced)
+    if own_times and motion.variable_rate:  # the keys at the video's own times (glTF keys need not be evenly spaced)
         times = motion.times - motion.times[0]
         extras["variable_frame_rate"] = True
     return write_skinned_glb(path, motion.poses, motion.trans, out.rest_vertices[0].double().numpy(),

@@ -80,7 +80,9 @@ def write_motion_bvh(path: str | Path, poses: np.ndarray, trans: np.ndarray, res
         path: output ``.bvh`` file.
         poses, trans, rest_joints, fps: as for :func:`motion_to_clip`.
         units_per_metre: file units per metre (1 = metres, Blender's default import scale;
-            100 = centimetres).
+            100 = centimetres). A BVH states no unit: :func:`flowmocap.io.mocap.read_bvh`
+            reads flowmocap's own files back as metres or centimetres; give it ``scale``
+            for any other unit.
         order: rotation channel order (intrinsic, e.g. ``"ZYX"`` writes ``Zrotation
             Yrotation Xrotation``).
 

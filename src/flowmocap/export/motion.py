@@ -279,7 +279,7 @@ def up_rotation(camera, body_up=None) -> np.ndarray:
 
 
 #: Export formats that hold one frame rate (a variable-rate video's frames are put at its mean rate).
-FIXED_RATE_FORMATS = ("bvh", "trc", "c3d", "npz", "glb-frames", "obj")
+FIXED_RATE_FORMATS = ("bvh", "trc", "c3d", "npz", "glb-frames")  # obj holds no time: its files are numbered
 
 
 def variable_rate_note(run: dict, fmt: str) -> str | None:

@@ -72,19 +72,21 @@ def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numb
     # the way leaves the earlier export as it was, never a mix of two motions
     staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=folder.name + ".", suffix=".tmp"))
     try:
-        if folder.is_dir():  # mkdtemp makes 0700: the earlier folder's mode, else a new folder's
-            mode = folder.stat().st_mode & 0o7777
-        else:
-            umask = os.umask(0)
-            os.umask(umask)
-            mode = 0o777 & ~umask
-        os.chmod(staging, mode)
         made = []
         for verts, n in zip(tqdm(frames, total=num_frames, disable=not progress, unit="frame", desc="obj"),
                             frame_numbers):
             made.append(write_obj(staging / f"frame_{int(n):06d}.obj", verts, faces,
                                   comment=f"flowmocap frame {int(n)}, metres"))
         names = [p.name for p in made]
+        # mkdtemp makes 0700: the earlier folder's mode, else a new folder's (set once the frames are in, so a
+        # read-only earlier folder does not stop them)
+        if folder.is_dir():
+            mode = folder.stat().st_mode & 0o7777
+        else:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o777 & ~umask
+        os.chmod(staging, mode)
         if not folder.exists():
             os.rename(staging, folder)
         elif all(p.name.startswith("frame_") and p.suffix == ".obj" for p in folder.iterdir()):

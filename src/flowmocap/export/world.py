@@ -6,9 +6,10 @@ each foot per frame), labels the frames where a foot stands still
 robustly (:func:`flowmocap.geometry.ground.fit_ground_plane`) and builds a y-up frame on it
 (:func:`flowmocap.geometry.ground.ground_frame`): origin under the first frame's pelvis,
 ``+z`` towards the camera. The expected up direction before the fit is the body's own
-(mean direction from the ankles to the neck), or the camera's (image up) where the body
-lies down; with no still foot the floor goes through the lowest foot point of the
-sequence.
+(mean direction from the ankles to the neck), or the world's up
+(:func:`flowmocap.geometry.camera.world_up`: image up for a video without a calibration, a
+calibrated world's up axis) where the body lies down; with no still foot the floor goes
+through the lowest foot point of the sequence.
 
 The frame is a function of ``motion.npz`` (poses, trans, betas) and the body model;
 :func:`load_world_frame` caches it as ``RESULT/world.json`` (written atomically) with a

@@ -90,16 +90,16 @@ def look_at(
 def world_up(R: Any, body_up: Any = None) -> np.ndarray:
     """The up direction of a camera's world.
 
-    Calibrated worlds come in every convention (synthetic and :func:`look_at` worlds y
-    up, lab calibrations z up, a checkerboard on a wall y down), and one of their axes is
-    vertical. It is the one of ``±x, ±y, ±z`` that best agrees with two cues: the image's
-    up direction ``-R.T @ (0, 1, 0)`` (cameras that film people stand roughly level) and,
-    where given, the body's mean up direction (people mostly stand). The camera counts
-    1.5 times the body, so an upright body filmed from up to about 73 degrees above the
-    horizon, and a body lying down through a whole clip filmed from up to about 48
-    degrees above it, both get the right axis. ``R = I`` (the camera's own frame: a
-    video without a calibration, or a calibration whose world is its first camera) gives
-    ``-y``, the image's up.
+    Synthetic and :func:`look_at` worlds are y up, and so is a posed camera's world
+    unless nothing says so: the world is taken to be y up where the body's mean up
+    direction or the image's up direction ``-R.T @ (0, 1, 0)`` lies within 45 degrees of
+    ``+y`` (a camera rolled on its side filming a person standing, a level camera filming
+    a person lying down). Where neither does (a lab calibration, z up; a checkerboard on
+    a wall, y down), the up axis is the one of ``±x, ±y, ±z`` that the image's up and
+    the body's up best agree on, the camera counting 1.5 times the body (cameras that film
+    people stand roughly level). ``R = I`` (the camera's own frame: a video without a
+    calibration, or a calibration whose world is its first camera) gives ``-y``, the
+    image's up.
 
     Args:
         R: ``(3, 3)`` world-to-camera rotation (OpenCV axes), or a camera with an ``R``.
@@ -113,13 +113,17 @@ def world_up(R: Any, body_up: Any = None) -> np.ndarray:
     image_up = -R.T @ np.array([0.0, 1.0, 0.0])
     if np.allclose(R, np.eye(3), atol=1e-9):
         return image_up
-    axes = np.concatenate([np.eye(3), -np.eye(3)])
-    score = 1.5 * (axes @ image_up)
+    b = None
     if body_up is not None:
         b = np.asarray(body_up, np.float64).reshape(3)
         n = np.linalg.norm(b)
-        if np.isfinite(n) and n > 0:
-            score = score + axes @ (b / n)
+        b = b / n if np.isfinite(n) and n > 0 else None
+    y = np.array([0.0, 1.0, 0.0])
+    near = np.cos(np.radians(45.0))
+    if image_up @ y >= near or (b is not None and b @ y >= near):
+        return y
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    score = 1.5 * (axes @ image_up) + (axes @ b if b is not None else 0.0)
     return axes[int(np.argmax(score))].copy()
 
 

@@ -159,7 +159,8 @@ def _heavy_resources(mp_root: Path) -> Path:
     its own package folder when it is missing. flowmocap neither downloads nor writes into
     another package's folder (a read-only install refused it; an uninstalled MediaPipe
     left it behind). A graph reads its models on its own threads after it is made, so the
-    folder stays for the process.
+    folder stays for the process; one that a killed process left (its exit handlers did not
+    run) is removed by the next (:func:`_drop_dead_resources`).
 
     Args:
         mp_root: the folder that holds MediaPipe's package (``site-packages``).
@@ -175,8 +176,9 @@ def _heavy_resources(mp_root: Path) -> Path:
     import tempfile
 
     check_model_files("heavy")
+    _drop_dead_resources()
     try:
-        root = Path(tempfile.mkdtemp(prefix="flowmocap-mediapipe-"))
+        root = Path(tempfile.mkdtemp(prefix=f"flowmocap-mediapipe-{os.getpid()}-"))
     except OSError as e:
         raise InputError(f"cannot make a temporary folder for the heavy pose model ({e}); set TMPDIR to a writable "
                          "folder, or use the detector model 'full'.") from e
@@ -200,6 +202,25 @@ def _heavy_resources(mp_root: Path) -> Path:
                          "writable folder, or use the detector model 'full'.") from e
     atexit.register(shutil.rmtree, root, True)
     return root
+
+
+def _drop_dead_resources() -> None:
+    """Remove the resource folders (:func:`_heavy_resources`) that processes killed before
+    their exit handlers ran left in the temporary folder (the process id in the name is
+    gone); only this user's."""
+    import shutil
+    import tempfile
+
+    for folder in Path(tempfile.gettempdir()).glob("flowmocap-mediapipe-*-*"):
+        try:
+            pid = int(folder.name.split("-")[2])
+            if folder.is_symlink() or not folder.is_dir() or folder.stat().st_uid != os.getuid():
+                continue
+            os.kill(pid, 0)  # raises where no such process is left
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+        except (ValueError, IndexError, OSError, AttributeError):  # not ours, another user's process, no getuid
+            continue
 
 
 def _use_heavy_resources(mp) -> Path:
