@@ -515,13 +515,18 @@ def test_the_detector_process_ends_with_the_tracking_process(tmp_path):
     import sys
     import time
 
-    child = ("import os, sys, time; from flowmocap.vision import detect_worker as w; "
-             "os.environ[w.PARENT_ENV] = str(os.getppid()); w._end_with_parent(); time.sleep(60)")
-    parent = (f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', {child!r}]); "
-              "print(p.pid, flush=True); time.sleep(60)")
+    from flowmocap.vision.detect_worker import PARENT_ENV
+
+    # the parent names itself in the worker's environment as the tracker does (a worker slow to
+    # start on a loaded machine then ends at once if its parent is gone, instead of taking init
+    # for its parent), and the worker says when its death signal is set
+    child = ("import time; from flowmocap.vision import detect_worker as w; "
+             "w._end_with_parent(); print('armed', flush=True); time.sleep(60)")
+    parent = (f"import os, subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', {child!r}], "
+              f"env={{**os.environ, {PARENT_ENV!r}: str(os.getpid())}}); print(p.pid, flush=True); time.sleep(60)")
     proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
     worker = int(proc.stdout.readline())
-    time.sleep(1.5)  # the worker has set its death signal
+    assert proc.stdout.readline().strip() == "armed"  # the worker has set its death signal
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=10)
     for _ in range(50):

@@ -285,7 +285,7 @@ def test_names_are_stable_and_never_collide(tmp_path):
 def test_inputs_from_folders_and_list_files(tmp_path):
     videos = tmp_path / "videos"
     videos.mkdir()
-    for n in ("b.mp4", "a.MOV", "notes.txt"):
+    for n in ("b.mp4", "a.MOV", "c.MTS", "notes.txt"):  # .MTS: a camcorder's (a folder of them held "no videos")
         (videos / n).write_bytes(b"")
     seq = videos / "seq"
     (seq / "frames").mkdir(parents=True)
@@ -295,7 +295,7 @@ def test_inputs_from_folders_and_list_files(tmp_path):
     assert is_batch([videos]) and is_batch(["@x.txt"]) and is_batch(["a.mp4", "b.mp4"])
     assert is_batch(["a.mp4"], list_files=[listed])
     assert not is_batch([seq]) and not is_batch([videos / "b.mp4"])  # one input: --out is its result folder
-    assert expand_inputs([videos]) == [videos / "a.MOV", videos / "b.mp4", seq]
+    assert expand_inputs([videos]) == [videos / "a.MOV", videos / "b.mp4", videos / "c.MTS", seq]
     got = expand_inputs([f"@{listed}", videos / "b.mp4"], list_files=[listed])
     assert got == [tmp_path / "lists" / ".." / "videos" / "b.mp4", Path("/elsewhere/c.mp4")]  # each once
     with pytest.raises(InputError, match="list file"):

@@ -345,3 +345,32 @@ def test_visibility_quantile_map_sends_one_distribution_onto_the_other():
     # ties in the source (many exact ones) still give a strictly increasing x
     x, y = tool.quantile_map(np.minimum(source * 1.5, 1.0), target)
     assert (np.diff(x) > 0).all() and x[-1] == 1.0
+
+
+def test_overlapping_quiet_blocks_in_two_threads_put_stderr_back():
+    # each block saved and restored fd 2 on its own: interleaved in two threads, fd 2 stayed at /dev/null for good
+    import os
+    import threading
+
+    from flowmocap.vision.detect import _native_stderr_to_devnull
+
+    before = os.readlink("/proc/self/fd/2") if os.path.exists("/proc/self/fd/2") else None
+    first_in, second_in, first_may_leave = threading.Event(), threading.Event(), threading.Event()
+
+    def first():
+        with _native_stderr_to_devnull():
+            first_in.set()
+            second_in.wait(5)
+        first_may_leave.set()
+
+    t = threading.Thread(target=first)
+    t.start()
+    first_in.wait(5)
+    with _native_stderr_to_devnull():  # enters while the first is inside; leaves after it
+        second_in.set()
+        first_may_leave.wait(5)
+        if before is not None:
+            assert os.readlink("/proc/self/fd/2") == os.devnull
+    t.join()
+    if before is not None:
+        assert os.readlink("/proc/self/fd/2") == before

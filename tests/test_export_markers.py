@@ -230,3 +230,5 @@ def test_the_viewer_keys_a_variable_rate_video_as_its_page_steps_through_it(pose
     view = glb.bufferViews[acc.bufferView]
     keys = np.frombuffer(glb.binary_blob(), np.float32, acc.count, view.byteOffset + (acc.byteOffset or 0))
     np.testing.assert_allclose(keys, np.arange(T) / 25.0, atol=1e-6)
+    assert ViewerData(vfr).meta()["times"] == stamps[3:8]  # the page's label: the video's own seconds
+    assert ViewerData(folder).meta()["times"] == [round(i / 25.0, 6) for i in range(3, 8)]

@@ -383,3 +383,24 @@ def test_a_video_whose_last_packets_cannot_be_written_leaves_no_temporary_file(t
                 w.write(np.full((48, 64, 3), 40 * k, np.uint8))
             w._container = FullAtTheEnd(w._container)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_odd_frame_size_is_written_in_the_format_every_player_plays(tmp_path):
+    # 363x640 frames (a 1088x1920 phone video at --max-size 640) were written yuv444p, which QuickTime, Safari,
+    # browsers and hardware decoders do not play
+    import av
+
+    from flowmocap.viz.video import VideoWriter
+
+    ys, xs = np.mgrid[0:41, 0:63]
+    frames = [np.repeat(((xs * 3 + ys * 2 + 80 * k) % 256).astype(np.uint8)[..., None], 3, 2) for k in range(3)]
+    with VideoWriter(tmp_path / "odd.mp4", 30, quality=0) as w:
+        for f in frames:
+            w.write(f)
+    with av.open(str(tmp_path / "odd.mp4")) as c:
+        s = c.streams.video[0]
+        assert (s.codec_context.pix_fmt, s.width, s.height) == ("yuv420p", 64, 42)
+        first = next(c.decode(s)).to_ndarray(format="rgb24").astype(float)
+    # the frame's pixels where they were, and the added column and row repeat its last ones
+    assert np.abs(first[:41, :63] - frames[0]).mean() < 4 and np.abs(first[:41, :63] - frames[1]).mean() > 40
+    assert np.abs(first[:41, 63] - first[:41, 62]).mean() < 6

@@ -95,3 +95,25 @@ def test_export_of_a_damaged_result_exits_2_with_one_line(tmp_path, capsys):
     assert main(["export", str(tmp_path / "res"), "-f", "json", "-o", str(tmp_path / "m.json")]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "--force" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_umask_is_read_without_being_changed(tmp_path):
+    # os.umask(0); os.umask(old) from two threads at once could leave the process's umask at 0 for good
+    import os
+    import threading
+
+    from flowmocap.atomic import atomic_write, current_umask
+
+    old = os.umask(0o027)
+    try:
+        seen = []
+        threads = [threading.Thread(target=lambda: seen.extend(current_umask() for _ in range(200))) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert set(seen) == {0o027} and os.umask(0o027) == 0o027
+        atomic_write(tmp_path / "f.txt", lambda tmp: open(tmp, "w").write("x"))
+        assert (os.stat(tmp_path / "f.txt").st_mode & 0o777) == 0o640
+    finally:
+        os.umask(old)

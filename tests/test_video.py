@@ -86,6 +86,59 @@ def test_portrait_video_from_rotation_tag(tmp_path):
     assert white[:, 1].min() >= 48 - 16 - 1 and white[:, 0].max() <= 21
 
 
+@pytest.mark.parametrize("a, b, c, d", [(1, 0, 0, 1), (0, 1, -1, 0), (-1, 0, 0, -1), (0, -1, 1, 0),
+                                        (-1, 0, 0, 1), (1, 0, 0, -1), (0, 1, 1, 0), (0, -1, -1, 0)])
+def test_every_display_matrix_shows_the_frames_as_a_player_does(tmp_path, a, b, c, d):
+    # a mirror matrix (QuickTime's Flip Horizontal) was taken for a 180 degree turn: the clip tracked upside down
+    src = _frames(2)[0]
+    v = write_video(tmp_path / "plain.mp4", _frames(2))
+    one = 0x10000
+    tagged = _rotate_tag(v, tmp_path / "tagged.mp4", (a * one, b * one, 0, c * one, d * one, 0, 0, 0, 0x40000000))
+    seq = load_video(tagged)
+    # what a player shows: decoded pixel (x, y) at (a x + c y, b x + d y), moved to start at 0
+    h, w = src.shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w]
+    X, Y = a * xs + c * ys, b * xs + d * ys
+    X, Y = X - X.min(), Y - Y.min()
+    shown = np.zeros((Y.max() + 1, X.max() + 1, 3), np.uint8)
+    shown[Y, X] = src
+    got = seq.frame(0)
+    assert got.shape == shown.shape and seq.size == (shown.shape[1], shown.shape[0])
+    assert np.abs(got.astype(float) - shown).mean() < 6.0  # the codec's loss; a wrong turn or mirror is ~50
+    assert seq.meta["mirrored"] == (a * d - b * c < 0)
+
+
+def test_non_square_pixels_are_shown_square_as_a_player_does(tmp_path):
+    # a camcorder's anamorphic frames (stored 48 px wide, shown 64) were tracked squeezed by a square-pixel camera
+    import av
+    import cv2
+
+    src = _frames(2, w=64, h=48)
+    with av.open(str(tmp_path / "anamorphic.mp4"), "w") as c:
+        s = c.add_stream("libx264", rate=30)
+        s.width, s.height, s.pix_fmt = 48, 48, "yuv420p"
+        s.options = {"crf": "10"}
+        s.codec_context.sample_aspect_ratio = Fraction(4, 3)
+        for img in src:
+            squeezed = np.ascontiguousarray(cv2.resize(img, (48, 48), interpolation=cv2.INTER_AREA))  # 64 -> 48 wide
+            for p in s.encode(av.VideoFrame.from_ndarray(squeezed, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    seq = load_video(tmp_path / "anamorphic.mp4")
+    assert seq.size == (64, 48) and seq.meta["sample_aspect_ratio"] == pytest.approx(4 / 3)
+    white = np.argwhere(seq.frame(0)[..., 0] > 200)  # the top-left block, a third of the width as shown
+    assert abs(white[:, 1].max() + 1 - 64 / 3) <= 1.5
+
+
+def test_the_scale_of_each_axis_is_recorded(tmp_path):
+    # only the width's was: joints2d divided by it were 1.8 px off at the bottom of a 1088x1920 video
+    v = write_video(tmp_path / "p.mp4", _frames(2, w=110, h=192))
+    seq = load_video(v, max_side=64)
+    assert seq.size == (37, 64)
+    assert seq.meta["scale_xy"] == [37 / 110, 64 / 192] and seq.meta["scale"] == 37 / 110
+
+
 def test_portrait_video_without_tag(tmp_path):
     v = write_video(tmp_path / "p.mp4", _frames(3, w=48, h=96))
     seq = load_video(v)

@@ -427,6 +427,9 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
     if rate_source == "assumed":
         say(f"note: the frame rate of {src} is not known: {DEFAULT_FPS:g} fps assumed (give --fps N); it sets the "
             "times and speeds of the result and its exports")
+    if is_video and seq.meta.get("mirrored"):
+        say(f"note: {src} is shown mirrored (its display matrix, e.g. a Flip Horizontal): it is tracked as shown, so "
+            "the person's left and right are swapped in the result")
     if is_video and seq.meta.get("cut_short"):
         say(f"warning: {src} is cut off: {cut_short_words(seq.meta['cut_short'])}; only the frames that decode are "
             "tracked (run.json 'video' 'cut_short'). If the file was cut short in a download or copy, get it again "
@@ -537,14 +540,15 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                          for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
     notes["frame_rate"] = {"fps": float(seq.meta["fps"]), "source": rate_source}
     if is_video:
-        notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "decoded_size", "size",
-                                                   "scale", "focal_35mm", "timestamps") if k in seq.meta}
+        notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "mirrored", "decoded_size", "size",
+                                                   "scale", "scale_xy", "focal_35mm", "timestamps") if k in seq.meta}
         notes["video"]["max_side"] = max_size or None
         if seq.meta.get("cut_short"):
             notes["video"]["cut_short"] = seq.meta["cut_short"]
     elif seq.source_size is not None:  # a folder of frames scaled like a video's
         notes["frames_scaled"] = {"size": list(seq.size), "source_size": list(seq.source_size),
-                                  "scale": seq.meta["scale"], "max_side": max_size}
+                                  "scale": seq.meta["scale"], "scale_xy": seq.meta.get("scale_xy"),
+                                  "max_side": max_size}
 
     keypoints = j3d = None
     lift = cfg.detector3d_source != "mediapipe"  # the 3D cues from flowmocap's lifter of the 2D keypoints

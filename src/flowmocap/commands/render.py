@@ -81,6 +81,12 @@ def run_render(args) -> int:
     note = unfinished_words(args.result, scene.run, scene.num_frames)
     if note:
         print(note)
+    if "video" in paths:
+        from flowmocap.export.motion import variable_rate_note
+
+        rate = variable_rate_note(scene.run, "overlay video")
+        if rate:
+            print(rate)
     if scene.input_differs:
         print(f"note: {args.input or 'the input'} is not the input that was tracked (its content differs from the "
               "one in run.json's fingerprint); the body is drawn over it all the same")

@@ -177,7 +177,8 @@ class ViewerData:
 
     def meta(self) -> dict:
         """The page's data, per page frame (T of them, :attr:`num_frames`): ``name``, ``fps``,
-        ``num_frames``, ``frame_index`` (T: input frame numbers), ``width``, ``height``
+        ``num_frames``, ``frame_index`` (T: input frame numbers), ``times`` (T: seconds since
+        the input's first frame, a variable-rate video's own), ``width``, ``height``
         (pixels), ``gl_camera`` (:func:`gl_camera` of the camera in the ground frame),
         ``camera`` (its ``to_dict``; the first frame's where the camera turned), ``gl_cameras``
         (None, or where the camera turned during the clip each page frame's camera's
@@ -234,8 +235,12 @@ class ViewerData:
                            "unseen": self._unseen(pm, self.frame_index),
                            **self._review(pm, p["rows"])})
         marked = [p["review"] for p in people if p["review"] is not None]
+        stamps = (m.run.get("video") or {}).get("timestamps") if m.variable_rate else None
+        if not (isinstance(stamps, list) and len(stamps) > int(self.frame_index.max(initial=0))):
+            stamps = None
+        times = [round(float(stamps[i]) if stamps is not None else float(i) / m.fps, 6) for i in self.frame_index]
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
-                "frame_index": [int(i) for i in self.frame_index], "width": m.camera.width, "height": m.camera.height,
+                "frame_index": [int(i) for i in self.frame_index], "times": times, "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),
                 "gl_cameras": self._turned_cameras(), "gl_projections": self._zoomed_projections(),
                 "centre": np.concatenate(pelvis).mean(0).tolist(), "floor": floor, "floor_of": self.owner,

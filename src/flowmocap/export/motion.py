@@ -283,10 +283,11 @@ FIXED_RATE_FORMATS = ("bvh", "trc", "c3d", "npz", "glb-frames")  # obj holds no 
 
 
 def variable_rate_note(run: dict, fmt: str) -> str | None:
-    """A note for an export of ``fmt`` from a result whose video's frame rate varies, where
-    the format holds one rate; None otherwise."""
+    """A note for an export of ``fmt`` (or ``"overlay video"``: ``flowmocap render --video``)
+    from a result whose video's frame rate varies, where the format holds one rate; None
+    otherwise."""
     video = run.get("video") or {}
-    if not video.get("variable_frame_rate") or fmt not in FIXED_RATE_FORMATS:
+    if not video.get("variable_frame_rate") or fmt not in FIXED_RATE_FORMATS + ("overlay video",):
         return None
     stamps = np.asarray(video.get("timestamps") or [], np.float64)
     fps = float(video.get("fps") or 0)

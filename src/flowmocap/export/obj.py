@@ -83,9 +83,9 @@ def write_obj_sequence(folder: str | Path, frames, faces: np.ndarray, frame_numb
         if folder.is_dir():
             mode = folder.stat().st_mode & 0o7777
         else:
-            umask = os.umask(0)
-            os.umask(umask)
-            mode = 0o777 & ~umask
+            from flowmocap.atomic import current_umask
+
+            mode = 0o777 & ~current_umask()
         os.chmod(staging, mode)
         if not folder.exists():
             os.rename(staging, folder)

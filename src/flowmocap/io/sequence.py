@@ -302,6 +302,8 @@ def load_sequence(path: str | Path, masks: str | Path | None = None, max_side: i
         scaled, scale = scaled_size(size, max_side)
         if scale != 1.0:
             source_size, size = size, scaled
-            meta = {**meta, "scale": scaled[0] / source_size[0], "source_size": list(source_size), "max_side": max_side}
+            meta = {**meta, "scale": scaled[0] / source_size[0], "scale_xy": [scaled[0] / source_size[0],
+                                                                              scaled[1] / source_size[1]],
+                    "source_size": list(source_size), "max_side": max_side}
     return Sequence(root=root, frames=frames, masks=mask_paths, camera=camera, gt=gt, meta=meta, size=size,
                     source_size=source_size)

@@ -31,7 +31,8 @@ from flowmocap.io.sequence import Sequence, check_images, check_max_side, list_i
 if TYPE_CHECKING:  # torch (via the camera) only where a camera is made
     from flowmocap.geometry.camera import PinholeCamera
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mts", ".m2ts", ".ts", ".3gp", ".mpg", ".mpeg",
+                  ".wmv", ".flv")  # compared in lower case: .MTS, .MOV (camcorders, phones)
 
 #: Default focal length, as a multiple of the image's long side: 0.9 x the long side is
 #: a 58 degree field of view across it, a 32 mm lens on 35 mm film -- between the
@@ -58,6 +59,44 @@ def decode_video(path: str | Path, max_side: int | None = None) -> tuple[list[np
         return [reader.frame(i) for i in range(len(reader))], reader.info
 
 
+def _display_orientation(frame) -> tuple[int, int, int, int] | None:
+    """``(a, b, c, d)``, each -1, 0 or 1: the 2x2 part of a decoded frame's display matrix
+    (FFmpeg's: a decoded pixel ``(x, y)`` is shown at ``(a x + c y, b x + d y)`` plus a
+    shift), or None where the frame has none or it is no quarter turn or mirror."""
+    for sd in getattr(frame, "side_data", None) or ():
+        if "DISPLAYMATRIX" not in str(getattr(sd, "type", "")):
+            continue
+        try:
+            m = np.frombuffer(bytes(sd), "=i4")
+        except (TypeError, ValueError):
+            return None
+        if m.size != 9:
+            return None
+        abcd = np.array([m[0], m[1], m[3], m[4]], np.float64) / 65536.0
+        q = np.round(abcd)
+        if np.abs(abcd - q).max() > 1e-3 or abs(q[0] * q[3] - q[1] * q[2]) != 1:
+            return None
+        return tuple(int(v) for v in q)
+    return None
+
+
+def _square_width(width: int, sar: float) -> int:
+    """A stored frame's width in square pixels (its sample aspect ratio ``sar``: a pixel's
+    width over its height)."""
+    return max(1, int(round(width * sar)))
+
+
+def _oriented(img: np.ndarray, abcd: tuple[int, int, int, int]) -> np.ndarray:
+    """``img (H, W, C)`` as shown under the display matrix part ``abcd``
+    (:func:`_display_orientation`): rows and columns swapped where it swaps the axes, then
+    flipped where it reverses them."""
+    a, b, c, d = abcd
+    if a == 0:  # x' = c y, y' = b x: the shown image is the transpose, flipped
+        img = np.swapaxes(img, 0, 1)
+        return img[::-1 if b < 0 else 1, ::-1 if c < 0 else 1]
+    return img[::-1 if d < 0 else 1, ::-1 if a < 0 else 1]  # x' = a x, y' = d y
+
+
 class VideoReader:
     """Frames of a video by index, upright and optionally scaled, decoded on demand.
 
@@ -70,8 +109,12 @@ class VideoReader:
         info: ``fps`` (mean rate), ``timestamps`` (seconds from the first frame, one per
             frame), ``variable_frame_rate`` (bool: frame intervals differ by more than 10%
             of their median), ``rotation`` (degrees counter-clockwise applied from the
-            stream's display matrix), ``decoded_size`` and ``size`` (``[W, H]`` before and
-            after scaling), ``scale`` (size / decoded size), ``focal_35mm`` (35
+            stream's display matrix), ``mirrored`` (the display matrix also mirrors the
+            frames, as a player shows them: QuickTime's Flip Horizontal writes one),
+            ``sample_aspect_ratio`` (a stored pixel's width over its height; frames of
+            non-square pixels are resampled to square ones, as players show them), ``decoded_size`` and ``size`` (``[W, H]`` before and
+            after scaling), ``scale`` (width / decoded width), ``scale_xy`` (the width's and the
+            height's, which rounding to whole pixels makes differ slightly), ``focal_35mm`` (35
             mm-equivalent focal length in mm from the metadata, or None), ``metadata``
             (container and stream tags), ``cut_short`` (None, or for a file that stops
             early -- decoding fails part of the way, or fewer frames or seconds decode
@@ -101,6 +144,7 @@ class VideoReader:
         self._container = None
         self._frames = None  # the decoding generator, positioned before frame self._next
         self._next = 0
+        self._rotation, self._orient, self._sar = 0, None, 1.0  # set by _scan
         self.info, self._pts = self._scan()
         self._index = {p: i for i, p in enumerate(self._pts)} if self._pts is not None else None
 
@@ -142,6 +186,7 @@ class VideoReader:
         times: list[float] = []
         pts: list = []
         rotation = 0
+        mirrored = False
         tags: dict = {}
         rate = None
         decoded = size = (0, 0)
@@ -151,6 +196,9 @@ class VideoReader:
                 if not container.streams.video:
                     raise DataError(f"{self.path} holds no video stream; give a video file or a folder of frames.")
                 stream = container.streams.video[0]
+                sar = stream.sample_aspect_ratio or stream.codec_context.sample_aspect_ratio
+                # non-square pixels (a camcorder's 1440x1080 shown 1920x1080, DV): resampled to square ones
+                self._sar = float(sar) if sar is not None and 0.1 < float(sar) < 10 and sar != 1 else 1.0
                 tags = {**{f"container:{k}": v for k, v in container.metadata.items()},
                         **{k: v for k, v in stream.metadata.items()}}
                 rate = float(stream.average_rate) if stream.average_rate else None
@@ -163,6 +211,9 @@ class VideoReader:
                         rotation = rot if rot % 90 == 0 else 0
                         decoded = (frame.width, frame.height)
                         self._rotation = rotation
+                        self._orient = _display_orientation(frame)
+                        if self._orient is not None:
+                            mirrored = self._orient[0] * self._orient[3] - self._orient[1] * self._orient[2] < 0
                         first = self._convert(frame)
                         size = (first.shape[1], first.shape[0])
                     elif (frame.width, frame.height) != decoded:
@@ -202,10 +253,13 @@ class VideoReader:
             fps = (len(t) - 1) / t[-1]
         else:
             fps = rate or 30.0
-        upright = list(decoded) if rotation % 180 == 0 else [decoded[1], decoded[0]]
+        swapped = self._orient[0] == 0 if self._orient is not None else rotation % 180 != 0
+        shown = (_square_width(decoded[0], self._sar), decoded[1])  # the stored frame in square pixels
+        upright = [shown[1], shown[0]] if swapped else list(shown)
         info = {
             "fps": float(fps), "timestamps": t.round(6).tolist(), "variable_frame_rate": vfr,
-            "rotation": rotation, "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
+            "rotation": rotation, "mirrored": mirrored, "sample_aspect_ratio": self._sar, "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
+            "scale_xy": [size[0] / upright[0], size[1] / upright[1]],
             "focal_35mm": focal_35mm_from_tags(tags), "metadata": {k: str(v) for k, v in tags.items()},
             "cut_short": cut_short,
         }
@@ -214,7 +268,15 @@ class VideoReader:
 
     def _convert(self, frame) -> np.ndarray:
         img = frame.to_ndarray(format="rgb24")
-        if self._rotation:
+        if self._sar != 1.0:  # square pixels, as a player shows them
+            import cv2
+
+            w = _square_width(img.shape[1], self._sar)
+            img = cv2.resize(img, (w, img.shape[0]), interpolation=cv2.INTER_AREA if w < img.shape[1] else
+                             cv2.INTER_LINEAR)
+        if self._orient is not None:  # as a player shows it: the display matrix, mirror included
+            img = _oriented(img, self._orient)
+        elif self._rotation:
             img = np.rot90(img, k=(self._rotation // 90) % 4)
         size, scale = scaled_size((img.shape[1], img.shape[0]), self.max_side)
         if scale != 1.0:

@@ -240,7 +240,8 @@ async function setFrame(k) {
   const mine = ++token;
   $('slider').value = String(current);
   // the time in the input video (a result may start at a later frame)
-  label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${(meta.frame_index[current] / fps).toFixed(2)} s`;
+  const seconds = meta.times ? meta.times[current] : meta.frame_index[current] / fps;  // a variable-rate video's own
+  label.textContent = `frame ${meta.frame_index[current]} (${current + 1}/${T}) ${seconds.toFixed(2)} s`;
   // who was not seen in this frame: held at the last seen pose, or tracked by flow alone
   const unseen = meta.people.map((person) => (person.unseen ? person.unseen[current] : ''));
   unseen.forEach((how, k) => {

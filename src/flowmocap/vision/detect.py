@@ -252,17 +252,33 @@ def _make_pose(mp, model: str, **options):
 
 @contextlib.contextmanager
 def _native_stderr_to_devnull():
-    """File descriptor 2 points at ``/dev/null`` inside the block (C-level writes included)."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    devnull = os.open(os.devnull, os.O_WRONLY)
+    """File descriptor 2 points at ``/dev/null`` inside the block (C-level writes included).
+    Blocks that overlap in several threads (two detectors at once) share one redirect, and
+    the last to leave puts fd 2 back (each saving and restoring fd 2 on its own could leave
+    it at ``/dev/null`` for good)."""
+    with _QUIET_LOCK:
+        if not _QUIET:
+            sys.stderr.flush()
+            saved = os.dup(2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+            _QUIET.extend([saved, 0])
+        _QUIET[1] += 1
     try:
-        os.dup2(devnull, 2)
         yield
     finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
+        with _QUIET_LOCK:
+            _QUIET[1] -= 1
+            if _QUIET[1] == 0:
+                saved = _QUIET[0]
+                _QUIET.clear()
+                os.dup2(saved, 2)
+                os.close(saved)
+
+
+_QUIET_LOCK = threading.Lock()
+_QUIET: list = []  # [fd 2 as it was, blocks inside] while fd 2 points at /dev/null
 
 
 @dataclass

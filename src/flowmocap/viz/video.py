@@ -23,8 +23,10 @@ CONTAINERS = {".mp4": "mp4", ".m4v": "mp4", ".mov": "mov", ".mkv": "matroska", "
 class VideoWriter:
     """An H.264 ``.mp4`` written one RGB frame at a time; use as a context manager.
 
-    Even frame sizes use ``yuv420p`` (plays everywhere); odd ones ``yuv444p`` so the
-    video keeps the exact size of its frames.
+    Frames are written as ``yuv420p`` (it plays everywhere; ``yuv444p``, which an odd size
+    would need, does not play in QuickTime, Safari, most browsers or hardware decoders):
+    a frame of odd width or height gets its last column or row repeated once, so the
+    video is at most one pixel wider and taller than its frames, their pixels where they were.
 
     Args:
         path: output file.
@@ -65,6 +67,8 @@ class VideoWriter:
         if f.ndim != 3 or f.shape[2] != 3:
             raise InputError(f"video frames must be (H, W, 3) RGB, got {f.shape}.")
         h, w = f.shape[:2]
+        if w % 2 or h % 2:  # yuv420p needs even sizes: the last column or row once more
+            f = np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
         if self._container is None:
             if self.path.is_dir():
                 raise InputError(f"{self.path} is a folder; give the path of the video file to write.")
@@ -78,8 +82,8 @@ class VideoWriter:
                 raise DataError(f"cannot write video {self.path} ({e}).") from None
             rate = Fraction(self.fps).limit_denominator(1001)
             s = self._container.add_stream("libx264", rate=rate)
-            s.width, s.height = w, h
-            s.pix_fmt = "yuv420p" if w % 2 == 0 and h % 2 == 0 else "yuv444p"
+            s.width, s.height = f.shape[1], f.shape[0]
+            s.pix_fmt = "yuv420p"
             s.options = {"crf": str(self.quality)}
             self._stream = s
             self.size = (w, h)
@@ -101,9 +105,9 @@ class VideoWriter:
                 self._container.mux(packet)
             self._container.close()
         self._container = None
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self._tmp, 0o666 & ~umask)  # mkstemp makes 0600
+        from flowmocap.atomic import current_umask
+
+        os.chmod(self._tmp, 0o666 & ~current_umask())  # mkstemp makes 0600
         os.replace(self._tmp, self.path)
         self._tmp = None
 
