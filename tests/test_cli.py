@@ -146,12 +146,15 @@ def test_a_read_only_install_keeps_numba_kernels_in_a_temporary_folder(tmp_path)
     import flowmocap
 
     pkg = str(Path(flowmocap.__file__).parent)
+    env = {**os.environ, "TMPDIR": str(tmp_path)}  # its folder in this test's, not the machine's /tmp
     out = subprocess.run([sys.executable, "-c", _READ_ONLY_INSTALL, pkg, str(tmp_path / "home")],
-                         capture_output=True, text=True, timeout=120)
+                         capture_output=True, text=True, timeout=120, env=env)
     assert out.returncode == 0, out.stderr
     env_dir, config_dir = out.stdout.split()
-    assert env_dir == config_dir and env_dir.startswith(tempfile.gettempdir()) and "flowmocap-numba" in env_dir
+    assert env_dir == config_dir and env_dir.startswith(str(tmp_path)) and "flowmocap-numba" in env_dir
     assert os.access(env_dir, os.W_OK)
+    if not os.access(pkg, os.W_OK):  # installed read-only: the choice above is this install's own
+        return
     # a writable package folder leaves numba's own choice alone
     plain = subprocess.run([sys.executable, "-c", "import os, flowmocap; print(os.environ.get('NUMBA_CACHE_DIR'))"],
                            capture_output=True, text=True, timeout=120,

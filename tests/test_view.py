@@ -339,7 +339,6 @@ def test_page_draws_every_person_in_their_colour_where_the_camera_sees_them(peop
     shot = tmp_path / "shot.png"
     _chromium_run(page, f"--screenshot={shot}")
     img = iio.imread(shot)[..., :3].astype(np.int16)
-    shutil.copy(shot, Path(tempfile.gettempdir()) / "flowmocap_view_people.png")  # to look at when it fails
     cam = data.motion.camera
     masks = []
     for p in data.people:
