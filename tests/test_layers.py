@@ -13,7 +13,7 @@ from pathlib import Path
 SRC = Path(__file__).resolve().parents[1] / "src"
 #: Top to bottom; a module imports only from its own layer and the layers above it.
 LAYERS = ("errors", "version", "atomic", "memory", "geometry", "body", "render", "vision", "fit", "io", "export", "synth",
-          "pipeline", "batch", "eval", "viz", "commands", "cli")
+          "pipeline", "batch", "eval", "viz", "commands", "cli", "__main__")  # __main__: python -m flowmocap
 
 
 def _modules() -> dict[str, Path]:

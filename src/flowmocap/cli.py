@@ -205,12 +205,12 @@ def _export_all(result: str | Path, formats: list[str], quiet: bool, markers: st
     the trc and c3d files with the ``markers`` set. A format that fails does not stop the
     others; then the first failure's kind of error (an ``OSError``: ``OutputError``) says that
     the result is finished and which formats to export again."""
-    from flowmocap.commands.export import _rate_note
+    from flowmocap.commands.export import rate_note
     from flowmocap.export import export_result
 
     failed: list[tuple[str, BaseException]] = []
     for fmt in formats:
-        rate = _rate_note(result, fmt)
+        rate = rate_note(result, fmt)
         if rate:
             print(rate)
         try:

@@ -81,7 +81,7 @@ def _says_finished(folder) -> bool:
     return isinstance(run, dict) and run.get("status") == "finished" and not (folder / "progress.json").exists()
 
 
-def _rate_note(folder, fmt: str) -> str | None:
+def rate_note(folder, fmt: str) -> str | None:
     """:func:`~flowmocap.export.motion.variable_rate_note` for ``folder``'s ``run.json``."""
     import json
 
@@ -113,7 +113,7 @@ def run_export(args) -> int:
 
     said = set()
     for _, folder in people_results(args.result) or [("", args.result)]:  # say first what is not finished
-        rate = _rate_note(folder, args.fmt)
+        rate = rate_note(folder, args.fmt)
         if rate and rate not in said:  # once for the people of one video
             said.add(rate)
             print(rate)
