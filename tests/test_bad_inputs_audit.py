@@ -525,10 +525,13 @@ def test_the_detector_process_ends_with_the_tracking_process(tmp_path):
     parent = (f"import os, subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', {child!r}], "
               f"env={{**os.environ, {PARENT_ENV!r}: str(os.getpid())}}); print(p.pid, flush=True); time.sleep(60)")
     proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
-    worker = int(proc.stdout.readline())
-    assert proc.stdout.readline().strip() == "armed"  # the worker has set its death signal
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=10)
+    try:  # the pid and "armed" (the worker has set its death signal), in whichever order they come
+        lines = {proc.stdout.readline().strip(), proc.stdout.readline().strip()}
+        assert "armed" in lines, lines
+        worker = int((lines - {"armed"}).pop())
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
     for _ in range(50):
         try:
             os.kill(worker, 0)

@@ -388,3 +388,27 @@ def test_an_init_in_the_videos_own_pixels_says_the_frames_are_scaled(tmp_path):
     with pytest.raises(InputError, match=r"outside the 80x48 image \(frames scaled by --max-size; pass --max-size 0 "
                                          r"to keep the video's size\)$"):
         track(v, tmp_path / "out", init=init, masks=masks, max_size=80, joints3d="off", log=None, progress=False)
+
+
+def test_a_mirrored_video_is_said_and_a_result_tracked_otherwise_is_noted(tmp_path):
+    from flowmocap.io.results import decoded_otherwise_words
+    from flowmocap.pipeline import track
+
+    v = write_video(tmp_path / "plain.mp4", _frames(3))
+    mirrored = _rotate_tag(v, tmp_path / "mirrored.mp4", (-0x10000, 0, 0, 0, 0x10000, 0, 0, 0, 0x40000000))
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    import cv2
+
+    for i in range(3):
+        cv2.imwrite(str(masks / f"{i:06d}.png"), np.zeros((48, 64), np.uint8))
+    said = []
+    with pytest.raises(NoPersonError):  # empty masks are refused after the note
+        track(mirrored, tmp_path / "r", masks=masks, log=said.append, progress=False)
+    assert any("is shown mirrored" in m and "left and right are swapped" in m for m in said), said
+    # a result an older flowmocap tracked on the unmirrored frames: render and view say so
+    meta = load_video(mirrored).meta
+    old_run = {"video": {"rotation": -180}}
+    assert "tracked on frames shown unmirrored" in decoded_otherwise_words(old_run, meta, mirrored)
+    assert decoded_otherwise_words({"video": {"mirrored": True, "sample_aspect_ratio": 1.0}}, meta, mirrored) is None
+    assert decoded_otherwise_words({}, meta, mirrored) is None  # a folder of frames' result

@@ -123,8 +123,8 @@ class Result:
     @property
     def joints2d(self) -> np.ndarray:
         """``(T, 24, 2)`` projected joints, pixels of the tracked frames (:attr:`camera`'s: a
-        video scaled by ``max_size`` was tracked at that size: divide by ``input.json``'s
-        ``video.scale`` for the video's own pixels)."""
+        video scaled by ``max_size`` was tracked at that size: divide x and y by ``input.json``'s
+        ``video.scale_xy`` for the video's own pixels, as shown)."""
         return self.motion["joints2d"]
 
     @property
@@ -471,12 +471,17 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
             raise InputError(f"{str(e).rstrip('.')} (frames scaled by --max-size; pass --max-size 0 to keep the "
                              "video's size)") from None
         a, b = _init_span(frames, spec, len(seq))
+    # how a video's frames are shown, where it is not as plain pixels: part of the fingerprint and of the
+    # caches' key (flowmocap before 2026-12 decoded mirrored and non-square-pixel videos otherwise)
+    decoded = {k: seq.meta[k] for k in ("mirrored", "sample_aspect_ratio")
+               if k in seq.meta and seq.meta[k] not in (False, 1.0)} if is_video else {}
     uses_detector = auto_masks or auto_init or (joints3d == "auto" and (cfg.uses_detector3d or cfg.detector_keypoints))
     fingerprint = _fingerprint(src, user_masks, body, cam, init, spec, cfg, choice, uses_detector,
                                {"frames": frames if frames is None or isinstance(frames, str) else list(frames),
                                 "max_size": max_size or None, "profile": profile, "reinit": bool(reinit),
                                 "joints3d": joints3d, "masks": "auto" if auto_masks else "given",
-                                **({"fast": True} if fast else {}), **({"fps": float(fps)} if fps is not None else {})})
+                                **({"fast": True} if fast else {}), **({"fps": float(fps)} if fps is not None else {}),
+                                **({"decoded": decoded} if decoded else {})})
     if resume and has_result(out):
         done = _resumable(out, fingerprint)
         if done is not None:
@@ -497,7 +502,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                         "fingerprint": fingerprint})
     say(f"settings: profile '{profile}' ({why})" + (", fast" if fast else "") + (f", then {config}" if isinstance(config, (str, Path)) else
                                                     ", then the given overrides" if config else ""))
-    cache_key = digest_value([fingerprint["input"], list(seq.size)])
+    cache_key = digest_value([fingerprint["input"], list(seq.size)] + ([decoded] if decoded else []))
     _fresh_cache(out / "detections", cache_key, say)
     _fresh_cache(out / "flow_cache", cache_key, say)
     if uses_detector:  # before the pass: a pass that is stopped goes on from its stored stretches
@@ -508,8 +513,8 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
 
     detections = None
     if choice[0] == "point":  # the user's pixel is in the original frames; the detector sees the scaled ones
-        scale = float(seq.meta.get("scale", 1.0))
-        choice = ("point", (choice[1][0] * scale, choice[1][1] * scale))
+        sx, sy = seq.meta.get("scale_xy") or [float(seq.meta.get("scale", 1.0))] * 2
+        choice = ("point", (choice[1][0] * sx, choice[1][1] * sy))
     if auto_masks or auto_init:  # the detections also drive re-initialisation
         say(f"finding the person in {len(seq)} frames (MediaPipe pose; stored in {out / 'detections'}) ...")
         # --fast: MediaPipe without the mask augmentation (its three extra runs a frame); the
@@ -540,7 +545,7 @@ def _track(src: Path, out: Path, init, masks, camera, config, frames, resume, pr
                          for r in frame_runs([i for i in range(a, b) if not detections.found[i]])]
     notes["frame_rate"] = {"fps": float(seq.meta["fps"]), "source": rate_source}
     if is_video:
-        notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "mirrored", "decoded_size", "size",
+        notes["video"] = {k: seq.meta[k] for k in ("fps", "variable_frame_rate", "rotation", "mirrored", "sample_aspect_ratio", "stored_size", "decoded_size", "size",
                                                    "scale", "scale_xy", "focal_35mm", "timestamps") if k in seq.meta}
         notes["video"]["max_side"] = max_size or None
         if seq.meta.get("cut_short"):

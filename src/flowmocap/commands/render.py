@@ -18,7 +18,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", help="folder for outputs given without a path (default RESULT/render)")
     p.add_argument("--video", nargs="?", const="", metavar="MP4",
                    help="the fitted body over the input video (H.264 MP4 at the tracked frames' size, after any "
-                   "--max-size; one frame for each of the result's)")
+                   "--max-size, one pixel more where that is odd; one frame for each of the result's)")
     p.add_argument("--side", action="store_true", help="add a side view to the video: the body as it moves in the world (the "
                    "camera's own turns, zoom and moves undone), from a camera orbited 90 degrees about the "
                    "middle of its path, far enough back to keep it in view")
@@ -87,6 +87,8 @@ def run_render(args) -> int:
         rate = variable_rate_note(scene.run, "overlay video")
         if rate:
             print(rate)
+    if scene.decoded_otherwise:
+        print(scene.decoded_otherwise)
     if scene.input_differs:
         print(f"note: {args.input or 'the input'} is not the input that was tracked (its content differs from the "
               "one in run.json's fingerprint); the body is drawn over it all the same")
@@ -173,6 +175,11 @@ def _render_people(args, wanted: dict) -> int:
             if k != owner and fit.scale is not None:
                 scenes[k].motion = scaled_about_camera(scenes[k].motion, fit.scale)
     path.parent.mkdir(parents=True, exist_ok=True)
+    from flowmocap.export.motion import variable_rate_note
+
+    for note in dict.fromkeys([variable_rate_note(scenes[0].run, "overlay video"), scenes[0].decoded_otherwise]):
+        if note:
+            print(note)
     people_overlay_video(scenes, path, names=names, alpha=args.alpha, progress=not args.quiet)
     first = min(int(sc.motion.frame_index.min()) for sc in scenes)
     last = max(int(sc.motion.frame_index.max()) for sc in scenes)

@@ -161,6 +161,11 @@ class ViewerData:
             if tuple(seq.size) == (cam.width, cam.height) and len(seq) > int(self.frame_index.max()):
                 from flowmocap.io.fingerprint import digest_input
 
+                from flowmocap.io.results import decoded_otherwise_words
+
+                otherwise = decoded_otherwise_words(self.motion.run, getattr(seq, "meta", {}) or {}, p)
+                if otherwise:
+                    self.notes.append(otherwise)
                 recorded_digest = (self.motion.run.get("fingerprint") or {}).get("input")
                 if recorded_digest and digest_input(p) != recorded_digest:
                     self.notes.append(f"note: {p} is not the input that was tracked (its content differs from the one "

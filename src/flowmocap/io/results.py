@@ -294,6 +294,24 @@ def is_result_folder(out_dir: str | Path) -> bool:
     return isinstance(run, dict) and "flowmocap" in run
 
 
+def decoded_otherwise_words(run: dict, meta: dict, source) -> str | None:
+    """A note where this flowmocap shows a video's frames otherwise than the run that made
+    the result did (``run.json`` ``video`` against the reader's ``meta``: a mirroring display
+    matrix or non-square pixels, which flowmocap before 2026-12 did not apply); None where
+    they agree or ``source`` is no video."""
+    video = run.get("video")
+    if not isinstance(video, dict) or "mirrored" not in meta:
+        return None
+    was = (bool(video.get("mirrored", False)), float(video.get("sample_aspect_ratio", 1.0) or 1.0))
+    now = (bool(meta.get("mirrored", False)), float(meta.get("sample_aspect_ratio", 1.0) or 1.0))
+    if was == now:
+        return None
+    return (f"note: {source}'s frames are now shown {'mirrored' if now[0] else 'unmirrored'} with pixels "
+            f"{now[1]:.3g} wide, but the result was tracked on frames shown {'mirrored' if was[0] else 'unmirrored'} "
+            f"with pixels {was[1]:.3g} wide (an older flowmocap): the body is drawn over frames it was not tracked "
+            "on; track the input again with --force")
+
+
 def unfinished_words(out_dir: str | Path, run: dict, frames: int) -> str | None:
     """What a reader of a result (``export``, ``render``, ``view``) should say when its run
     has not finished, or None when it has.

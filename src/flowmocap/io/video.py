@@ -112,9 +112,12 @@ class VideoReader:
             stream's display matrix), ``mirrored`` (the display matrix also mirrors the
             frames, as a player shows them: QuickTime's Flip Horizontal writes one),
             ``sample_aspect_ratio`` (a stored pixel's width over its height; frames of
-            non-square pixels are resampled to square ones, as players show them), ``decoded_size`` and ``size`` (``[W, H]`` before and
-            after scaling), ``scale`` (width / decoded width), ``scale_xy`` (the width's and the
-            height's, which rounding to whole pixels makes differ slightly), ``focal_35mm`` (35
+            non-square pixels are resampled to square ones, as players show them),
+            ``stored_size`` (``[W, H]`` of the frames as the file stores them),
+            ``decoded_size`` and ``size`` (``[W, H]`` as shown, upright and in square
+            pixels, before and after scaling), ``scale`` (width / decoded width),
+            ``scale_xy`` (the width's and the height's, which rounding to whole pixels
+            makes differ slightly), ``focal_35mm`` (35
             mm-equivalent focal length in mm from the metadata, or None), ``metadata``
             (container and stream tags), ``cut_short`` (None, or for a file that stops
             early -- decoding fails part of the way, or fewer frames or seconds decode
@@ -258,7 +261,8 @@ class VideoReader:
         upright = [shown[1], shown[0]] if swapped else list(shown)
         info = {
             "fps": float(fps), "timestamps": t.round(6).tolist(), "variable_frame_rate": vfr,
-            "rotation": rotation, "mirrored": mirrored, "sample_aspect_ratio": self._sar, "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
+            "rotation": rotation, "mirrored": mirrored, "sample_aspect_ratio": self._sar, "stored_size": list(decoded),
+            "decoded_size": upright, "size": list(size), "scale": size[0] / upright[0],
             "scale_xy": [size[0] / upright[0], size[1] / upright[1]],
             "focal_35mm": focal_35mm_from_tags(tags), "metadata": {k: str(v) for k, v in tags.items()},
             "cut_short": cut_short,

@@ -77,6 +77,10 @@ class ResultScene:
         #: the overlay is then drawn on other frames of the same size and length
         self.input_differs = self._differs(source)
         self.seq = _open_input(source, self.camera)
+        from flowmocap.io.results import decoded_otherwise_words
+
+        #: a note where the input's frames are now shown otherwise than when tracked (mirrored, pixel aspect)
+        self.decoded_otherwise = decoded_otherwise_words(self.run, getattr(self.seq, "meta", {}) or {}, source)
         if tuple(self.seq.size) != (self.camera.width, self.camera.height):
             raise DataError(f"the input frames are {self.seq.size[0]}x{self.seq.size[1]} but the result's camera "
                             f"is {self.camera.width}x{self.camera.height}; pass the input that was tracked.")
