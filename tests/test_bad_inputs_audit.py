@@ -737,3 +737,28 @@ def test_a_child_whose_parent_is_gone_ends_at_once():
     code = "from flowmocap.vision.detect_worker import end_with_parent; end_with_parent(1); print('still here')"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 130 and "still here" not in done.stdout
+
+
+def test_a_detector_process_sent_sigterm_runs_its_exit_handlers(tmp_path):
+    # SIGTERM (its parent gone, a service manager) ended it without exit handlers: the heavy model's temporary
+    # resource folder stayed behind
+    import pickle
+    import signal
+    import subprocess
+    import sys
+
+    job = tmp_path / "job.pkl"
+    job.write_bytes(pickle.dumps({}))
+    mark = tmp_path / "exited.txt"
+    code = ("import atexit, sys, time; import flowmocap.vision.auto as auto; "
+            f"atexit.register(lambda: open({str(mark)!r}, 'w').write('ran')); "
+            "auto.run_chunk = lambda task: (print('ready', flush=True), time.sleep(60)); "
+            f"from flowmocap.vision import detect_worker as w; sys.exit(w.main([{str(job)!r}]))")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 143
+    finally:
+        proc.kill()
+    assert mark.read_text() == "ran"

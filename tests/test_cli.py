@@ -193,3 +193,26 @@ def test_a_numba_cache_folder_someone_else_could_write_is_not_used(tmp_path, mon
     shared.unlink()
     assert flowmocap._numba_cache_dir() == str(shared)  # made here: this user's, 0700
     assert (os.stat(shared).st_mode & 0o777) == 0o700
+
+
+def test_a_home_that_cannot_be_written_gets_matplotlib_a_folder_of_its_own(tmp_path, monkeypatch):
+    # matplotlib warned on every run ("mkdir -p failed ... set the MPLCONFIGDIR") with a read-only home
+    import flowmocap
+
+    home = tmp_path / "home"
+    home.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if (mode & os.W_OK and str(p).startswith(
+        str(home))) else real(p, mode, **kw))
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
+    monkeypatch.delenv("MPLCONFIGDIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    chosen = flowmocap._matplotlib_config_dir()
+    assert chosen == str(tmp_path / "tmp" / f"flowmocap-matplotlib-{os.getuid()}")
+    assert (os.stat(chosen).st_mode & 0o777) == 0o700
+    monkeypatch.setattr(os, "access", real)
+    assert flowmocap._matplotlib_config_dir() is None  # a writable home: matplotlib's own
+    monkeypatch.setenv("MPLCONFIGDIR", str(tmp_path / "mine"))
+    assert flowmocap._matplotlib_config_dir() is None

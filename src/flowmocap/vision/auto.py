@@ -594,7 +594,17 @@ def _run_detector_process(task: dict, folder: Path, a: int, b: int) -> None:
                                         + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env["FLOWMOCAP_DETECT_PARENT"] = str(os.getpid())  # detect_worker.PARENT_ENV: it ends when this process does
     try:
-        rc = subprocess.run([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env).returncode
+        proc = subprocess.Popen([sys.executable, "-m", "flowmocap.vision.detect_worker", str(job)], env=env)
+        try:
+            rc = proc.wait()
+        except BaseException:  # Ctrl-C, SIGTERM: asked to end first, so its exit handlers run; killed if it hangs
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            raise
     finally:
         job.unlink(missing_ok=True)
     kept = (f"the frames before {a} are kept in {folder}: run again (--resume) to go on from frame {a}" if a > 0

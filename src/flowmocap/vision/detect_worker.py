@@ -25,7 +25,12 @@ def main(argv: list[str]) -> int:
     from flowmocap.errors import FlowMocapError
     from flowmocap.vision.auto import WRITE_FAILED, run_chunk
 
+    import signal
+
     job = Path(argv[0])
+    # SIGTERM (sent when the tracking process is gone, or by a service manager) as an exit, so the exit
+    # handlers run (the heavy model's temporary resource folder is removed by one)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     _end_with_parent()
     _native_logs_to_devnull()
     try:
