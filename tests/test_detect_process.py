@@ -329,7 +329,10 @@ def test_a_full_disk_in_the_detector_process_is_an_output_error_not_a_crash(tmp_
     def full(task):
         raise OSError(27, "File too large", str(tmp_path / "chunks" / "000000.npz"))
 
+    import signal
+
     monkeypatch.setattr(auto, "run_chunk", full)
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # main's SIGTERM handler stays out of pytest's process
     monkeypatch.setattr(detect_worker, "_end_with_parent", lambda: None)
     monkeypatch.setattr(detect_worker, "_native_logs_to_devnull", lambda: None)
     job = tmp_path / "task-000000.pkl"
@@ -339,16 +342,19 @@ def test_a_full_disk_in_the_detector_process_is_an_output_error_not_a_crash(tmp_
     assert said["type"] == "OutputError" and "File too large" in said["message"]
 
     def process(rc, message=None):  # what the parent sees of a worker that ended so
-        def run(cmd, env=None):
-            if message is not None:
-                (tmp_path / "w" / "task-000000.error.json").write_text(json.dumps(message))
-            return subprocess.CompletedProcess(cmd, rc)
-        return run
+        class Ended:
+            def __init__(self, cmd, env=None):
+                if message is not None:
+                    (tmp_path / "w" / "task-000000.error.json").write_text(json.dumps(message))
 
-    monkeypatch.setattr(subprocess, "run", process(5, said))
+            def wait(self, timeout=None):
+                return rc
+        return Ended
+
+    monkeypatch.setattr(subprocess, "Popen", process(5, said))
     with pytest.raises(OutputError, match=r"File too large.*free space .*run again \(--resume\) to start it again"):
         auto._run_detector_process({}, tmp_path / "w", 0, 8)
-    monkeypatch.setattr(subprocess, "run", process(5))  # the disk too full even for the error's file
+    monkeypatch.setattr(subprocess, "Popen", process(5))  # the disk too full even for the error's file
     with pytest.raises(OutputError, match=r"frames 8-15 could not write .*free space, then the frames before 8 are "
                                           r"kept"):
         auto._run_detector_process({}, tmp_path / "w", 8, 16)
