@@ -240,10 +240,9 @@ class ViewerData:
                            "unseen": self._unseen(pm, self.frame_index),
                            **self._review(pm, p["rows"])})
         marked = [p["review"] for p in people if p["review"] is not None]
-        stamps = (m.run.get("video") or {}).get("timestamps") if m.variable_rate else None
-        if not (isinstance(stamps, list) and len(stamps) > int(self.frame_index.max(initial=0))):
-            stamps = None
-        times = [round(float(stamps[i]) if stamps is not None else float(i) / m.fps, 6) for i in self.frame_index]
+        from flowmocap.export.motion import input_times
+
+        times = np.round(input_times(m.run, self.frame_index, m.fps), 6).tolist()
         return {"name": self.result_dir.name, "fps": m.fps, "num_frames": self.num_frames,
                 "frame_index": [int(i) for i in self.frame_index], "times": times, "width": m.camera.width, "height": m.camera.height,
                 "gl_camera": gl_camera(m.camera), "camera": m.camera.to_dict(),

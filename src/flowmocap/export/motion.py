@@ -52,7 +52,7 @@ import numpy as np
 from flowmocap.errors import DataError, InputError
 from flowmocap.io.smpl_motion import rotate_motion
 
-__all__ = ["FittedMotion", "FIXED_RATE_FORMATS", "variable_rate_note", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
+__all__ = ["FittedMotion", "FIXED_RATE_FORMATS", "variable_rate_note", "input_times", "load_fitted_motion", "motion_in_frame_of", "up_rotation", "rotate_motion", "FRAMES",
            "camera_turns", "camera_shifts", "camera_zooms", "zoomed_depth", "camera_height_from_feet",
            "camera_move_refused", "shared_move_refusal", "turned_camera", "FLOOR_BODY_MAX_DEG"]
 
@@ -183,14 +183,7 @@ class FittedMotion:
     def times(self) -> np.ndarray:
         """``(T,)`` float64 seconds of each row since the input's first frame: the video's own
         time stamps where its rate varies (:attr:`variable_rate`), else ``frame_index / fps``."""
-        index = np.asarray(self.frame_index, np.int64)
-        stamps = (self.run.get("video") or {}).get("timestamps")
-        if self.variable_rate and isinstance(stamps, list) and len(index) and 0 <= index.min() \
-                and index.max() < len(stamps):
-            t = np.asarray(stamps, np.float64)[index]
-            if np.isfinite(t).all() and (np.diff(t) > 0).all():
-                return t
-        return index / float(self.fps)
+        return input_times(self.run, self.frame_index, self.fps)
 
     @property
     def seen(self) -> np.ndarray:
@@ -276,6 +269,21 @@ def up_rotation(camera, body_up=None) -> np.ndarray:
     k = np.cross(up, [0.0, 1.0, 0.0])  # a unit axis: up is at right angles to y
     K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + K + K @ K  # 90 degrees about k (Rodrigues)
+
+
+def input_times(run: dict, frame_index, fps: float) -> np.ndarray:
+    """``(N,)`` float64 seconds since the input's first frame of the input frames
+    ``frame_index`` (``(N,)`` ints): a variable-rate video's own time stamps (``run.json``
+    ``video``), else ``frame_index / fps``."""
+    index = np.asarray(frame_index, np.int64).reshape(-1)
+    video = run.get("video") or {}
+    stamps = video.get("timestamps")
+    if video.get("variable_frame_rate") and isinstance(stamps, list) and len(index) and 0 <= index.min() \
+            and index.max() < len(stamps):
+        t = np.asarray(stamps, np.float64)[index]
+        if np.isfinite(t).all() and (np.diff(t) > 0).all():
+            return t
+    return index / float(fps)
 
 
 #: Export formats that hold one frame rate (a variable-rate video's frames are put at its mean rate).
